@@ -1,0 +1,22 @@
+"""estim: nonlinear state and parameter estimation on one model definition.
+
+>>> import estim
+>>> sc = estim.scenarios.batch_reactor()
+>>> log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+>>> float(estim.rmse(log)) > 0.1   # the EKF from the bad guess converges wrongly
+True
+"""
+
+from estim import models, scenarios
+from estim.estimators import EKF, UKF, Estimator, StepInfo
+from estim.log import Log
+from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
+from estim.model import Model
+from estim.scenarios import Scenario
+from estim.simulate import simulate
+
+__all__ = [
+    "EKF", "UKF", "Estimator", "Log", "Model", "RMSE", "Scenario", "StepInfo", "chi2_bounds",
+    "convergence_time", "errors", "models", "nees", "nis", "rmse", "scenarios", "simulate",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,165 @@
+"""The protocol every estimator follows, and the information it reports.
+
+An estimator is built once from a :class:`~estim.Model` and tuning
+(``Q, R, x0, P0`` as covariances), then fed one measurement at a time:
+
+>>> x_hat = est.step(y, u)          # doctest: +SKIP
+
+``step`` takes the measurement :math:`y_k` and the input :math:`u_{k-1}`
+that acted since the previous measurement (ignored on the first call) and
+returns the filtered estimate :math:`\\hat x_{k|k}`. NaN entries of ``y``
+mark outputs not measured at this sample. What the estimator knows after a
+step is in ``est.info`` (a frozen :class:`StepInfo`).
+
+Subclasses implement :meth:`Estimator._step` (the mathematics) and, where they
+hold more state, :meth:`Estimator._reset`; the base class owns argument
+checking, timing and bookkeeping.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estim._validate import as_covariance, as_vector
+from estim.model import Model
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What an estimator reports after one step.
+
+    Attributes
+    ----------
+    status : str
+        ``"ok"`` or a short description of what went wrong
+        (``"failed: ..."``); a failed step still returns an estimate.
+    success : bool
+        False when the step could not do its update and fell back.
+    iterations : int
+        Solver iterations (0 for recursive filters).
+    solve_time : float
+        Wall time of the step in seconds.
+    P : (nx, nx) array or None
+        Error covariance of the returned estimate, where the method has one.
+    cost : float
+        Optimal cost for optimisation-based estimators (NaN otherwise).
+    innovation : (ny,) array or None
+        Measurement residual before the update (0 for missing outputs).
+    nis : float
+        Normalised innovation squared :math:`e^\\top S^{-1} e` (NaN if none).
+    extra : dict
+        Method-specific data (window trajectory, multipliers, ...).
+    """
+
+    status: str = "ok"
+    success: bool = True
+    iterations: int = 0
+    solve_time: float = 0.0
+    P: np.ndarray | None = None
+    cost: float = float("nan")
+    innovation: np.ndarray | None = None
+    nis: float = float("nan")
+    extra: dict = field(default_factory=dict)
+
+
+class Estimator:
+    """Base class: tuning, argument checks and the ``step``/``reset`` protocol.
+
+    Parameters
+    ----------
+    model : Model
+        The system.
+    Q : float, (nx,) or (nx, nx)
+        Process-noise covariance (positive semi-definite).
+    R : float, (ny,) or (ny, ny)
+        Measurement-noise covariance (positive definite).
+    x0 : (nx,) array
+        Initial guess :math:`\\bar x_0` (the prior mean of the first state).
+    P0 : float, (nx,) or (nx, nx), optional
+        Covariance of the initial guess (positive definite).
+    """
+
+    #: Short name used by the command line and comparison tables.
+    name = "estimator"
+    _requires_P0 = True
+
+    def __init__(self, model: Model, *, Q, R, x0, P0=None):
+        if not isinstance(model, Model):
+            raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
+        self.model = model
+        self.Q = as_covariance(Q, model.nx, "Q", definite=False)
+        self.R = as_covariance(R, model.ny, "R", definite=True)
+        self.x0 = as_vector(x0, model.nx, "x0")
+        if P0 is None and self._requires_P0:
+            raise ValueError(f"P0 is required by {type(self).__name__}")
+        self.P0 = None if P0 is None else as_covariance(P0, model.nx, "P0", definite=True)
+        self._first = True
+        self._k = 0
+        self._info = StepInfo()
+        self._u_zero = np.zeros(model.nu)
+
+    # -------------------------------------------------------------- protocol
+    def step(self, y, u=None) -> np.ndarray:
+        """Process measurement ``y`` (ny,) after input ``u`` (nu,); return x̂ (nx,)."""
+        y = self._check_y(y)
+        u = self._check_u(u)
+        t0 = time.perf_counter()
+        x_hat, info = self._step(y, u, self._first)
+        elapsed = time.perf_counter() - t0
+        self._info = info if info.solve_time else _with_time(info, elapsed)
+        self._first = False
+        self._k += 1
+        return x_hat
+
+    def reset(self, x0=None, P0=None) -> None:
+        """Forget all data; optionally replace the initial guess and its covariance."""
+        if x0 is not None:
+            self.x0 = as_vector(x0, self.model.nx, "x0")
+        if P0 is not None:
+            self.P0 = as_covariance(P0, self.model.nx, "P0", definite=True)
+        self._first = True
+        self._k = 0
+        self._info = StepInfo()
+        self._reset()
+
+    @property
+    def info(self) -> StepInfo:
+        """What the last :meth:`step` reported."""
+        return self._info
+
+    # ----------------------------------------------------------- subclasses
+    def _step(self, y: np.ndarray, u: np.ndarray, first: bool) -> tuple[np.ndarray, StepInfo]:
+        raise NotImplementedError
+
+    def _reset(self) -> None:
+        """Reset method-specific state (called by :meth:`reset`)."""
+
+    # -------------------------------------------------------------- helpers
+    def _check_y(self, y) -> np.ndarray:
+        ny = self.model.ny
+        if type(y) is np.ndarray and y.shape == (ny,) and y.dtype == np.float64:
+            if np.isinf(y).any():
+                raise ValueError(f"y must not contain inf, got {y}")
+            return y
+        return as_vector(y, ny, "y", allow_nan=True)
+
+    def _check_u(self, u) -> np.ndarray:
+        nu = self.model.nu
+        if u is None:
+            return self._u_zero
+        if type(u) is np.ndarray and u.shape == (nu,) and u.dtype == np.float64:
+            if not np.isfinite(u).all():
+                raise ValueError(f"u must be finite, got {u}")
+            return u
+        return as_vector(u, nu, "u")
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.model.name}, nx={self.model.nx})"
+
+
+def _with_time(info: StepInfo, elapsed: float) -> StepInfo:
+    return StepInfo(info.status, info.success, info.iterations, elapsed, info.P, info.cost,
+                    info.innovation, info.nis, info.extra)

@@ -1,0 +1,176 @@
+"""Time-major record of one simulation run."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+#: Fields :func:`estim.simulate` fills, with their per-sample shape names.
+FIELDS = ("t", "x", "y", "u", "x_hat", "P", "solve_time", "status", "iterations", "success",
+          "nis", "cost")
+
+
+class Log:
+    """Arrays of one run, time first and never squeezed.
+
+    Fields written by :func:`estim.simulate`: ``t (T,)``, ``x (T, nx)``,
+    ``y (T, ny)`` (NaN where not measured), ``u (T, nu)`` (the input applied
+    after sample k), ``x_hat (T, nx)``, ``P (T, nx, nx)`` (NaN where the
+    estimator has no covariance), ``solve_time (T,)`` in seconds,
+    ``status (T,)`` strings, ``iterations (T,)``, ``success (T,)``,
+    ``nis (T,)`` and ``cost (T,)``.
+
+    A ``Log`` is also the course-style logger: ``log("x", value)`` appends a
+    sample to the named series, and ``log.x`` returns it stacked as an array
+    of shape ``(T, ...)``.
+
+    Parameters
+    ----------
+    state_names, output_names, input_names : list of str, optional
+        Labels used by :meth:`plot` and the exports.
+    dt : float, optional
+        Sample time.
+    estimator : str
+        Name of the estimator that produced the estimates.
+    output_state : dict, optional
+        ``{output index: state index}`` for outputs that measure a state
+        directly (drawn on that state's axes by :meth:`plot`).
+    """
+
+    def __init__(self, state_names: Sequence[str] | None = None,
+                 output_names: Sequence[str] | None = None,
+                 input_names: Sequence[str] | None = None, dt: float | None = None,
+                 estimator: str = "", output_state: dict | None = None, model_name: str = ""):
+        self.state_names = list(state_names or [])
+        self.output_names = list(output_names or [])
+        self.input_names = list(input_names or [])
+        self.dt = dt
+        self.estimator = estimator
+        self.model_name = model_name
+        self.output_state = dict(output_state or {})
+        self._series: dict[str, list] = {}
+        self._arrays: dict[str, np.ndarray] = {}
+
+    # ----------------------------------------------------------- recording
+    def __call__(self, key: str, value) -> None:
+        """Append ``value`` to the series ``key``."""
+        if not isinstance(key, str) or not key.isidentifier():
+            raise ValueError(f"key must be an identifier string, got {key!r}")
+        if key in self._arrays:
+            self._series[key] = list(self._arrays.pop(key))
+        self._series.setdefault(key, []).append(np.array(value, copy=True))
+        self.__dict__.pop("_cache_" + key, None)
+
+    def set(self, key: str, array: np.ndarray) -> None:
+        """Store a whole time-major array under ``key``."""
+        self._series.pop(key, None)
+        self._arrays[key] = np.asarray(array)
+
+    def __getattr__(self, key: str):
+        if key.startswith("_"):
+            raise AttributeError(key)
+        arrays = self.__dict__.get("_arrays", {})
+        if key in arrays:
+            return arrays[key]
+        series = self.__dict__.get("_series", {})
+        if key in series:
+            cached = self.__dict__.get("_cache_" + key)
+            if cached is None:
+                cached = np.stack(series[key]) if series[key] else np.empty(0)
+                self.__dict__["_cache_" + key] = cached
+            return cached
+        raise AttributeError(f"Log has no series {key!r}; it has {self.keys()}")
+
+    def keys(self) -> list[str]:
+        """Names of the recorded series."""
+        return list(self._arrays) + [k for k in self._series if k not in self._arrays]
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._arrays or key in self._series
+
+    def __len__(self) -> int:
+        for key in ("t", "x", "x_hat", "y"):
+            if key in self:
+                return len(getattr(self, key))
+        return 0
+
+    # ------------------------------------------------------------- exports
+    def to_pandas(self):
+        """One row a sample: ``t``, ``x:<name>``, ``x_hat:<name>``, ``y:<name>``, ``u:<name>``, ...
+
+        Requires pandas (``pip install estim[data]``).
+        """
+        try:
+            import pandas as pd
+        except ImportError as exc:  # pragma: no cover - depends on the environment
+            raise ImportError("to_pandas needs pandas: pip install 'estim[data]'") from exc
+        cols: dict[str, np.ndarray] = {}
+        for key in self.keys():
+            arr = getattr(self, key)
+            if arr.ndim == 1:
+                cols[key] = arr
+            elif arr.ndim == 2:
+                names = self._labels(key, arr.shape[1])
+                for j, n in enumerate(names):
+                    cols[f"{key}:{n}"] = arr[:, j]
+        frame = pd.DataFrame(cols)
+        return frame.set_index("t") if "t" in frame else frame
+
+    def to_xarray(self):
+        """An ``xarray.Dataset`` with dimensions ``time``, ``state``, ``output``, ``input``."""
+        try:
+            import xarray as xr
+        except ImportError as exc:  # pragma: no cover - depends on the environment
+            raise ImportError("to_xarray needs xarray: pip install xarray") from exc
+        dims = {"x": ("time", "state"), "x_hat": ("time", "state"), "y": ("time", "output"),
+                "u": ("time", "input"), "P": ("time", "state", "state_")}
+        data = {}
+        for key in self.keys():
+            if key == "t":
+                continue
+            arr = getattr(self, key)
+            data[key] = (dims.get(key, ("time",) + tuple(f"{key}_{i}" for i in
+                                                          range(arr.ndim - 1))), arr)
+        coords = {"time": self.t if "t" in self else np.arange(len(self))}
+        if self.state_names:
+            coords["state"] = self.state_names
+            coords["state_"] = self.state_names
+        if self.output_names:
+            coords["output"] = self.output_names
+        if self.input_names:
+            coords["input"] = self.input_names
+        return xr.Dataset(data, coords=coords)
+
+    def _labels(self, key: str, n: int) -> list[str]:
+        names = {"x": self.state_names, "x_hat": self.state_names, "y": self.output_names,
+                 "u": self.input_names}.get(key, [])
+        return names if len(names) == n else [str(i) for i in range(n)]
+
+    # ---------------------------------------------------------------- plot
+    def plot(self, path=None, states: Sequence[str] | None = None, sigma: bool = True):
+        """Truth vs estimate per state, with the measurement where it is a state.
+
+        Parameters
+        ----------
+        path : str or Path, optional
+            Write the figure there (PNG by extension).
+        states : list of str, optional
+            Which states to draw (default all).
+        sigma : bool
+            Shade :math:`\\pm 2\\sigma` around the estimate where ``P`` exists.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from estim.plotting import plot_log
+
+        return plot_log(self, path=path, states=states, sigma=sigma)
+
+    def __repr__(self) -> str:
+        fields = ", ".join(f"{k} {getattr(self, k).shape}" for k in self.keys()
+                           if getattr(self, k).ndim > 1 or k == "t")
+        who = f" {self.estimator}" if self.estimator else ""
+        on = f" on {self.model_name}" if self.model_name else ""
+        return f"<Log{who}{on}: T={len(self)}; {fields}>"

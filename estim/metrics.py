@@ -1,0 +1,125 @@
+r"""Accuracy and consistency measures on a :class:`~estim.Log`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy import stats
+
+
+class RMSE(float):
+    """Root-mean-square error: a float (over all selected states) with ``per_state``.
+
+    ``float(r)`` is :math:`\\sqrt{\\frac{1}{T' n}\\sum_{k,i} (\\hat x_{k,i} - x_{k,i})^2}`
+    over the samples after burn-in and the selected states; ``r.per_state``
+    maps each state name to its own RMSE.
+    """
+
+    per_state: dict[str, float]
+
+    def __new__(cls, value: float, per_state: dict[str, float]):
+        obj = super().__new__(cls, value)
+        obj.per_state = per_state
+        return obj
+
+    def __repr__(self) -> str:
+        parts = ", ".join(f"{k}={v:.4g}" for k, v in self.per_state.items())
+        return f"RMSE({float(self):.4g}; {parts})"
+
+    def __reduce__(self):
+        return (RMSE, (float(self), self.per_state))
+
+
+def _select(log, burn_in: int, states: Sequence[str] | None):
+    if not isinstance(burn_in, int | np.integer) or burn_in < 0:
+        raise ValueError(f"burn_in must be a non-negative integer, got {burn_in!r}")
+    if burn_in >= len(log):
+        raise ValueError(f"burn_in ({burn_in}) must be shorter than the log ({len(log)} samples)")
+    names = log.state_names or [f"x{i + 1}" for i in range(log.x.shape[1])]
+    if states is None:
+        idx = list(range(len(names)))
+    else:
+        unknown = [s for s in states if s not in names]
+        if unknown:
+            raise ValueError(f"states {unknown} are not in the log; states are {names}")
+        idx = [names.index(s) for s in states]
+    return idx, names
+
+
+def errors(log, burn_in: int = 0) -> np.ndarray:
+    """Estimation error :math:`\\hat x_k - x_k`, shape ``(T - burn_in, nx)``."""
+    _select(log, burn_in, None)
+    return log.x_hat[burn_in:] - log.x[burn_in:]
+
+
+def rmse(log, burn_in: int = 0, states: Sequence[str] | None = None) -> RMSE:
+    """RMSE of the estimate against the truth, overall and per state.
+
+    Parameters
+    ----------
+    log : Log
+        Needs ``x`` and ``x_hat``.
+    burn_in : int
+        Samples to skip at the start.
+    states : list of str, optional
+        States to include (default all).
+    """
+    idx, names = _select(log, burn_in, states)
+    err = (log.x_hat[burn_in:] - log.x[burn_in:])[:, idx]
+    per = {names[j]: float(np.sqrt(np.mean(err[:, i] ** 2))) for i, j in enumerate(idx)}
+    return RMSE(float(np.sqrt(np.mean(err**2))), per)
+
+
+def nees(log, burn_in: int = 0) -> np.ndarray:
+    r"""Normalised estimation error squared per sample, :math:`e_k^\top P_k^{-1} e_k`, (T',).
+
+    NaN where the estimator reported no covariance. For a consistent filter
+    its expectation is :math:`n_x`.
+    """
+    _select(log, burn_in, None)
+    err = log.x_hat[burn_in:] - log.x[burn_in:]
+    P = log.P[burn_in:]
+    out = np.full(len(err), np.nan)
+    ok = np.isfinite(P).all(axis=(1, 2))
+    if ok.any():
+        sol = np.linalg.solve(P[ok], err[ok][..., None])[..., 0]
+        out[ok] = np.einsum("ki,ki->k", err[ok], sol)
+    return out
+
+
+def nis(log, burn_in: int = 0) -> np.ndarray:
+    r"""Normalised innovation squared per sample, :math:`e_k^\top S_k^{-1} e_k`, (T',)."""
+    _select(log, burn_in, None)
+    return np.asarray(log.nis[burn_in:], dtype=float)
+
+
+def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
+    r"""Two-sided interval for the mean of ``n`` independent :math:`\chi^2_{dof}` samples.
+
+    A consistent filter's average NEES (dof = nx) or NIS (dof = ny) over
+    ``n`` samples or runs should fall inside with the given confidence
+    (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4).
+    """
+    alpha = 1.0 - confidence
+    lo = stats.chi2.ppf(alpha / 2, dof * n) / n
+    hi = stats.chi2.ppf(1 - alpha / 2, dof * n) / n
+    return float(lo), float(hi)
+
+
+def convergence_time(log, tol: float, states: Sequence[str] | None = None,
+                     relative: bool = False) -> float:
+    """First time after which every selected error stays within ``tol`` (inf if never).
+
+    With ``relative=True`` the tolerance is relative to ``|x|``.
+    """
+    idx, _ = _select(log, 0, states)
+    err = np.abs(log.x_hat[:, idx] - log.x[:, idx])
+    if relative:
+        err = err / np.maximum(np.abs(log.x[:, idx]), 1e-300)
+    bad = np.flatnonzero((err > tol).any(axis=1))
+    if len(bad) == 0:
+        return float(log.t[0])
+    if bad[-1] == len(err) - 1:
+        return float("inf")
+    return float(log.t[bad[-1] + 1])

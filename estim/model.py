@@ -1,0 +1,411 @@
+r"""The :class:`Model`: a system's equations, written once.
+
+A model is either continuous,
+
+.. math:: \dot x = f(x, u; p), \qquad y = h(x, u; p),
+
+discretised over one sample ``dt`` by a fixed-step integrator (RK4 by
+default) with the input held constant (zero-order hold), or discrete,
+
+.. math:: x_{k+1} = F(x_k, u_k; p), \qquad y_k = h(x_k, u_k; p).
+
+The equations are CasADi expressions built once at construction. Every
+estimator, the simulator and the observability analysis use the resulting
+CasADi Functions and their algorithmic-differentiation Jacobians.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+
+import casadi as ca
+import numpy as np
+
+from estim._fast import FastFunction
+from estim._validate import as_bounds, as_names, as_vector
+
+Equation = Callable[[ca.SX, ca.SX, Mapping[str, ca.SX]], object]
+
+INTEGRATORS = ("rk4", "euler", "cvodes")
+
+
+def _as_column(expr, size: int, argname: str) -> ca.SX:
+    """Turn what a user equation returned into a ``(size, 1)`` expression."""
+    if isinstance(expr, list | tuple):
+        expr = ca.vertcat(*expr)
+    elif isinstance(expr, np.ndarray):
+        expr = ca.SX(expr) if expr.dtype != object else ca.vertcat(*expr.ravel().tolist())
+    elif isinstance(expr, int | float):
+        expr = ca.SX(expr)
+    if not isinstance(expr, ca.SX | ca.MX | ca.DM):
+        raise TypeError(
+            f"{argname} must return a CasADi expression or a list of them, "
+            f"got {type(expr).__name__}"
+        )
+    if expr.shape == (1, size) and size > 1:
+        expr = expr.T
+    if expr.shape != (size, 1):
+        raise ValueError(f"{argname} must return {size} entries (a ({size}, 1) column), "
+                         f"got shape {expr.shape}")
+    return ca.SX(expr) if isinstance(expr, ca.DM) else expr
+
+
+def rk4_step(f: Callable, x, u, p, h: float, substeps: int = 1):
+    r"""Classic fourth-order Runge-Kutta over ``substeps`` steps of size ``h / substeps``.
+
+    .. math::
+        k_1 = f(x), k_2 = f(x + \tfrac{h}{2} k_1), k_3 = f(x + \tfrac{h}{2} k_2),
+        k_4 = f(x + h k_3), \quad x^+ = x + \tfrac{h}{6}(k_1 + 2k_2 + 2k_3 + k_4)
+    """
+    dt = h / substeps
+    for _ in range(substeps):
+        k1 = f(x, u, p)
+        k2 = f(x + dt / 2 * k1, u, p)
+        k3 = f(x + dt / 2 * k2, u, p)
+        k4 = f(x + dt * k3, u, p)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def euler_step(f: Callable, x, u, p, h: float, substeps: int = 1):
+    r"""Explicit Euler, :math:`x^+ = x + h f(x, u)`, over ``substeps`` steps."""
+    dt = h / substeps
+    for _ in range(substeps):
+        x = x + dt * f(x, u, p)
+    return x
+
+
+class Model:
+    r"""A dynamical system with outputs, parameters and state bounds.
+
+    Parameters
+    ----------
+    states : list of str or int
+        State names (or their number, giving ``x1, x2, ...``).
+    outputs : list of str or int
+        Output names (or their number).
+    ode : callable ``f(x, u, p)``, optional
+        Continuous right-hand side :math:`\dot x = f(x, u; p)`. ``x`` is a
+        ``(nx, 1)`` CasADi column, ``u`` a ``(nu, 1)`` column, ``p`` a dict
+        mapping each parameter name to a CasADi symbol. Return a column or a
+        list of ``nx`` expressions. Exactly one of ``ode``/``dynamics``.
+    dynamics : callable ``F(x, u, p)``, optional
+        Discrete map :math:`x_{k+1} = F(x_k, u_k; p)`.
+    output : callable ``h(x, u, p)``
+        Output map returning ``ny`` expressions.
+    dt : float
+        Sample time. Required for ``ode``; defaults to 1 for ``dynamics``.
+    inputs : list of str or int, optional
+        Input names (or their number). Inputs are held over each sample.
+    params : dict, optional
+        Parameter names and nominal values. Inside the equations they are
+        symbols, so :meth:`augment` can turn them into states and
+        :meth:`with_params` can change them without rebuilding.
+    integrator : {"rk4", "euler", "cvodes"}
+        Discretisation of ``ode``: fixed-step RK4 (default), explicit Euler,
+        or CasADi's adaptive CVODES (SUNDIALS) with tolerances 1e-10.
+    substeps : int
+        Fixed integrator steps per sample (rk4/euler).
+    lower, upper : float, sequence or dict, optional
+        State bounds (``-inf``/``inf`` where absent), used by MHE/FIE
+        constraints, the clipped EKF and plant clipping.
+    name : str
+        Label for reprs and plots.
+
+    Attributes
+    ----------
+    nx, nu, ny : int
+        Dimensions.
+    state_names, output_names, input_names, param_names : list of str
+    p : (np,) array
+        Current parameter values in ``param_names`` order.
+    F, H : casadi.Function
+        ``F(x, u, p) -> x_next`` and ``H(x, u, p) -> y``.
+    F_x, H_x : casadi.Function
+        Their Jacobians with respect to ``x`` (by algorithmic differentiation).
+    f_c : casadi.Function or None
+        The continuous right-hand side ``f(x, u, p)`` for continuous models.
+
+    Examples
+    --------
+    >>> import casadi as ca, estim
+    >>> vdp = estim.Model(
+    ...     states=["x1", "x2"], outputs=["y1", "y2"],
+    ...     ode=lambda x, u, p: ca.vertcat(x[1], p["mu"] * (1 - x[0]**2) * x[1] - x[0]),
+    ...     output=lambda x, u, p: x, params={"mu": 1.0}, dt=0.1)
+    >>> vdp.f([1.0, 0.0]).round(4)
+    array([ 0.9951, -0.0973])
+    """
+
+    def __init__(
+        self,
+        states: Sequence[str] | int,
+        outputs: Sequence[str] | int,
+        *,
+        ode: Equation | None = None,
+        dynamics: Equation | None = None,
+        output: Equation | None = None,
+        dt: float | None = None,
+        inputs: Sequence[str] | int | None = None,
+        params: Mapping[str, float] | None = None,
+        integrator: str = "rk4",
+        substeps: int = 1,
+        lower=None,
+        upper=None,
+        name: str = "model",
+    ):
+        self.state_names = as_names(states, "states", "x")
+        self.output_names = as_names(outputs, "outputs", "y")
+        self.input_names = as_names(inputs, "inputs", "u")
+        if not self.state_names:
+            raise ValueError("states must name at least one state")
+        if (ode is None) == (dynamics is None):
+            raise ValueError("give exactly one of ode= (continuous) or dynamics= (discrete)")
+        for argname, fn in (("ode", ode), ("dynamics", dynamics), ("output", output)):
+            if fn is not None and not callable(fn):
+                raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
+        if output is None:
+            raise ValueError("output= is required: a callable h(x, u, p)")
+        if integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+        if not isinstance(substeps, int | np.integer) or substeps < 1:
+            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        if dt is None:
+            if ode is not None:
+                raise ValueError("dt is required for a continuous model (ode=)")
+            dt = 1.0
+        if not isinstance(dt, int | float | np.floating) or not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt must be a positive number, got {dt!r}")
+        params = dict(params or {})
+        for key, val in params.items():
+            if not isinstance(key, str):
+                raise TypeError(f"params keys must be strings, got {key!r}")
+            if not isinstance(val, int | float | np.floating | np.integer) or not np.isfinite(val):
+                raise ValueError(f"params[{key!r}] must be a finite number, got {val!r}")
+        clash = set(params) & set(self.state_names)
+        if clash:
+            raise ValueError(f"params and states share names {sorted(clash)}")
+
+        self.name = name
+        self.dt = float(dt)
+        self.integrator = integrator
+        self.substeps = int(substeps)
+        self.param_names = list(params)
+        self.p = np.array([float(v) for v in params.values()])
+        self.lower = as_bounds(lower, self.state_names, "lower", -np.inf)
+        self.upper = as_bounds(upper, self.state_names, "upper", np.inf)
+        if np.any(self.lower > self.upper):
+            raise ValueError("lower must not exceed upper")
+        self.augmented: dict[str, float] = {}
+        self._ode, self._dynamics, self._output = ode, dynamics, output
+        self._build()
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        nx, nu, ny = self.nx, self.nu, self.ny
+        x = ca.SX.sym("x", nx)
+        u = ca.SX.sym("u", nu)
+        psym = [ca.SX.sym(n) for n in self.param_names]
+        p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
+        pdict = dict(zip(self.param_names, psym, strict=True))
+
+        y = _as_column(self._output(x, u, pdict), ny, "output")
+        self.H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
+        if self._ode is not None:
+            xdot = _as_column(self._ode(x, u, pdict), nx, "ode")
+            self.f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
+            if self.integrator == "cvodes":
+                self.F = self._cvodes(x, u, p, xdot)
+                xm, um, pm = ca.MX.sym("x", nx), ca.MX.sym("u", nu), ca.MX.sym("p", p.numel())
+                xn = self.F(xm, um, pm)
+                self.F_x = ca.Function("F_x", [xm, um, pm], [ca.jacobian(xn, xm)],
+                                       ["x", "u", "p"], ["A"])
+            else:
+                step = rk4_step if self.integrator == "rk4" else euler_step
+                xn = step(self.f_c, x, u, p, self.dt, self.substeps)
+                self.F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
+                self.F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)],
+                                       ["x", "u", "p"], ["A"])
+        else:
+            self.f_c = None
+            xn = _as_column(self._dynamics(x, u, pdict), nx, "dynamics")
+            self.F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
+            self.F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)],
+                                   ["x", "u", "p"], ["A"])
+        self.H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
+        self._fast_F = FastFunction(self.F)
+        self._fast_H = FastFunction(self.H)
+
+    def _cvodes(self, x, u, p, xdot) -> ca.Function:
+        dae = {"x": x, "p": ca.vertcat(u, p), "ode": xdot}
+        integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, self.dt,
+                              {"abstol": 1e-10, "reltol": 1e-10})
+        xm = ca.MX.sym("x", self.nx)
+        um = ca.MX.sym("u", self.nu)
+        pm = ca.MX.sym("p", p.numel())
+        xf = integ(x0=xm, p=ca.vertcat(um, pm))["xf"]
+        return ca.Function("F", [xm, um, pm], [xf], ["x", "u", "p"], ["x_next"])
+
+    # ------------------------------------------------------------ properties
+    @property
+    def nx(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def nu(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def ny(self) -> int:
+        return len(self.output_names)
+
+    @property
+    def continuous(self) -> bool:
+        """True for models given by ``ode=``."""
+        return self._ode is not None
+
+    @property
+    def params(self) -> dict[str, float]:
+        """Parameter names and current values."""
+        return dict(zip(self.param_names, self.p.tolist(), strict=True))
+
+    @property
+    def has_bounds(self) -> bool:
+        return bool(np.any(np.isfinite(self.lower)) or np.any(np.isfinite(self.upper)))
+
+    # --------------------------------------------------------------- numeric
+    def _xu(self, x, u) -> tuple[np.ndarray, np.ndarray]:
+        x = as_vector(x, self.nx, "x")
+        u = np.zeros(self.nu) if u is None else as_vector(u, self.nu, "u")
+        return x, u
+
+    def f(self, x, u=None) -> np.ndarray:
+        """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input)."""
+        x, u = self._xu(x, u)
+        return self._fast_F(x, u, self.p)[0].copy()
+
+    def h(self, x, u=None) -> np.ndarray:
+        """Output ``h(x, u; p)`` as a (ny,) array."""
+        x, u = self._xu(x, u)
+        return self._fast_H(x, u, self.p)[0].copy()
+
+    def jacobians(self, x, u=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays."""
+        x, u = self._xu(x, u)
+        return self.F_x(x, u, self.p).full(), self.H_x(x, u, self.p).full()
+
+    def clip(self, x: np.ndarray) -> np.ndarray:
+        """Project ``x`` onto ``[lower, upper]``."""
+        return np.minimum(np.maximum(x, self.lower), self.upper)
+
+    # -------------------------------------------------------------- variants
+    def _copy(self, **changes) -> Model:
+        new = object.__new__(Model)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
+
+    def with_params(self, **values: float) -> Model:
+        """Return a copy with some parameter values changed (nothing is rebuilt)."""
+        p = self.p.copy()
+        for key, val in values.items():
+            if key not in self.param_names:
+                raise ValueError(f"unknown parameter {key!r}; parameters are {self.param_names}")
+            if not np.isfinite(val):
+                raise ValueError(f"parameter {key!r} must be finite, got {val!r}")
+            p[self.param_names.index(key)] = float(val)
+        new = self._copy(p=p)
+        new._fast_F = FastFunction(self.F)
+        new._fast_H = FastFunction(self.H)
+        return new
+
+    def augment(self, *names: str, lower=None, upper=None) -> Model:
+        r"""Append parameters to the state with constant dynamics.
+
+        The new state is :math:`[x; \theta]` with :math:`\dot\theta = 0`
+        (continuous) or :math:`\theta_{k+1} = \theta_k` (discrete), so any
+        estimator identifies :math:`\theta` along with :math:`x`.
+
+        Parameters
+        ----------
+        *names : str
+            Parameters to estimate, in the order they are appended.
+        lower, upper : float, sequence or dict, optional
+            Bounds on the new states (default unbounded).
+
+        Returns
+        -------
+        Model
+            A new model; ``model.augmented`` maps each appended name to its
+            nominal value (the truth for simulation).
+        """
+        if not names:
+            raise ValueError("augment needs at least one parameter name")
+        for n in names:
+            if n not in self.param_names:
+                raise ValueError(f"cannot augment unknown parameter {n!r}; "
+                                 f"parameters are {self.param_names}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"augment got duplicate names {names}")
+        nx0 = self.nx
+        names = list(names)
+        base_ode, base_dyn, base_out = self._ode, self._dynamics, self._output
+
+        def split(x, p):
+            q = dict(p)
+            for i, n in enumerate(names):
+                q[n] = x[nx0 + i]
+            return x[:nx0], q
+
+        def output(x, u, p):
+            xs, q = split(x, p)
+            return base_out(xs, u, q)
+
+        kwargs = {}
+        if base_ode is not None:
+            def ode(x, u, p):
+                xs, q = split(x, p)
+                return ca.vertcat(_as_column(base_ode(xs, u, q), nx0, "ode"),
+                                  ca.SX.zeros(len(names)))
+            kwargs["ode"] = ode
+        else:
+            def dynamics(x, u, p):
+                xs, q = split(x, p)
+                return ca.vertcat(_as_column(base_dyn(xs, u, q), nx0, "dynamics"),
+                                  x[nx0:])
+            kwargs["dynamics"] = dynamics
+
+        values = self.params
+        new_lower = as_bounds(lower, names, "lower", -np.inf)
+        new_upper = as_bounds(upper, names, "upper", np.inf)
+        model = Model(
+            states=self.state_names + names,
+            outputs=self.output_names,
+            output=output,
+            dt=self.dt,
+            inputs=self.input_names,
+            params={k: v for k, v in values.items() if k not in names},
+            integrator=self.integrator,
+            substeps=self.substeps,
+            lower=np.concatenate([self.lower, new_lower]),
+            upper=np.concatenate([self.upper, new_upper]),
+            name=self.name,
+            **kwargs,
+        )
+        model.augmented = {**self.augmented, **{n: values[n] for n in names}}
+        return model
+
+    def __repr__(self) -> str:
+        kind = f"ode, {self.integrator}" if self.continuous else "discrete"
+        return (f"Model({self.name!r}: nx={self.nx} {self.state_names}, ny={self.ny} "
+                f"{self.output_names}, nu={self.nu}, {kind}, dt={self.dt:g})")
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        for key in ("F", "H", "F_x", "H_x", "f_c", "_fast_F", "_fast_H"):
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._build()

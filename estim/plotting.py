@@ -1,0 +1,45 @@
+"""Plots of logs (matplotlib is an optional extra: ``pip install estim[plot]``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def _pyplot():
+    try:
+        import matplotlib.pyplot as plt  # falls back to Agg without a display
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise ImportError("plotting needs matplotlib: pip install 'estim[plot]'") from exc
+    return plt
+
+
+def plot_log(log, path=None, states: Sequence[str] | None = None, sigma: bool = True):
+    """Draw truth, estimate (± 2σ) and direct measurements per state; see :meth:`Log.plot`."""
+    plt = _pyplot()
+    names = log.state_names or [f"x{i + 1}" for i in range(log.x_hat.shape[1])]
+    idx = list(range(len(names))) if states is None else [names.index(s) for s in states]
+    t = log.t if "t" in log else np.arange(len(log))
+    fig, axes = plt.subplots(len(idx), 1, sharex=True, figsize=(8, 1.9 * len(idx) + 0.6),
+                             squeeze=False)
+    measured = {j: i for i, j in log.output_state.items()}
+    for ax, j in zip(axes[:, 0], idx, strict=True):
+        if j in measured and "y" in log:
+            ax.plot(t, log.y[:, measured[j]], ".", ms=2, color="0.6", label="measurement")
+        if "x" in log:
+            ax.plot(t, log.x[:, j], "k-", lw=1.2, label="truth")
+        ax.plot(t, log.x_hat[:, j], "-", lw=1.2, color="C0",
+                label=f"estimate ({log.estimator})" if log.estimator else "estimate")
+        if sigma and "P" in log and np.isfinite(log.P[:, j, j]).any():
+            sd = np.sqrt(np.maximum(log.P[:, j, j], 0.0))
+            ax.fill_between(t, log.x_hat[:, j] - 2 * sd, log.x_hat[:, j] + 2 * sd,
+                            color="C0", alpha=0.15, lw=0, label="±2σ")
+        ax.set_ylabel(names[j])
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="best", fontsize=8)
+    axes[-1, 0].set_xlabel("time")
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig
