@@ -99,6 +99,9 @@ class Log:
     def to_pandas(self):
         """One row a sample: ``t``, ``x:<name>``, ``x_hat:<name>``, ``y:<name>``, ``u:<name>``, ...
 
+        Series of another length than the log (logged at another rate) and
+        ``P`` (3-D) are left out.
+
         Requires pandas (``pip install estim[data]``).
         """
         try:
@@ -106,8 +109,11 @@ class Log:
         except ImportError as exc:  # pragma: no cover - depends on the environment
             raise ImportError("to_pandas needs pandas: pip install 'estim[data]'") from exc
         cols: dict[str, np.ndarray] = {}
+        T = len(self)
         for key in self.keys():
             arr = getattr(self, key)
+            if len(arr) != T:  # a series logged at another rate
+                continue
             if arr.ndim == 1:
                 cols[key] = arr
             elif arr.ndim == 2:

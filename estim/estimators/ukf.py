@@ -79,7 +79,9 @@ class UKF(Estimator):
         ukf = self._ukf
         saved = (ukf.x.copy(), ukf.P.copy())
         try:
-            if not first:
+            if first:  # no prediction: the sigma points of the prior x0, P0
+                ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
+            else:
                 ukf.predict(u=u)
             rows = np.isfinite(y)
             if rows.all():

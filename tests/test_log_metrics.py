@@ -1,0 +1,116 @@
+"""Log behaviour, exports and plots; metrics against their definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import estim
+
+
+@pytest.fixture(scope="module")
+def log():
+    sc = estim.scenarios.van_der_pol()
+    return estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+
+
+def test_log_shapes_time_major_never_squeezed():
+    sc = estim.scenarios.batch_reactor(n_steps=50)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    T = 50
+    assert log.t.shape == (T,) and log.x.shape == (T, 3) and log.y.shape == (T, 1)
+    assert log.u.shape == (T, 0) and log.x_hat.shape == (T, 3) and log.P.shape == (T, 3, 3)
+    assert log.solve_time.shape == (T,) and log.status.shape == (T,)
+    np.testing.assert_allclose(log.t, 0.25 * np.arange(T))
+    assert (log.solve_time > 0).all()
+    assert len(log) == T and "x_hat" in log and "z" not in log
+
+
+def test_course_style_logging():
+    log = estim.Log()
+    for k in range(4):
+        log("y", [float(k)])
+        log("x", np.full(3, k))
+    assert log.y.shape == (4, 1) and log.x.shape == (4, 3)
+    np.testing.assert_array_equal(log.x[:, 0], np.arange(4))
+    log("x", np.zeros(3))
+    assert log.x.shape == (5, 3)
+    with pytest.raises(AttributeError, match="no series 'z'"):
+        _ = log.z
+    with pytest.raises(ValueError, match="key must be an identifier"):
+        log("not a name", 1.0)
+
+
+def test_appending_to_a_simulated_log(log):
+    T = len(log)
+    log("extra", 1.0)
+    assert log.extra.shape == (1,)
+    assert len(log) == T
+
+
+def test_to_pandas(log):
+    frame = log.to_pandas()
+    assert len(frame) == len(log)
+    assert {"x:x1", "x_hat:x2", "y:y1", "solve_time", "status"} <= set(frame.columns)
+    np.testing.assert_array_equal(frame["x_hat:x1"].to_numpy(), log.x_hat[:, 0])
+
+
+def test_plot_writes_png(log, tmp_path):
+    path = tmp_path / "log.png"
+    fig = log.plot(path)
+    assert path.stat().st_size > 10_000
+    assert len(fig.axes) == 2
+    # both outputs measure a state directly: the measurements are drawn on its axes
+    assert log.output_state == {0: 0, 1: 1}
+    assert any(line.get_label() == "measurement" for line in fig.axes[0].lines)
+
+
+def test_rmse_matches_definition(log):
+    e = log.x_hat - log.x
+    r = estim.rmse(log)
+    assert float(r) == pytest.approx(np.sqrt(np.mean(e**2)), rel=1e-14)
+    assert r.per_state["x2"] == pytest.approx(np.sqrt(np.mean(e[:, 1] ** 2)), rel=1e-14)
+    r10 = estim.rmse(log, burn_in=10, states=["x1"])
+    assert float(r10) == pytest.approx(np.sqrt(np.mean(e[10:, 0] ** 2)), rel=1e-14)
+    assert "x1=" in repr(r)
+    with pytest.raises(ValueError, match="burn_in"):
+        estim.rmse(log, burn_in=-1)
+    with pytest.raises(ValueError, match="not in the log"):
+        estim.rmse(log, states=["q"])
+
+
+def test_nees_matches_definition(log):
+    e = log.x_hat - log.x
+    expected = np.array([ek @ np.linalg.solve(Pk, ek) for ek, Pk in zip(e, log.P, strict=True)])
+    np.testing.assert_allclose(estim.nees(log), expected, rtol=1e-12)
+    assert estim.nis(log).shape == (len(log),)
+    assert np.isfinite(estim.nis(log)).all()
+
+
+def test_chi2_bounds_match_scipy():
+    lo, hi = estim.chi2_bounds(3, 50, 0.95)
+    assert lo == pytest.approx(stats.chi2.ppf(0.025, 150) / 50)
+    assert hi == pytest.approx(stats.chi2.ppf(0.975, 150) / 50)
+
+
+def test_nis_of_a_correct_linear_filter_is_chi2(linear):
+    """On a linear-Gaussian model the innovations are white with covariance S:
+    the NIS average over T samples lies in the 99.9 % chi2 interval."""
+    sys = linear
+    est = estim.EKF(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
+    T = 3000
+    log = estim.simulate(sys.model, est, x0=sys.x0, n_steps=T, Q=sys.Q, R=sys.R, seed=5)
+    lo, hi = estim.chi2_bounds(2, T, 0.999)
+    assert lo < np.mean(estim.nis(log)) < hi
+
+
+def test_convergence_time():
+    log = estim.Log(state_names=["a"])
+    log.set("t", np.arange(6) * 0.5)
+    log.set("x", np.zeros((6, 1)))
+    log.set("x_hat", np.array([[3.0], [1.0], [0.5], [0.05], [0.01], [0.0]]))
+    assert estim.convergence_time(log, 0.1) == 1.5
+    assert estim.convergence_time(log, 10.0) == 0.0
+    log.set("x_hat", np.ones((6, 1)))
+    assert estim.convergence_time(log, 0.1) == np.inf
