@@ -43,3 +43,47 @@ def plot_log(log, path=None, states: Sequence[str] | None = None, sigma: bool = 
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
+
+
+def plot_comparison(result, path=None, seed_index: int = 0):
+    """Truth and every estimator's estimate per state for one seed, and RMSE box plots.
+
+    The state axes are limited to the truth's range widened by its span, so a
+    wild transient of one estimator does not flatten the others (it leaves
+    the axes instead).
+    """
+    plt = _pyplot()
+    if not result.logs:
+        raise ValueError("plot_comparison needs the logs: run compare(..., keep_logs=True)")
+    names = list(result.logs)
+    first = result.logs[names[0]][seed_index]
+    nx = first.x.shape[1]
+    fig, axes = plt.subplots(nx + 1, 1, figsize=(8, 1.8 * nx + 2.6), squeeze=False)
+    axes = axes[:, 0]
+    t = first.t
+    for j in range(nx):
+        ax = axes[j]
+        truth = first.x[:, j]
+        ax.plot(t, truth, "k-", lw=1.6, label="truth")
+        for i, name in enumerate(names):
+            ax.plot(t, result.logs[name][seed_index].x_hat[:, j], "-", lw=1.0,
+                    color=f"C{i}", label=name)
+        lo, hi = float(truth.min()), float(truth.max())
+        span = max(hi - lo, 1e-3 * max(abs(lo), abs(hi), 1.0))
+        ax.set_ylim(lo - span, hi + span)
+        ax.set_ylabel(first.state_names[j] if first.state_names else f"x{j + 1}")
+        ax.grid(alpha=0.3)
+        if j < nx - 1:
+            ax.tick_params(labelbottom=False)
+    axes[nx - 1].set_xlabel("time")
+    axes[0].legend(loc="upper right", fontsize=8, ncol=min(4, len(names) + 1))
+    axes[0].set_title(f"{result.scenario}: seed {result.seeds[seed_index]}")
+    box = axes[nx]
+    box.boxplot([result.rmse[n] for n in names], tick_labels=names)
+    box.set_ylabel(f"RMSE ({len(result.seeds)} seeds)")
+    box.set_yscale("log")
+    box.grid(alpha=0.3)
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig

@@ -1,0 +1,38 @@
+"""The command line: the README's main job and option parsing."""
+
+from __future__ import annotations
+
+import pytest
+
+from estim import cli
+
+
+def test_main_job_prints_table_and_writes_png(tmp_path, capsys):
+    out = tmp_path / "run.png"
+    assert cli.main(["run", "batch_reactor", "--seeds", "2", "--plot", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "RMSE mean" in text and "ekf:clip=true" in text and "ukf" in text
+    assert out.stat().st_size > 20_000
+
+
+def test_list(capsys):
+    assert cli.main(["list"]) == 0
+    text = capsys.readouterr().out
+    for name in ("lorenz", "van_der_pol", "batch_reactor", "runaway", "satellite", "ekf"):
+        assert name in text
+
+
+def test_parse_estimator():
+    label, cls, kwargs = cli.parse_estimator("ekf:clip=true")
+    assert cls.__name__ == "EKF" and kwargs == {"clip": True} and label == "ekf:clip=true"
+    _, cls, kwargs = cli.parse_estimator("ukf:alpha=0.5,kappa=1")
+    assert cls.__name__ == "UKF" and kwargs == {"alpha": 0.5, "kappa": 1}
+    with pytest.raises(ValueError, match="unknown estimator"):
+        cli.parse_estimator("kalman")
+    with pytest.raises(ValueError, match="key=value"):
+        cli.parse_estimator("ekf:clip")
+
+
+def test_bad_option_is_an_error_not_a_traceback(capsys):
+    assert cli.main(["run", "van_der_pol", "--estimator", "nope", "--plot", ""]) == 2
+    assert "unknown estimator" in capsys.readouterr().err
