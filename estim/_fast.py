@@ -21,6 +21,11 @@ class FastFunction:
     ----------
     fun : casadi.Function
         Function with dense inputs. Outputs are densified automatically.
+    args : list of arrays or None, optional
+        Arrays to bind as inputs instead of fresh buffers (``None`` entries get
+        fresh ones). Two FastFunctions bound to the same array read the same
+        memory, which lets an estimator keep its state where the compiled code
+        reads it.
 
     Notes
     -----
@@ -31,15 +36,24 @@ class FastFunction:
     Instances pickle by rebuilding the buffer (the Function is serialised).
     """
 
-    def __init__(self, fun: ca.Function):
+    def __init__(self, fun: ca.Function, args: list[np.ndarray | None] | None = None):
         if any(not fun.sparsity_out(i).is_dense() for i in range(fun.n_out())):
             fun = _densified(fun)
         self.fun = fun
+        self._bound = list(args) if args is not None else [None] * fun.n_in()
+        if len(self._bound) != fun.n_in():
+            raise ValueError(f"args must have {fun.n_in()} entries, got {len(self._bound)}")
+        for i, a in enumerate(self._bound):
+            if a is not None and (a.dtype != np.float64 or a.ndim != 1 or
+                                  a.size != fun.numel_in(i) or not a.flags.c_contiguous):
+                raise ValueError(f"args[{i}] must be a contiguous float64 array of "
+                                 f"{fun.numel_in(i)} entries")
         self._build()
 
     def _build(self) -> None:
         fun = self.fun
-        self.args = [np.zeros(fun.numel_in(i)) for i in range(fun.n_in())]
+        self.args = [np.zeros(fun.numel_in(i)) if b is None else b
+                     for i, b in enumerate(self._bound)]
         self.out = [np.zeros(fun.numel_out(i)) for i in range(fun.n_out())]
         self._buf, self._eval = fun.buffer()
         for i, a in enumerate(self.args):
@@ -59,10 +73,11 @@ class FastFunction:
         return self.out
 
     def __getstate__(self):
-        return {"fun": self.fun.serialize()}
+        return {"fun": self.fun.serialize(), "bound": self._bound}
 
     def __setstate__(self, state):
         self.fun = ca.Function.deserialize(state["fun"])
+        self._bound = state["bound"]
         self._build()
 
 

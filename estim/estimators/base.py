@@ -64,6 +64,19 @@ class StepInfo:
     nis: float = float("nan")
     extra: dict = field(default_factory=dict)
 
+    @classmethod
+    def _fast(cls, **fields) -> StepInfo:
+        """Build without the frozen-dataclass ``__setattr__`` cost (hot paths only)."""
+        obj = object.__new__(cls)
+        obj.__dict__.update(_DEFAULTS)
+        obj.__dict__["extra"] = {}
+        obj.__dict__.update(fields)
+        return obj
+
+
+_DEFAULTS = {f: getattr(StepInfo, f) for f in ("status", "success", "iterations", "solve_time",
+                                               "P", "cost", "innovation", "nis")}
+
 
 class Estimator:
     """Base class: tuning, argument checks and the ``step``/``reset`` protocol.
@@ -85,6 +98,8 @@ class Estimator:
     #: Short name used by the command line and comparison tables.
     name = "estimator"
     _requires_P0 = True
+    #: Subclasses that detect inf in ``y`` inside their compiled step set this.
+    _checks_inf_itself = False
 
     def __init__(self, model: Model, *, Q, R, x0, P0=None):
         if not isinstance(model, Model):
@@ -109,7 +124,9 @@ class Estimator:
         t0 = time.perf_counter()
         x_hat, info = self._step(y, u, self._first)
         elapsed = time.perf_counter() - t0
-        self._info = info if info.solve_time else _with_time(info, elapsed)
+        if not info.solve_time:  # fresh, unpublished object: set the measured time
+            info.__dict__["solve_time"] = elapsed
+        self._info = info
         self._first = False
         self._k += 1
         return x_hat
@@ -141,7 +158,7 @@ class Estimator:
     def _check_y(self, y) -> np.ndarray:
         ny = self.model.ny
         if type(y) is np.ndarray and y.shape == (ny,) and y.dtype == np.float64:
-            if np.isinf(y).any():
+            if not self._checks_inf_itself and np.isinf(y).any():
                 raise ValueError(f"y must not contain inf, got {y}")
             return y
         return as_vector(y, ny, "y", allow_nan=True)
@@ -158,8 +175,3 @@ class Estimator:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.model.name}, nx={self.model.nx})"
-
-
-def _with_time(info: StepInfo, elapsed: float) -> StepInfo:
-    return StepInfo(info.status, info.success, info.iterations, elapsed, info.P, info.cost,
-                    info.innovation, info.nis, info.extra)

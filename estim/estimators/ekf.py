@@ -64,6 +64,7 @@ class EKF(Estimator):
     """
 
     name = "ekf"
+    _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q, R, x0, P0, clip: bool = False, lower=None,
                  upper=None, **options):
@@ -74,19 +75,26 @@ class EKF(Estimator):
             np.asarray(lower, float), (model.nx,)).copy()
         self.upper = model.upper if upper is None else np.broadcast_to(
             np.asarray(upper, float), (model.nx,)).copy()
-        self._update = FastFunction(self._build(predict=False))
-        self._predict_update = FastFunction(self._build(predict=True))
+        nx = model.nx
+        # the filter state [x; vec(P)] lives where both compiled functions read it
+        self._s = np.zeros(nx + nx * nx)
+        self._u = np.zeros(model.nu)
+        self._y = np.zeros(model.ny)
+        bound = [self._s, self._u, self._y]
+        self._update = FastFunction(self._build(predict=False), bound)
+        self._predict_update = FastFunction(self._build(predict=True), bound)
         self._reset()
 
     def _build(self, predict: bool) -> ca.Function:
         m = self.model
         nx, nu, ny = m.nx, m.nu, m.ny
-        x = ca.SX.sym("x", nx)
-        P = ca.SX.sym("P", nx, nx)
+        s = ca.SX.sym("s", nx + nx * nx)
+        x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
         u = ca.SX.sym("u", nu)
         y = ca.SX.sym("y", ny)
-        mask = ca.SX.sym("mask", ny)
         p = ca.DM(m.p)
+        mask = ca.fabs(y) < ca.inf  # 0 for NaN (missing) and for +-inf (rejected)
+        y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
         if predict:
             xb = m.F(x, u, p)
             A = m.F_x(x, u, p)
@@ -95,7 +103,7 @@ class EKF(Estimator):
             xb, Pb = x, P
         D = ca.diag(mask)
         C = D @ m.H_x(xb, u, p)
-        e = mask * (y - m.H(xb, u, p))
+        e = ca.if_else(mask, y - m.H(xb, u, p), 0)
         R = ca.DM(self.R)
         Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ Pb @ C.T + Rm
@@ -108,30 +116,49 @@ class EKF(Estimator):
         Ph = IKC @ Pb @ IKC.T + K @ Rm @ K.T
         Ph = 0.5 * (Ph + Ph.T)
         nis = ca.dot(e, ca.solve(S, e))
+        s_new = ca.vertcat(xh, ca.vec(Ph))
+        s_prior = ca.vertcat(xb, ca.vec(Pb))
+        ok = ca.fabs(ca.sum1(s_new) + nis) < ca.inf
+        ok_prior = ca.fabs(ca.sum1(s_prior)) < ca.inf
         name = "ekf_predict_update" if predict else "ekf_update"
-        return ca.Function(name, [x, P, u, y, mask], [xh, Ph, xb, Pb, e, nis],
-                           ["x", "P", "u", "y", "mask"], ["x_hat", "P_hat", "x_prior", "P_prior",
-                                                          "innovation", "nis"])
+        return ca.Function(name, [s, u, y], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf),
+                                             s_prior],
+                           ["s", "u", "y"], ["s_new", "innovation", "flags", "s_prior"])
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current estimate (a view of the filter state)."""
+        return self._s[: self.model.nx]
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance (a view of the filter state)."""
+        nx = self.model.nx
+        return self._s[nx:].reshape(nx, nx, order="F")
 
     def _reset(self) -> None:
-        self.x = self.x0.copy()
-        self.P = self.P0.copy()
+        nx = self.model.nx
+        self._s[:nx] = self.x0
+        self._s[nx:] = self.P0.ravel(order="F")
 
     def _step(self, y, u, first):
-        mask = np.isfinite(y)
-        y0 = np.where(mask, y, 0.0)
+        self._y[:] = y
+        if self._u.size:
+            self._u[:] = u
         fun = self._update if first else self._predict_update
-        xh, Ph, xb, Pb, e, nis = fun(self.x, self.P, u, y0, mask.astype(float))
+        s_new, e, flags, s_prior = fun.evaluate()
+        if flags[3]:
+            raise ValueError(f"y must not contain inf, got {y}")
         nx = self.model.nx
-        if np.isfinite(xh).all() and np.isfinite(Ph).all():
-            self.x = xh.copy()
-            self.P = Ph.reshape(nx, nx, order="F").copy()
-            return self.x.copy(), StepInfo(P=self.P, innovation=e.copy(), nis=float(nis[0]))
-        # The update produced NaN/inf: keep the prediction where it is usable.
-        if np.isfinite(xb).all() and np.isfinite(Pb).all():
-            self.x = xb.copy()
-            self.P = Pb.reshape(nx, nx, order="F").copy()
+        if flags[1]:
+            self._s[:] = s_new
+            return self._s[:nx].copy(), StepInfo._fast(
+                P=self._s[nx:].reshape(nx, nx, order="F").copy(), innovation=e.copy(),
+                nis=float(flags[0]))
+        # the update produced NaN/inf: keep the prediction where it is usable
+        if flags[2]:
+            self._s[:] = s_prior
             status = "failed: non-finite update, kept the prediction"
         else:
             status = "failed: non-finite prediction, kept the previous estimate"
-        return self.x.copy(), StepInfo(status=status, success=False, P=self.P)
+        return self.x.copy(), StepInfo(status=status, success=False, P=self.P.copy())
