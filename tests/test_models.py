@@ -207,7 +207,7 @@ def test_rk4_step_matches_exact_flow_to_local_error(name):
     C h^5 + O(h^6)); accepted 20..45.  Measured: van der Pol 34.2, reactor 32.1,
     runaway burst 31.9 / quiet 31.9, satellite 32.7, Lorenz 33.1.  A wrong
     coefficient in the right-hand side would give an O(h) error, ratio ~2.
-    (ii) The error equals Richardson's estimate (16/15)(F_h - F_{h/2}∘F_{h/2})
+    (ii) The error equals Richardson's estimate (16/15)(F_h - F_{h/2}(F_{h/2}))
     computed from the model alone, to 10 % (the estimate neglects the relative
     O(h) term; measured <= 1 %).  (iii) The error is at most 1 % of the
     experiment's noise std (models.md), so the discretisation is invisible to
