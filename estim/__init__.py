@@ -9,7 +9,7 @@ True
 
 from estim import models, scenarios
 from estim.compare import Comparison, compare
-from estim.estimators import EKF, UKF, Estimator, StepInfo
+from estim.estimators import EKF, MHE, UKF, Estimator, StepInfo
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
@@ -17,7 +17,7 @@ from estim.scenarios import Scenario
 from estim.simulate import simulate
 
 __all__ = [
-    "EKF", "UKF", "Comparison", "Estimator", "Log", "Model", "RMSE", "Scenario", "StepInfo",
+    "EKF", "MHE", "UKF", "Comparison", "Estimator", "Log", "Model", "RMSE", "Scenario", "StepInfo",
     "chi2_bounds", "compare", "convergence_time", "errors", "models", "nees", "nis", "rmse",
     "scenarios", "simulate",
 ]

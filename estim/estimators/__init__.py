@@ -2,9 +2,10 @@
 
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ekf import EKF
+from estim.estimators.mhe import MHE
 from estim.estimators.ukf import UKF
 
 #: Estimator classes by short name (command line, comparisons).
-ESTIMATORS = {"ekf": EKF, "ukf": UKF}
+ESTIMATORS = {"ekf": EKF, "ukf": UKF, "mhe": MHE}
 
-__all__ = ["EKF", "ESTIMATORS", "Estimator", "StepInfo", "UKF"]
+__all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "StepInfo", "UKF"]

@@ -1,0 +1,243 @@
+r"""Moving horizon estimation: a least-squares trajectory fit over the last N samples."""
+
+from __future__ import annotations
+
+import time
+
+import casadi as ca
+import numpy as np
+
+from estim._fast import FastFunction
+from estim._validate import check_options
+from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.nlp import SOLVERS, LeastSquaresNLP
+from estim.model import Model
+
+ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
+
+
+def _weight_factor(cov: np.ndarray) -> np.ndarray:
+    """``W`` with ``W^T W = cov^{-1}``, so ``||W r||^2 = r^T cov^{-1} r``."""
+    L = np.linalg.cholesky(np.linalg.inv(cov))
+    return L.T
+
+
+class MHE(Estimator):
+    r"""Moving horizon estimator with Ipopt, Gauss-Newton SQP or fatrop.
+
+    At time :math:`T` the window holds the last :math:`N` measurements
+    :math:`y_s, \dots, y_T` (:math:`s = T - N + 1`) and the estimator solves
+
+    .. math::
+        \min_{x_s, \dots, x_T}\;
+        \Gamma_s(x_s)
+        + \sum_{k=s}^{T-1} \|x_{k+1} - F(x_k, u_k)\|^2_{Q^{-1}}
+        + \sum_{k=s}^{T} \|y_k - h(x_k, u_{k-1})\|^2_{R^{-1}}
+        \quad \text{s.t.}\; \underline x \le x_k \le \overline x,
+
+    returning :math:`\hat x_T`. The arrival cost is
+    :math:`\Gamma_s(x) = \|x - \bar x_s\|^2_{\bar P_s^{-1}}` with, by
+    ``arrival_cost``:
+
+    ``"none"``
+        :math:`\Gamma_s = 0` (the seeds' ``priorupdate='none'``).
+    ``"fixed"``
+        :math:`\bar P_s = P_0`, :math:`\bar x_s` the previous window's
+        estimate of :math:`x_s`.
+    ``"filtering"``
+        :math:`\bar x_s = F(\hat x_{s-1}, u_{s-1})` from the MHE's own past
+        estimate and :math:`\bar P_s` from the EKF Riccati recursion along
+        the MHE estimates (Rao, Rawlings & Mayne 2003). On a linear-Gaussian
+        model without active bounds this reproduces the Kalman filter exactly.
+    ``"smoothing"``
+        :math:`\bar x_s` the previous window's (smoothed) estimate of
+        :math:`x_s`, :math:`\bar P_s` from the filtering recursion (the common
+        approximation; it counts the measurements shared by two windows twice).
+
+    Before :math:`N` measurements exist the window simply holds all of them
+    (full-information estimation with the prior ``x0, P0``); it is never
+    padded with copies of old measurements. The NLP is built once for the
+    full horizon and re-solved every step, warm-started from the shifted
+    previous solution (primal and bound multipliers).
+
+    Parameters
+    ----------
+    model : Model
+    horizon : int
+        :math:`N`, the number of measurements in a full window (>= 1).
+    Q : float, (nx,) or (nx, nx)
+        Process-noise covariance; must be positive definite (weights are
+        :math:`Q^{-1}`; give parameters a small variance).
+    R, x0, P0 :
+        Measurement covariance, initial guess and its covariance. ``P0`` may
+        be omitted with ``arrival_cost="none"``.
+    arrival_cost : {"none", "fixed", "filtering", "smoothing"}
+    lower, upper : optional
+        State bounds (default: the model's).
+    solver : {"ipopt", "sqp", "fatrop"}
+        ``"ipopt"``: interior point with the exact Hessian. ``"sqp"``: CasADi's
+        ``sqpmethod`` with the Gauss-Newton Hessian :math:`2J^\top J` and the
+        ``qrqp`` active-set QP solver (fast when warm-started).
+        ``"fatrop"``: the structure-exploiting interior point solver fatrop on
+        the stage-wise formulation.
+    solver_options : dict, optional
+        Passed to the solver (merged over the defaults), e.g.
+        ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``.
+
+    Attributes
+    ----------
+    info : StepInfo
+        ``status``, ``iterations``, ``solve_time``, ``cost``, ``P`` (the
+        covariance at :math:`T` propagated through the window from the
+        arrival covariance; None for ``"none"``) and ``extra`` with
+        ``window`` (the estimated trajectory, (n, nx)), ``arrival_mean`` and
+        ``arrival_covariance``.
+
+    References
+    ----------
+    C. V. Rao, J. B. Rawlings, D. Q. Mayne, "Constrained state estimation for
+    nonlinear discrete-time systems", IEEE TAC 48(2), 2003;
+    J. B. Rawlings, D. Q. Mayne, M. M. Diehl, *Model Predictive Control:
+    Theory, Computation, and Design*, 2nd ed., 2017, ch. 4.
+    """
+
+    name = "mhe"
+
+    def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
+                 arrival_cost: str = "filtering", lower=None, upper=None,
+                 solver: str = "ipopt", solver_options: dict | None = None, **options):
+        check_options(options, (), "MHE")
+        if arrival_cost not in ARRIVAL_COSTS:
+            raise ValueError(f"arrival_cost must be one of {ARRIVAL_COSTS}, got {arrival_cost!r}")
+        self._requires_P0 = arrival_cost != "none"
+        super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        if not isinstance(horizon, int | np.integer) or horizon < 1:
+            raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+        if np.linalg.eigvalsh(self.Q)[0] <= 0:
+            raise ValueError("Q must be positive definite for MHE (the weights are Q^-1); "
+                             "give every state, parameters included, a small variance")
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
+        self.horizon = int(horizon)
+        self.arrival_cost = arrival_cost
+        self.solver = solver
+        nx = model.nx
+        lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
+        up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
+        self.lower, self.upper = np.array(lo, float), np.array(up, float)
+        if np.any(self.lower > self.upper):
+            raise ValueError("lower must not exceed upper")
+        self._WQ = _weight_factor(self.Q)
+        self._WR = _weight_factor(self.R)
+        self._nlp = LeastSquaresNLP(model, self.horizon, self._WQ, self.lower, self.upper,
+                                    solver, solver_options or {})
+        self._cov_step = FastFunction(self._build_cov_step())
+        self._reset()
+
+    # ------------------------------------------------------------------ build
+    def _build_cov_step(self) -> ca.Function:
+        """EKF covariance step at x: update with the measured rows, then predict."""
+        m = self.model
+        nx, nu, ny = m.nx, m.nu, m.ny
+        x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("u_prev", nu)
+        mask = ca.SX.sym("mask", ny)
+        P = ca.SX.sym("P", nx, nx)
+        p = ca.DM(m.p)
+        D = ca.diag(mask)
+        C = D @ m.H_x(x, up, p)
+        Rm = D @ ca.DM(self.R) @ D + ca.diag(1 - mask)
+        S = C @ P @ C.T + Rm
+        K = ca.solve(0.5 * (S + S.T), C @ P).T
+        IKC = ca.DM.eye(nx) - K @ C
+        Pu = IKC @ P @ IKC.T + K @ Rm @ K.T
+        A = m.F_x(x, u, p)
+        Pn = A @ Pu @ A.T + ca.DM(self.Q)
+        return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P)],
+                           [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
+
+    # ------------------------------------------------------------------ state
+    def _reset(self) -> None:
+        m, N = self.model, self.horizon
+        self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
+        self._U = np.zeros((N, m.nu))             # _U[j]: input from slot j to j+1
+        self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
+        self._X = np.tile(self.x0, (N, 1))        # current/previous window solution
+        self._lam = np.zeros(N * m.nx)
+        self._n = 0                               # measurements in the window
+        self._xbar = self.x0.copy()
+        self._Pbar = None if self.P0 is None else self.P0.copy()
+        self._history: list[np.ndarray] = []      # MHE estimates of the window's times
+        self._last = self.x0.copy()
+        self._last_u = np.zeros(m.nu)
+        self._nlp.reset()
+
+    # ------------------------------------------------------------------- step
+    def _slide(self, u: np.ndarray) -> None:
+        """Drop the oldest measurement and move the arrival cost to the next time."""
+        y_old, u_old, up_old = self._Y[0].copy(), self._U[0].copy(), self._Uprev[0].copy()
+        x_est = self._history[0]  # MHE estimate of the time that leaves the window
+        if self.arrival_cost in ("filtering", "smoothing"):
+            mask = np.isfinite(y_old).astype(float)
+            Pn, _ = self._cov_step(x_est, u_old, up_old, mask, self._Pbar.ravel(order="F"))
+            self._Pbar = Pn.reshape(self.model.nx, self.model.nx, order="F").copy()
+        if self.arrival_cost == "filtering":
+            self._xbar = self.model._fast_F(x_est, u_old, self.model.p)[0].copy()
+        elif self.arrival_cost in ("fixed", "smoothing"):
+            self._xbar = self._X[1].copy()  # previous window's estimate of the new first time
+        for arr in (self._Y, self._U, self._Uprev, self._X):
+            arr[:-1] = arr[1:]
+        self._history.pop(0)
+        self._n -= 1
+
+    def _step(self, y, u, first):
+        m, N = self.model, self.horizon
+        t0 = time.perf_counter()
+        if not first:
+            self._U[N - 1] = u  # input from the newest slot to the one arriving now
+            if self._n == N:
+                self._slide(u)
+            else:  # window still growing: shift the data one slot left
+                for arr in (self._Y, self._U, self._Uprev, self._X):
+                    arr[:-1] = arr[1:]
+            # warm start: the new slot is the prediction of the previous estimate
+            self._X[N - 1] = m._fast_F(self._X[N - 2], self._U[N - 2], m.p)[0]
+        self._Y[N - 1] = y
+        self._Uprev[N - 1] = u
+        self._n += 1
+        s0 = N - self._n
+        self._X[:s0] = self._X[s0]
+        weight = None
+        if self.arrival_cost != "none":
+            weight = _weight_factor(self._Pbar)
+        sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
+                              weight, self._WR, self.R)
+        elapsed = time.perf_counter() - t0
+        if sol.success:
+            self._X[:] = sol.X
+            x_hat = sol.X[-1].copy()
+            status = "ok" if sol.status == "ok" else sol.status
+        else:  # keep the prediction of the last good estimate; the next step recovers
+            x_hat = self._last if first else m._fast_F(self._last, u, m.p)[0].copy()
+            self._X[s0:] = np.where(np.isfinite(self._X[s0:]), self._X[s0:], x_hat)
+            status = f"failed: {sol.status}"
+        self._history.append(x_hat.copy())
+        self._last = x_hat
+        P = None
+        if self._Pbar is not None and sol.success:
+            P = self._window_covariance(s0)
+        return x_hat.copy(), StepInfo(
+            status=status, success=sol.success, iterations=sol.iterations,
+            solve_time=elapsed, P=P, cost=sol.cost,
+            extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
+                   "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
+                   "solver_time": sol.solve_time})
+
+    def _window_covariance(self, s0: int) -> np.ndarray:
+        """EKF covariance at the window's end, propagated from the arrival covariance."""
+        nx, N = self.model.nx, self.horizon
+        P = self._Pbar.ravel(order="F").copy()
+        for j in range(s0, N):
+            mask = np.isfinite(self._Y[j]).astype(float)
+            Pn, Pu = self._cov_step(self._X[j], self._U[j], self._Uprev[j], mask, P)
+            P = (Pu if j == N - 1 else Pn).copy()
+        return P.reshape(nx, nx, order="F")

@@ -1,0 +1,284 @@
+r"""The windowed least-squares estimation NLP shared by MHE and full-information estimation.
+
+Decision variables are the states of ``N`` slots, :math:`X = (x_0, \dots, x_{N-1})`.
+The residual vector is
+
+.. math::
+    r(X) = \begin{bmatrix}
+      W_0 (x_{s_0} - \bar x) \\
+      \omega_j W_Q (x_{j+1} - F(x_j, u_j)) + (1 - \omega_j)(x_{j+1} - x_j),
+          \; j = 0..N-2 \\
+      W_{y,j} (y_j - h(x_j, u^-_j)), \; j = 0..N-1
+    \end{bmatrix}
+
+and the cost :math:`\|r\|^2`. Only the last ``n`` slots hold data
+(:math:`s_0 = N - n`): for them :math:`\omega_j = 1`; the unused slots before
+them are chained to :math:`x_{s_0}` at no cost (:math:`\omega_j = 0`), so the
+optimum of the full-length problem is exactly that of the ``n``-slot problem.
+The arrival weight acts on :math:`x_{s_0}` (selected by a one-hot
+parameter), measurement weights :math:`W_{y,j}` carry zero rows for missing
+outputs. One NLP thus serves every window length, built once.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from estim.model import Model
+
+SOLVERS = ("ipopt", "sqp", "fatrop")
+
+_IPOPT_DEFAULTS = {
+    "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+    "ipopt.tol": 1e-10, "ipopt.acceptable_tol": 1e-7, "ipopt.max_iter": 200,
+    "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
+    "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9,
+}
+_SQP_DEFAULTS = {
+    "qpsol": "qrqp",
+    "qpsol_options": {"print_iter": False, "print_header": False, "print_info": False,
+                      "error_on_fail": False},
+    "print_header": False, "print_iteration": False, "print_status": False,
+    "print_time": False, "max_iter": 100, "tol_pr": 1e-9, "tol_du": 1e-9,
+    "min_step_size": 1e-12, "error_on_fail": False,
+}
+_FATROP_DEFAULTS = {
+    "print_time": False, "structure_detection": "auto", "expand": True,
+    "fatrop.print_level": 0, "fatrop.tol": 1e-10, "fatrop.max_iter": 200,
+    "error_on_fail": False,
+}
+
+
+@dataclass
+class Solution:
+    """One solve: trajectory ``X (N, nx)``, status and statistics."""
+
+    X: np.ndarray
+    success: bool
+    status: str
+    iterations: int
+    cost: float
+    solve_time: float
+
+
+def _merge(defaults: dict, user: dict) -> dict:
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in defaults.items()}
+    for k, v in user.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k].update(v)
+        else:
+            out[k] = v
+    return out
+
+
+class LeastSquaresNLP:
+    """Build-once, solve-many windowed estimation problem (see module docstring).
+
+    Parameters
+    ----------
+    model : Model
+    N : int
+        Number of slots (window length).
+    WQ : (nx, nx) array
+        Process-noise weight factor, :math:`W_Q^\\top W_Q = Q^{-1}`.
+    lower, upper : (nx,) arrays
+        State bounds.
+    solver : {"ipopt", "sqp", "fatrop"}
+    options : dict
+        Solver options merged over the defaults.
+    """
+
+    def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray, solver: str, options: dict):
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        self.model, self.N, self.solver_name = model, N, solver
+        nx, nu, ny = model.nx, model.nu, model.ny
+        self.lbx = np.tile(lower, N)
+        self.ubx = np.tile(upper, N)
+        self.bounded = bool(np.isfinite(self.lbx).any() or np.isfinite(self.ubx).any())
+        # parameter layout
+        sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * nu, "up": N * nu,
+                 "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx}
+        self._slices, start = {}, 0
+        for key, size in sizes.items():
+            self._slices[key] = slice(start, start + size)
+            start += size
+        self.np = start
+        self._p = np.zeros(self.np)
+        p = ca.SX.sym("p", self.np)
+        part = {k: p[s] for k, s in self._slices.items()}
+        Y = ca.reshape(part["y"], ny, N)
+        U = ca.reshape(part["u"], nu, N)
+        Up = ca.reshape(part["up"], nu, N)
+        a = part["a"]
+        xbar = part["xbar"]
+        W0 = ca.reshape(part["w0"], nx, nx)
+        WQd = ca.DM(WQ)
+        pm = ca.DM(model.p)
+        if solver == "fatrop":
+            self._build_fatrop(p, Y, U, Up, part, a, xbar, W0, WQd, pm, options)
+            return
+        X = ca.SX.sym("X", nx, N)
+        res = [W0 @ (X @ a - xbar)]
+        for j in range(N - 1):
+            om = part["omega"][j]
+            xn = model.F(X[:, j], U[:, j], pm)
+            res.append(om * (WQd @ (X[:, j + 1] - xn)) + (1 - om) * (X[:, j + 1] - X[:, j]))
+        for j in range(N):
+            Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
+            res.append(Wy @ (Y[:, j] - model.H(X[:, j], Up[:, j], pm)))
+        r = ca.vertcat(*res)
+        x = ca.vec(X)
+        f = ca.dot(r, r)
+        self.residual = ca.Function("residual", [x, p], [r])
+        nlp = {"x": x, "p": p, "f": f}
+        if solver == "ipopt":
+            self._solver = ca.nlpsol("mhe_ipopt", "ipopt", nlp, _merge(_IPOPT_DEFAULTS, options))
+        else:
+            J = ca.jacobian(r, x)
+            lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", 0)
+            # Gauss-Newton Hessian with a tiny damping: the stationary points are unchanged,
+            # the QP stays well posed when the window alone does not determine every state
+            H = lam_f * (2 * (J.T @ J) + 1e-10 * ca.DM.eye(x.numel()))
+            hess = ca.Function("nlp_hess_l", [x, p, lam_f, lam_g], [H],
+                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+            opts = _merge(_SQP_DEFAULTS, options)
+            opts["hess_lag"] = hess
+            self._solver = ca.nlpsol("mhe_sqp", "sqpmethod", nlp, opts)
+        self.reset()
+
+    # ----------------------------------------------------------- stage-wise form
+    def _build_fatrop(self, p, Y, U, Up, part, a, xbar, W0, WQd, pm, options) -> None:
+        """Multiple-shooting form with process noise as controls, for fatrop.
+
+        Stage k has variables ``(x_k, w_k)``; the gap constraint is
+        ``x_{k+1} = omega_k F(x_k, u_k) + (1 - omega_k) x_k + w_k`` and the
+        stage cost ``omega_k ||W_Q w_k||^2 + (1 - omega_k) ||w_k||^2``: the same
+        optimum as the eliminated form.
+        """
+        m, N = self.model, self.N
+        nx, ny = m.nx, m.ny
+        xs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
+        ws = [ca.SX.sym(f"w{k}", nx) for k in range(N - 1)]
+        variables, g, lbg, ubg = [], [], [], []
+        cost = ca.sumsqr(W0 @ (sum(a[k] * xs[k] for k in range(N)) - xbar))
+        for k in range(N):
+            variables.append(xs[k])
+            Wy = ca.reshape(part["wy"][k * ny * ny:(k + 1) * ny * ny], ny, ny)
+            cost += ca.sumsqr(Wy @ (Y[:, k] - m.H(xs[k], Up[:, k], pm)))
+            if k < N - 1:
+                variables.append(ws[k])
+                om = part["omega"][k]
+                cost += om * ca.sumsqr(WQd @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
+                g.append(xs[k + 1] - (om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
+                                      + ws[k]))
+                lbg.append(np.zeros(nx))
+                ubg.append(np.zeros(nx))
+        x = ca.vertcat(*variables)
+        nlp = {"x": x, "p": p, "f": cost, "g": ca.vertcat(*g)}
+        opts = _merge(_FATROP_DEFAULTS, options)
+        opts.setdefault("equality", [True] * (nx * (N - 1)))
+        self._solver = ca.nlpsol("mhe_fatrop", "fatrop", nlp, opts)
+        self._lbg = np.concatenate(lbg) if lbg else np.zeros(0)
+        self._ubg = np.concatenate(ubg) if ubg else np.zeros(0)
+        inf = np.full(nx, np.inf)
+        lb, ub = [], []
+        for k in range(N):
+            lb.append(self.lbx[k * nx:(k + 1) * nx])
+            ub.append(self.ubx[k * nx:(k + 1) * nx])
+            if k < N - 1:
+                lb.append(-inf)
+                ub.append(inf)
+        self._lbz, self._ubz = np.concatenate(lb), np.concatenate(ub)
+        self._xsel = np.concatenate([np.arange(k * 2 * nx, k * 2 * nx + nx) for k in range(N)])
+        self.reset()
+
+    def reset(self) -> None:
+        self._lam_x = None
+        self._lam_g = None
+
+    # ------------------------------------------------------------------ solve
+    def parameters(self, Y, U, Uprev, n, xbar, W0, WR, R) -> np.ndarray:
+        """Fill the parameter vector for a window with ``n`` measured slots."""
+        m, N = self.model, self.N
+        nx, ny = m.nx, m.ny
+        p, s = self._p, self._slices
+        mask = np.isfinite(Y)
+        p[s["y"]] = np.where(mask, Y, 0.0).ravel()          # column-major (ny, N)
+        wy = np.zeros((N, ny, ny))
+        s0 = N - n
+        full = mask.all(axis=1)
+        for j in range(s0, N):
+            if full[j]:
+                wy[j] = WR
+            elif mask[j].any():
+                rows = np.flatnonzero(mask[j])
+                Wsub = np.linalg.cholesky(np.linalg.inv(R[np.ix_(rows, rows)])).T
+                wy[j][np.ix_(rows, rows)] = Wsub
+        p[s["wy"]] = wy.transpose(0, 2, 1).ravel()            # each block column-major
+        p[s["u"]] = U.ravel()
+        p[s["up"]] = Uprev.ravel()
+        omega = np.zeros(max(N - 1, 0))
+        omega[s0:] = 1.0
+        p[s["omega"]] = omega
+        a = np.zeros(N)
+        a[s0] = 1.0
+        p[s["a"]] = a
+        p[s["xbar"]] = xbar
+        p[s["w0"]] = (np.zeros((nx, nx)) if W0 is None else W0).ravel(order="F")
+        return p
+
+    def solve(self, X0, Y, U, Uprev, n, xbar, W0, WR, R) -> Solution:
+        """Solve from the initial guess ``X0 (N, nx)``; never raises on solver failure."""
+        p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
+        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+        t0 = time.perf_counter()
+        try:
+            if self.solver_name == "fatrop":
+                sol = self._solve_fatrop(X0, p)
+            else:
+                args = {"x0": x0, "p": p, "lbx": self.lbx, "ubx": self.ubx}
+                if self._lam_x is not None and self.bounded:
+                    args["lam_x0"] = self._shifted(self._lam_x)
+                sol = self._solver(**args)
+            stats = self._solver.stats()
+        except RuntimeError as exc:  # solver crashed on NaN or similar
+            return Solution(np.asarray(X0, float), False, f"error: {exc}"[:200], 0, np.nan,
+                            time.perf_counter() - t0)
+        elapsed = time.perf_counter() - t0
+        status = str(stats.get("return_status", "unknown"))
+        iters = int(stats.get("iter_count", 0))
+        z = np.asarray(sol["x"]).ravel()
+        X = (z[self._xsel] if self.solver_name == "fatrop" else z).reshape(self.N, -1)
+        cost = float(sol["f"])
+        # sqpmethod stops on a step below min_step_size when Gauss-Newton's linear
+        # convergence has reached the stationary point to rounding: a converged solve
+        ok = bool(stats.get("success", False)) or status in (
+            "Solved_To_Acceptable_Level", "Search_Direction_Becomes_Too_Small")
+        ok = ok and np.isfinite(X).all() and np.isfinite(cost)
+        if ok:
+            if self.solver_name != "fatrop":
+                self._lam_x = np.asarray(sol["lam_x"]).ravel()
+            status = "ok"
+        return Solution(X, ok, status, iters, cost, elapsed)
+
+    def _solve_fatrop(self, X0, p):
+        nx, N = self.model.nx, self.N
+        z0 = np.zeros(self._lbz.size)
+        X0 = np.clip(np.asarray(X0, float), self.lbx.reshape(N, nx), self.ubx.reshape(N, nx))
+        z0[self._xsel] = X0.ravel()
+        return self._solver(x0=z0, p=p, lbx=self._lbz, ubx=self._ubz, lbg=self._lbg,
+                            ubg=self._ubg)
+
+    def _shifted(self, lam: np.ndarray) -> np.ndarray:
+        """Bound multipliers moved one slot earlier (the window moved one sample)."""
+        nx = self.model.nx
+        out = np.empty_like(lam)
+        out[:-nx] = lam[nx:]
+        out[-nx:] = lam[-nx:]
+        return out

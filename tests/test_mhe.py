@@ -1,0 +1,200 @@
+"""Moving horizon estimation: exact references, the seeds, failures and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import make_linear
+from scipy.optimize import least_squares
+from test_kalman import _kalman, _record
+
+import estim
+from estim.estimators.nlp import Solution
+
+SOLVERS = ["ipopt", "sqp", "fatrop"]
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_filtering_arrival_cost_equals_kalman_filter(solver):
+    """Linear-Gaussian, no bounds: MHE with the filtering prior is the Kalman filter."""
+    sys = make_linear(0)
+    Y, U = _record(sys, T=30, seed=3)
+    x_ref, P_ref = _kalman(sys, Y, U)
+    mhe = estim.MHE(sys.model, horizon=6, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
+                    arrival_cost="filtering", solver=solver)
+    for k, y in enumerate(Y):
+        x = mhe.step(y, U[k - 1] if k else None)
+        np.testing.assert_allclose(x, x_ref[k], atol=1e-6)
+        np.testing.assert_allclose(mhe.info.P, P_ref[k], atol=1e-9)
+        assert mhe.info.success
+
+
+def test_missing_outputs_drop_their_residuals():
+    """With NaN entries the filtering MHE still equals the Kalman filter that
+    skips those rows (the reduced update of test_kalman)."""
+    sys = make_linear(1)
+    Y, U = _record(sys, T=20, seed=4)
+    Y[3, 0] = np.nan
+    Y[7] = np.nan
+    Y[12, 1] = np.nan
+    ekf = estim.EKF(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)  # = KF, tested
+    mhe = estim.MHE(sys.model, horizon=4, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
+    for k, y in enumerate(Y):
+        u = U[k - 1] if k else None
+        np.testing.assert_allclose(mhe.step(y, u), ekf.step(y, u), atol=1e-6)
+
+
+def _vdp_batch_reference(model, Y, x0, P0, Q, R):
+    """The whole-record problem written in numpy, solved by scipy's least_squares."""
+    mu, dt = model.params["mu"], model.dt
+
+    def f(x):
+        return np.array([x[1], mu * (1 - x[0] ** 2) * x[1] - x[0]])
+
+    def F(x):
+        k1 = f(x)
+        k2 = f(x + dt / 2 * k1)
+        k3 = f(x + dt / 2 * k2)
+        k4 = f(x + dt * k3)
+        return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    Wq = np.linalg.cholesky(np.linalg.inv(Q)).T
+    Wr = np.linalg.cholesky(np.linalg.inv(R)).T
+    W0 = np.linalg.cholesky(np.linalg.inv(P0)).T
+    T = len(Y)
+
+    def residual(z):
+        X = z.reshape(T, 2)
+        r = [W0 @ (X[0] - x0)]
+        r += [Wq @ (X[k + 1] - F(X[k])) for k in range(T - 1)]
+        r += [Wr @ (Y[k] - X[k]) for k in range(T)]
+        return np.concatenate(r)
+
+    z0 = np.tile(x0, T)
+    sol = least_squares(residual, z0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    return sol.x.reshape(T, 2)
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_horizon_covering_all_data_equals_batch_solve(solver):
+    """Before the window is full, MHE is full-information estimation over all data
+    (no padding): each estimate is the last state of the batch solution."""
+    sc = estim.scenarios.van_der_pol()
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2, n_steps=25)
+    Q, R, x0, P0 = np.eye(2) * 0.01, np.eye(2), np.zeros(2), np.eye(2)
+    mhe = estim.MHE(sc.model, horizon=40, Q=Q, R=R, x0=x0, P0=P0, arrival_cost="fixed",
+                    solver=solver)
+    for k in range(25):
+        x = mhe.step(log.y[k])
+        if k in (0, 4, 24):
+            ref = _vdp_batch_reference(sc.model, log.y[: k + 1], x0, P0, Q, R)
+            np.testing.assert_allclose(x, ref[-1], atol=1e-6)
+            np.testing.assert_allclose(mhe.info.extra["window"], ref, atol=1e-6)
+
+
+def test_solvers_agree_on_the_benchmark_problems():
+    for name, N, ac in (("van_der_pol", 15, "filtering"), ("batch_reactor", 10, "none")):
+        sc = estim.scenarios.get(name).replace(n_steps=60)
+        logs = [estim.simulate(sc, estim.MHE(sc.model, horizon=N, arrival_cost=ac,
+                                             solver=s, **sc.tuning), seed=1)
+                for s in SOLVERS]
+        burn = 5 if ac == "none" else 0  # the first windows alone do not determine x
+        for other in logs[1:]:
+            np.testing.assert_allclose(other.x_hat[burn:], logs[0].x_hat[burn:], atol=1e-6)
+        assert all(lg.success.all() for lg in logs)
+
+
+def test_batch_reactor_mhe_beats_ekf_and_longer_horizon_is_better():
+    """Seed 002, exercises 5-6: zero prior, x in [0, 10]."""
+    sc = estim.scenarios.batch_reactor()
+    ekf = float(estim.rmse(estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)))
+    res = {}
+    for N in (10, 25):
+        mhe = estim.MHE(sc.model, horizon=N, arrival_cost="none", upper=10.0,
+                        solver="fatrop", **sc.tuning)
+        log = estim.simulate(sc, mhe, seed=0)
+        assert log.x_hat.min() >= -1e-8 and log.x_hat.max() <= 10 + 1e-8
+        assert log.success.all()
+        res[N] = float(estim.rmse(log))
+    assert res[10] < 0.5 * ekf
+    assert res[25] < 0.5 * res[10]
+
+
+def test_van_der_pol_filtering_mhe_as_accurate_as_ekf():
+    """Seed 001: over 10 seeds the filtering MHE is within 2 % of the EKF."""
+    sc = estim.scenarios.van_der_pol()
+    mean = {}
+    for name, est in (("ekf", estim.EKF(sc.model, **sc.tuning)),
+                      ("mhe", estim.MHE(sc.model, horizon=15, solver="fatrop", **sc.tuning))):
+        mean[name] = np.mean([float(estim.rmse(estim.simulate(sc, est, seed=s)))
+                              for s in range(10)])
+    assert mean["mhe"] <= 1.02 * mean["ekf"]
+
+
+def test_parameter_estimation_on_augmented_model():
+    """The reactor's rate constant k1 as an unknown, bounded state."""
+    m = estim.models.batch_reactor().augment("k1", lower=0.0, upper=5.0)
+    sc = estim.scenarios.batch_reactor()
+    x0_true = np.r_[sc.x0, 0.5]
+    mhe = estim.MHE(m, horizon=20, Q=[0.002**2] * 3 + [1e-8], R=0.25**2,
+                    x0=[0.6, 0.1, 0.1, 0.3], P0=[0.1, 0.1, 0.1, 0.1], solver="fatrop")
+    log = estim.simulate(m, mhe, x0=x0_true, n_steps=80, Q=[0.002**2] * 3 + [0.0],
+                         R=0.25**2, seed=0, clip=True)
+    assert log.success.all()
+    # k1 is identifiable from the transient: after it the estimate is close
+    assert abs(log.x_hat[-1, 3] - 0.5) < 0.05
+    assert float(estim.rmse(log, burn_in=40, states=["C_A", "C_B", "C_C"])) < 0.05
+
+
+def test_failed_solve_returns_prediction_and_recovers(monkeypatch):
+    sc = estim.scenarios.van_der_pol()
+    mhe = estim.MHE(sc.model, horizon=5, solver="ipopt", **sc.tuning)
+    log = estim.simulate(sc, mhe, seed=0, n_steps=12)
+    mhe.reset()
+    real = mhe._nlp.solve
+    calls = {"n": 0}
+
+    def flaky(*args):
+        calls["n"] += 1
+        sol = real(*args)
+        if calls["n"] == 8:
+            return Solution(sol.X * np.nan, False, "Invalid_Number_Detected", 3, np.nan, 0.0)
+        return sol
+
+    monkeypatch.setattr(mhe._nlp, "solve", flaky)
+    xs, statuses = [], []
+    for y, u in zip(log.y, [None, *log.u[:-1]], strict=True):
+        xs.append(mhe.step(y, u))
+        statuses.append(mhe.info.status)
+    assert all(np.isfinite(x).all() for x in xs)
+    assert statuses[7] == "failed: Invalid_Number_Detected"
+    np.testing.assert_allclose(xs[7], sc.model.f(xs[6]), atol=1e-12)  # the prediction
+    assert statuses[8] == "ok" and statuses[-1] == "ok"  # the next steps solve again
+    np.testing.assert_allclose(xs[-1], log.x_hat[-1], atol=1e-6)  # and forget the failure
+
+
+def test_all_failures_keep_the_loop_running():
+    sc = estim.scenarios.van_der_pol()
+    mhe = estim.MHE(sc.model, horizon=5, solver="ipopt", solver_options={"ipopt.max_iter": 0},
+                    **sc.tuning)
+    log = estim.simulate(sc, mhe, seed=0, n_steps=20)
+    assert not log.success.any()
+    assert all(s.startswith("failed: Maximum_Iterations_Exceeded") for s in log.status)
+    assert np.isfinite(log.x_hat).all()
+
+
+def test_bad_input():
+    sc = estim.scenarios.van_der_pol()
+    with pytest.raises(ValueError, match="horizon must be a positive integer"):
+        estim.MHE(sc.model, horizon=0, **sc.tuning)
+    with pytest.raises(ValueError, match="arrival_cost must be one of"):
+        estim.MHE(sc.model, horizon=5, arrival_cost="ekf", **sc.tuning)
+    with pytest.raises(ValueError, match="solver must be one of"):
+        estim.MHE(sc.model, horizon=5, solver="snopt", **sc.tuning)
+    with pytest.raises(ValueError, match="Q must be positive definite for MHE"):
+        estim.MHE(sc.model, horizon=5, **{**sc.tuning, "Q": [0.01, 0.0]})
+    with pytest.raises(ValueError, match="P0 is required"):
+        estim.MHE(sc.model, horizon=5, arrival_cost="filtering", Q=0.01, R=1.0, x0=[0, 0])
+    estim.MHE(sc.model, horizon=5, arrival_cost="none", Q=0.01, R=1.0, x0=[0, 0])
+    with pytest.raises(TypeError, match="unknown option"):
+        estim.MHE(sc.model, horizon=5, window=3, **sc.tuning)
