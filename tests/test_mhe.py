@@ -11,7 +11,7 @@ from test_kalman import _kalman, _record
 import estim
 from estim.estimators.nlp import Solution
 
-SOLVERS = ["ipopt", "sqp", "fatrop"]
+SOLVERS = ["gauss-newton", "ipopt", "sqp", "fatrop"]
 
 
 @pytest.mark.parametrize("solver", SOLVERS)

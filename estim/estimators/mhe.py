@@ -74,8 +74,11 @@ class MHE(Estimator):
     arrival_cost : {"none", "fixed", "filtering", "smoothing"}
     lower, upper : optional
         State bounds (default: the model's).
-    solver : {"ipopt", "sqp", "fatrop"}
-        ``"ipopt"``: interior point with the exact Hessian. ``"sqp"``: CasADi's
+    solver : {"gauss-newton", "ipopt", "sqp", "fatrop"}
+        ``"gauss-newton"``: the structure-exploiting projected Newton/Gauss-Newton
+        solver of :mod:`estim.estimators.gauss_newton` (block-tridiagonal solve,
+        bounds by projection; fastest). ``"ipopt"``: interior point with the
+        exact Hessian. ``"sqp"``: CasADi's
         ``sqpmethod`` with the Gauss-Newton Hessian :math:`2J^\top J` and the
         ``qrqp`` active-set QP solver (fast when warm-started).
         ``"fatrop"``: the structure-exploiting interior point solver fatrop on
@@ -88,8 +91,10 @@ class MHE(Estimator):
     ----------
     info : StepInfo
         ``status``, ``iterations``, ``solve_time``, ``cost``, ``P`` (the
-        covariance at :math:`T` propagated through the window from the
-        arrival covariance; None for ``"none"``) and ``extra`` with
+        Laplace covariance of :math:`\hat x_T`, the last block of
+        :math:`(J^\top J)^{-1}` at the solution: the Kalman filter's covariance
+        on a linear-Gaussian model with the filtering arrival cost; None where
+        the window does not determine the state) and ``extra`` with
         ``window`` (the estimated trajectory, (n, nx)), ``arrival_mean`` and
         ``arrival_covariance``.
 
@@ -222,22 +227,10 @@ class MHE(Estimator):
             status = f"failed: {sol.status}"
         self._history.append(x_hat.copy())
         self._last = x_hat
-        P = None
-        if self._Pbar is not None and sol.success:
-            P = self._window_covariance(s0)
+        P = self._nlp.covariance(self._X) if sol.success else None
         return x_hat.copy(), StepInfo(
             status=status, success=sol.success, iterations=sol.iterations,
             solve_time=elapsed, P=P, cost=sol.cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "solver_time": sol.solve_time})
-
-    def _window_covariance(self, s0: int) -> np.ndarray:
-        """EKF covariance at the window's end, propagated from the arrival covariance."""
-        nx, N = self.model.nx, self.horizon
-        P = self._Pbar.ravel(order="F").copy()
-        for j in range(s0, N):
-            mask = np.isfinite(self._Y[j]).astype(float)
-            Pn, Pu = self._cov_step(self._X[j], self._U[j], self._Uprev[j], mask, P)
-            P = (Pu if j == N - 1 else Pn).copy()
-        return P.reshape(nx, nx, order="F")

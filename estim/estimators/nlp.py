@@ -28,9 +28,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from estim.estimators.gauss_newton import StructuredGaussNewton
 from estim.model import Model
 
-SOLVERS = ("ipopt", "sqp", "fatrop")
+SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
 
 _IPOPT_DEFAULTS = {
     "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
@@ -120,6 +121,15 @@ class LeastSquaresNLP:
         W0 = ca.reshape(part["w0"], nx, nx)
         WQd = ca.DM(WQ)
         pm = ca.DM(model.p)
+        gn_opts = {k: options[k] for k in ("max_iter", "xtol") if k in options}
+        if solver == "gauss-newton" and set(options) - set(gn_opts):
+            raise ValueError(f"solver_options for gauss-newton are max_iter and xtol, got "
+                             f"{sorted(options)}")
+        self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
+                                        self.np, **gn_opts)
+        if solver == "gauss-newton":
+            self.reset()
+            return
         if solver == "fatrop":
             self._build_fatrop(p, Y, U, Up, part, a, xbar, W0, WQd, pm, options)
             return
@@ -213,13 +223,13 @@ class LeastSquaresNLP:
         wy = np.zeros((N, ny, ny))
         s0 = N - n
         full = mask.all(axis=1)
-        for j in range(s0, N):
-            if full[j]:
-                wy[j] = WR
-            elif mask[j].any():
-                rows = np.flatnonzero(mask[j])
-                Wsub = np.linalg.cholesky(np.linalg.inv(R[np.ix_(rows, rows)])).T
-                wy[j][np.ix_(rows, rows)] = Wsub
+        full[:s0] = False
+        wy[full] = WR
+        partial = np.flatnonzero(~full & mask.any(axis=1))
+        for j in partial[partial >= s0]:
+            rows = np.flatnonzero(mask[j])
+            Wsub = np.linalg.cholesky(np.linalg.inv(R[np.ix_(rows, rows)])).T
+            wy[j][np.ix_(rows, rows)] = Wsub
         p[s["wy"]] = wy.transpose(0, 2, 1).ravel()            # each block column-major
         p[s["u"]] = U.ravel()
         p[s["up"]] = Uprev.ravel()
@@ -238,6 +248,10 @@ class LeastSquaresNLP:
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
         x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         t0 = time.perf_counter()
+        if self.solver_name == "gauss-newton":
+            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p)
+            return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
+                            elapsed)
         try:
             if self.solver_name == "fatrop":
                 sol = self._solve_fatrop(X0, p)
@@ -266,6 +280,12 @@ class LeastSquaresNLP:
                 self._lam_x = np.asarray(sol["lam_x"]).ravel()
             status = "ok"
         return Solution(X, ok, status, iters, cost, elapsed)
+
+    def covariance(self, X: np.ndarray) -> np.ndarray | None:
+        """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the
+        solution ``X`` for the parameters of the last solve (None if singular)."""
+        P = self.gn.covariance(np.asarray(X, float).ravel(), self._p)
+        return P if np.isfinite(P).all() else None
 
     def _solve_fatrop(self, X0, p):
         nx, N = self.model.nx, self.N
