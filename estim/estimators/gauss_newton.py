@@ -123,11 +123,11 @@ class StructuredGaussNewton:
 
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, slices: dict, n_params: int, max_iter: int = 50,
-                 xtol: float = 1e-10, gtol: float = 1e-9, newton: bool = True):
+                 xtol: float = 1e-10, newton: bool = False, jit: bool = False):
         self.model, self.N = model, N
         self.lower, self.upper = lower, upper
-        self.max_iter, self.xtol, self.gtol = int(max_iter), float(xtol), float(gtol)
-        self.newton = bool(newton)
+        self.max_iter, self.xtol = int(max_iter), float(xtol)
+        self.newton, self.jit = bool(newton), bool(jit)
         nx, nu, ny = model.nx, model.nu, model.ny
         p = ca.SX.sym("p", n_params)
         part = {k: p[s] for k, s in slices.items()}
@@ -186,10 +186,13 @@ class StructuredGaussNewton:
         scaled = -gvec / ca.vertcat(*[ca.diag(D[j]) + 1e-300 for j in range(N)])
         d_gn = ca.if_else(fixed, scaled, _eliminate(D, E, g, free, lam, nx))
         d_newton = ca.if_else(fixed, scaled, _eliminate(Dh, Eh, g, free, lam, nx))
-        self._iter_gn = FastFunction(ca.Function("gn_iter", [xv, p, lam], [cost, gvec, d_gn]))
+        opts = {"jit": True, "compiler": "shell",
+                "jit_options": {"flags": ["-O1"], "verbose": False}} if self.jit else {}
+        self._iter_gn = FastFunction(ca.Function("gn_iter", [xv, p, lam], [cost, gvec, d_gn],
+                                                 opts))
         self._iter_newton = FastFunction(ca.Function(
-            "newton_iter", [xv, p, lam], [cost, gvec, d_newton, d_gn]))
-        self._cost = FastFunction(ca.Function("gn_cost", [xv, p], [cost]))
+            "newton_iter", [xv, p, lam], [cost, gvec, d_newton, d_gn], opts))
+        self._cost = FastFunction(ca.Function("gn_cost", [xv, p], [cost], opts))
         # covariance of the last state: inverse of the last Schur complement of J^T J
         S_last = D[0]
         for j in range(1, N):
@@ -234,12 +237,12 @@ class StructuredGaussNewton:
                     0.0 <= decrease <= 1e-13 * max(abs(f), 1e-300):
                 status = "ok"
                 break
-            xn = fn = None
+            new = None
             for d in dirs:
-                xn, fn, alpha = self._line_search(x, f, g, d, p)
-                if xn is not None:
+                new = self._line_search(x, f, g, d, p, lam, newton)
+                if new is not None:
                     break
-            if xn is None:
+            if new is None:
                 if not newton:
                     newton = True
                 else:  # no decrease along either direction: damp
@@ -249,30 +252,43 @@ class StructuredGaussNewton:
                         break
                 f, g, dirs = self._evaluate(x, p, lam, newton)
                 continue
+            xn, alpha, evaluated = new
             step = np.max(np.abs(xn - x))
-            if step > 0.25 * last_step:
-                newton = True
+            switch = not newton and step > 0.25 * last_step
             x, steps, last_step = xn, steps + 1, step
-            if alpha == 1.0:
+            if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0
-            f, g, dirs = self._evaluate(x, p, lam, newton)
+                evaluated = None
+            if switch:
+                newton, evaluated = True, None
+            f, g, dirs = evaluated if evaluated is not None else \
+                self._evaluate(x, p, lam, newton)
         ok = status == "ok" and bool(np.isfinite(x).all()) and np.isfinite(f)
         return x, ok, status, steps, f, time.perf_counter() - t0
 
-    def _line_search(self, x, f, g, d, p):
-        """Armijo backtracking along the projection arc; ``(None, None, 0)`` if it fails."""
+    def _line_search(self, x, f, g, d, p, lam, newton):
+        """Armijo backtracking along the projection arc.
+
+        The full step is tried with a whole iteration evaluation (reused by
+        the next iteration when accepted), shorter ones with the cost only.
+        Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
+        """
         lo, hi = self.lower, self.upper
         if float(g @ (np.clip(x + 1e-8 * d, lo, hi) - x)) >= 0.0:
-            return None, None, 0.0  # not a descent direction
-        alpha = 1.0
+            return None  # not a descent direction
+        xn = np.clip(x + d, lo, hi)
+        ev = self._evaluate(xn, p, lam, newton)
+        # Armijo test; the gradient of f is 2 g
+        if np.isfinite(ev[0]) and ev[0] <= f + 2e-4 * float(g @ (xn - x)):
+            return xn, 1.0, ev
+        alpha = 0.5
         while alpha > 1e-8:
             xn = np.clip(x + alpha * d, lo, hi)
             fn = float(self._cost(xn, p)[0][0])
-            # the gradient of f is 2 g
             if np.isfinite(fn) and fn <= f + 2e-4 * float(g @ (xn - x)):
-                return xn, fn, alpha
+                return xn, alpha, None
             alpha *= 0.5
-        return None, None, 0.0
+        return None
 
     def _evaluate(self, x, p, lam, newton):
         if newton:

@@ -85,7 +85,10 @@ class MHE(Estimator):
         the stage-wise formulation.
     solver_options : dict, optional
         Passed to the solver (merged over the defaults), e.g.
-        ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``.
+        ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``. For
+        ``"gauss-newton"``: ``max_iter``, ``xtol``, ``newton`` (exact-Hessian
+        steps from the start) and ``jit`` (compile to machine code; needs a C
+        compiler).
 
     Attributes
     ----------

@@ -121,9 +121,11 @@ class LeastSquaresNLP:
         W0 = ca.reshape(part["w0"], nx, nx)
         WQd = ca.DM(WQ)
         pm = ca.DM(model.p)
-        gn_opts = {k: options[k] for k in ("max_iter", "xtol") if k in options}
+        gn_keys = ("max_iter", "xtol", "newton", "jit")
+        gn_opts = {k: options[k] for k in gn_keys if k in options} \
+            if solver == "gauss-newton" else {}
         if solver == "gauss-newton" and set(options) - set(gn_opts):
-            raise ValueError(f"solver_options for gauss-newton are max_iter and xtol, got "
+            raise ValueError(f"solver_options for gauss-newton are {gn_keys}, got "
                              f"{sorted(options)}")
         self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
                                         self.np, **gn_opts)
