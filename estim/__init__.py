@@ -9,7 +9,7 @@ True
 
 from estim import models, scenarios
 from estim.compare import Comparison, compare
-from estim.estimators import EKF, MHE, UKF, Estimator, StepInfo
+from estim.estimators import EKF, MHE, UKF, Estimator, FitResult, FullInformation, StepInfo
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
@@ -17,8 +17,8 @@ from estim.scenarios import Scenario
 from estim.simulate import simulate
 
 __all__ = [
-    "EKF", "MHE", "UKF", "Comparison", "Estimator", "Log", "Model", "RMSE", "Scenario", "StepInfo",
-    "chi2_bounds", "compare", "convergence_time", "errors", "models", "nees", "nis", "rmse",
-    "scenarios", "simulate",
+    "EKF", "MHE", "UKF", "Comparison", "Estimator", "FitResult", "FullInformation", "Log",
+    "Model", "RMSE", "Scenario", "StepInfo", "chi2_bounds", "compare", "convergence_time",
+    "errors", "models", "nees", "nis", "rmse", "scenarios", "simulate",
 ]
 __version__ = "0.1.0"

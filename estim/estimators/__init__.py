@@ -2,10 +2,12 @@
 
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ekf import EKF
+from estim.estimators.fie import FitResult, FullInformation
 from estim.estimators.mhe import MHE
 from estim.estimators.ukf import UKF
 
 #: Estimator classes by short name (command line, comparisons).
-ESTIMATORS = {"ekf": EKF, "ukf": UKF, "mhe": MHE}
+ESTIMATORS = {"ekf": EKF, "ukf": UKF, "mhe": MHE, "fie": FullInformation}
 
-__all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "StepInfo", "UKF"]
+__all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "FitResult", "FullInformation",
+           "StepInfo", "UKF"]

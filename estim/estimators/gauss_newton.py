@@ -69,24 +69,18 @@ def _sym_solve(S, B):
 
 
 def _eliminate(D, E, g, free, lam, nx):
-    """Solve the masked, damped block-tridiagonal system ``H d = -g`` by block elimination.
+    """Solve the masked, damped block-tridiagonal system ``H d = -g`` (unrolled SX).
 
     Rows and columns of fixed variables are replaced by the identity; the
-    diagonal blocks get Marquardt damping ``lam * diag(D_j)`` and a ridge of
+    diagonal blocks get Marquardt damping ``lam * |diag(D_j)|`` and a ridge of
     1e-12 of their largest entry (which leaves stationary points unchanged).
     """
     N = len(D)
-    eye = ca.DM.eye(nx)
-    Dm, Em, z = [], [], []
-    for j in range(N):
-        Fj = ca.diag(free[j * nx:(j + 1) * nx])
-        dj = ca.diag(D[j])
-        ridge = 1e-12 * ca.fmax(ca.mmax(ca.fabs(dj)), 1e-300)
-        Dj = D[j] + lam * ca.diag(ca.fabs(dj)) + ridge * eye
-        Dm.append(Fj @ Dj @ Fj + (eye - Fj))
-        z.append(-(Fj @ g[j]))
-        if j < N - 1:
-            Em.append(Fj @ E[j] @ ca.diag(free[(j + 1) * nx:(j + 2) * nx]))
+    rows = [_mask_row(D[j], E[j] if j < N - 1 else ca.SX.zeros(nx, nx), g[j],
+                      free[j * nx:(j + 1) * nx],
+                      free[(j + 1) * nx:(j + 2) * nx] if j < N - 1 else ca.SX.zeros(nx, 1),
+                      lam, nx) for j in range(N)]
+    Dm, Em, z = [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows]
     S, zs = [Dm[0]], [z[0]]
     for j in range(1, N):
         K = _sym_solve(S[j - 1], ca.horzcat(Em[j - 1], zs[j - 1]))
@@ -97,6 +91,108 @@ def _eliminate(D, E, g, free, lam, nx):
     for j in range(N - 2, -1, -1):
         d[j] = _sym_solve(S[j], zs[j] - Em[j] @ d[j + 1])
     return ca.vertcat(*d)
+
+
+#: Gauss-Newton steps that shrink by less than this factor switch to Newton steps.
+SWITCH_RATIO = 0.8
+
+
+class _StageFunctions:
+    """Per-slot pieces of the Gauss-Newton/Newton system as SX Functions.
+
+    ``meas``: arrival (weight ``a``) and measurement terms of one slot;
+    ``trans``: the process term linking two slots; ``mask``: the active-set
+    masking and damping of one block row; ``fwd``/``bwd``: one step of the
+    block elimination. Inlined into one graph for short windows, mapped and
+    scanned for long records.
+    """
+
+    def __init__(self, model: Model, WQ: np.ndarray):
+        nx, nu, ny = model.nx, model.nu, model.ny
+        pm, eye, WQd = ca.DM(model.p), ca.DM.eye(nx), ca.DM(WQ)
+        x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
+        y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
+        u, up = ca.SX.sym("u", nu), ca.SX.sym("up", nu)
+        a, om = ca.SX.sym("a"), ca.SX.sym("omega")
+        xbar, w0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx)
+        W0, Wy = ca.reshape(w0, nx, nx), ca.reshape(wy, ny, ny)
+        # arrival and measurement terms of one slot
+        r0 = W0 @ (x - xbar)
+        ry = Wy @ (y - model.H(x, up, pm))
+        Jy = -Wy @ model.H_x(x, up, pm)
+        c = a * ca.sumsqr(r0) + ca.sumsqr(ry)
+        A0 = a * (W0.T @ W0)
+        margs = [x, y, wy, up, a, xbar, w0]
+        self.meas = ca.Function("meas", margs, [
+            A0 + Jy.T @ Jy, A0 + ca.hessian(0.5 * ca.sumsqr(ry), x)[0],
+            a * (W0.T @ r0) + Jy.T @ ry, c])
+        self.meas_cost = ca.Function("meas_cost", margs, [c])
+        # process term between slots
+        M = om * WQd + (1 - om) * eye
+        A = om * model.F_x(x, u, pm) + (1 - om) * eye
+        G = om * model.F(x, u, pm) + (1 - om) * x
+        rw = M @ (xb - G)
+        Ja, Jb = -M @ A, M
+        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(x, xb))[0]
+        targs = [x, xb, u, om]
+        self.trans = ca.Function("trans", targs, [
+            Ja.T @ Ja, Jb.T @ Jb, Ja.T @ Jb, Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:],
+            Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)])
+        self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
+        # masking/damping of one block row, and one elimination step
+        Dj, Ej = ca.SX.sym("D", nx, nx), ca.SX.sym("E", nx, nx)
+        gj, lam = ca.SX.sym("g", nx), ca.SX.sym("lam")
+        fj, fn = ca.SX.sym("free", nx), ca.SX.sym("free_next", nx)
+        Dm, Em, z = _mask_row(Dj, Ej, gj, fj, fn, lam, nx)
+        self.mask = ca.Function("mask", [Dj, Ej, gj, fj, fn, lam], [Dm, Em, z])
+        self.diag = ca.Function("diag", [Dj], [ca.diag(Dj)])
+        Sp, zp = ca.SX.sym("S_prev", nx, nx), ca.SX.sym("z_prev", nx)
+        Ep = ca.SX.sym("E_prev", nx, nx)
+        zj = ca.SX.sym("z", nx)
+        K = _sym_solve(Sp, ca.horzcat(Ep, zp))
+        self.fwd = ca.Function("fwd", [Sp, zp, Dj, Ep, zj],
+                               [Dj - Ep.T @ K[:, :nx], zj - Ep.T @ K[:, nx]])
+        dn = ca.SX.sym("d_next", nx)
+        self.bwd = ca.Function("bwd", [dn, Dj, zj, Ej], [_sym_solve(Dj, zj - Ej @ dn)])
+
+
+def _mask_row(D, E, g, free, free_next, lam, nx):
+    """Masked, damped block row: fixed rows/columns become the identity.
+
+    Elementwise: ``Dm = (f f^T) * (D + lam |diag D| + ridge I) + diag(1 - f)``,
+    ``Em = (f f_next^T) * E``, ``z = -f * g``.
+    """
+    dj = ca.diag(D)
+    ridge = 1e-12 * ca.fmax(ca.mmax(ca.fabs(dj)), 1e-300)
+    Dd = D + ca.diag(lam * ca.fabs(dj) + ridge)
+    return (free @ free.T) * Dd + ca.diag(1 - free), (free @ free_next.T) * E, -free * g
+
+
+def _reverse_cols(M, N, width):
+    """Reverse the order of the ``N`` column blocks (each ``width`` wide) of an MX."""
+    idx = [b * width + c for b in range(N - 1, -1, -1) for c in range(width)]
+    return M[:, idx]
+
+
+def _scan_solve(st, Dm, Em, z, N, nx):
+    """Block-tridiagonal solve by a forward and a backward ``mapaccum`` scan."""
+    Ep = ca.horzcat(ca.MX.zeros(nx, nx), Em[:, :(N - 1) * nx])
+    S, zz = st.fwd.mapaccum("fwd_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1), Dm, Ep, z)
+    d_rev = st.bwd.mapaccum("bwd_scan", N, 1)(
+        ca.MX.zeros(nx, 1), _reverse_cols(S, N, nx), _reverse_cols(zz, N, 1),
+        _reverse_cols(Em, N, nx))
+    return _reverse_cols(d_rev, N, 1)
+
+
+def _scan_last_inverse(st, D, E, N, nx):
+    """Inverse of the last Schur complement of ``J^T J`` (covariance of the last state)."""
+    Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
+    S, _ = st.fwd.mapaccum("cov_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep,
+                                             ca.MX.zeros(nx, N))
+    S_last = S[:, (N - 1) * nx:]
+    Sl = ca.SX.sym("S", nx, nx)
+    cov = ca.Function("inv_last", [Sl], [_sym_solve(Sl, ca.SX.eye(nx))])(S_last)
+    return 0.5 * (cov + cov.T)
 
 
 class StructuredGaussNewton:
@@ -123,82 +219,129 @@ class StructuredGaussNewton:
 
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, slices: dict, n_params: int, max_iter: int = 50,
-                 xtol: float = 1e-10, newton: bool = False, jit: bool = False):
+                 xtol: float = 1e-10, newton: bool = False, jit: bool = False,
+                 mode: str = "auto"):
+        if mode not in ("auto", "unrolled", "mapped"):
+            raise ValueError(f"mode must be 'auto', 'unrolled' or 'mapped', got {mode!r}")
         self.model, self.N = model, N
         self.lower, self.upper = lower, upper
         self.max_iter, self.xtol = int(max_iter), float(xtol)
         self.newton, self.jit = bool(newton), bool(jit)
-        nx, nu, ny = model.nx, model.nu, model.ny
-        p = ca.SX.sym("p", n_params)
-        part = {k: p[s] for k, s in slices.items()}
-        Y = ca.reshape(part["y"], ny, N)
-        U = ca.reshape(part["u"], nu, N)
-        Up = ca.reshape(part["up"], nu, N)
-        a, xbar = part["a"], part["xbar"]
-        W0 = ca.reshape(part["w0"], nx, nx)
-        WQd, pm, eye = ca.DM(WQ), ca.DM(model.p), ca.DM.eye(nx)
-        X = ca.SX.sym("X", nx, N)
-        lam = ca.SX.sym("lam")
-
-        D = [ca.SX.zeros(nx, nx) for _ in range(N)]   # Gauss-Newton blocks of J^T J
-        E = [ca.SX.zeros(nx, nx) for _ in range(N - 1)]
-        Dh = [ca.SX.zeros(nx, nx) for _ in range(N)]  # exact Hessian blocks of f/2
-        Eh = [ca.SX.zeros(nx, nx) for _ in range(N - 1)]
-        g = [ca.SX.zeros(nx, 1) for _ in range(N)]
-        r0 = W0 @ (X @ a - xbar)
-        cost = ca.sumsqr(r0)
-        for j in range(N):
-            xj = X[:, j]
-            D[j] += a[j] * (W0.T @ W0)
-            Dh[j] += a[j] * (W0.T @ W0)
-            g[j] += a[j] * (W0.T @ r0)
-            Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
-            ry = Wy @ (Y[:, j] - model.H(xj, Up[:, j], pm))
-            Jy = -Wy @ model.H_x(xj, Up[:, j], pm)
-            cost += ca.sumsqr(ry)
-            D[j] += Jy.T @ Jy
-            Dh[j] += ca.hessian(0.5 * ca.sumsqr(ry), xj)[0]
-            g[j] += Jy.T @ ry
-        for j in range(N - 1):
-            xj, xk = X[:, j], X[:, j + 1]
-            om = part["omega"][j]
-            M = om * WQd + (1 - om) * eye
-            A = om * model.F_x(xj, U[:, j], pm) + (1 - om) * eye
-            G = om * model.F(xj, U[:, j], pm) + (1 - om) * xj
-            rw = M @ (xk - G)
-            Ja, Jb = -M @ A, M
-            cost += ca.sumsqr(rw)
-            D[j] += Ja.T @ Ja
-            D[j + 1] += Jb.T @ Jb
-            E[j] += Ja.T @ Jb
-            Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(xj, xk))[0]
-            Dh[j] += Hw[:nx, :nx]
-            Dh[j + 1] += Hw[nx:, nx:]
-            Eh[j] += Hw[:nx, nx:]
-            g[j] += Ja.T @ rw
-            g[j + 1] += Jb.T @ rw
-        gvec = ca.vertcat(*g)
-        xv = ca.vec(X)
-        lo, hi = ca.DM(lower), ca.DM(upper)
-        # fixed: at a bound with the gradient (of f/2) pushing outward
-        fixed = ca.logic_or(ca.logic_and(xv <= lo, gvec > 0), ca.logic_and(xv >= hi, gvec < 0))
-        free = 1 - fixed
-        scaled = -gvec / ca.vertcat(*[ca.diag(D[j]) + 1e-300 for j in range(N)])
-        d_gn = ca.if_else(fixed, scaled, _eliminate(D, E, g, free, lam, nx))
-        d_newton = ca.if_else(fixed, scaled, _eliminate(Dh, Eh, g, free, lam, nx))
+        self.mode = ("unrolled" if N <= 60 else "mapped") if mode == "auto" else mode
+        if self.mode == "mapped" and N < 2:
+            self.mode = "unrolled"
+        self._stages = _StageFunctions(model, WQ)
         opts = {"jit": True, "compiler": "shell",
                 "jit_options": {"flags": ["-O1"], "verbose": False}} if self.jit else {}
-        self._iter_gn = FastFunction(ca.Function("gn_iter", [xv, p, lam], [cost, gvec, d_gn],
-                                                 opts))
-        self._iter_newton = FastFunction(ca.Function(
-            "newton_iter", [xv, p, lam], [cost, gvec, d_newton, d_gn], opts))
-        self._cost = FastFunction(ca.Function("gn_cost", [xv, p], [cost], opts))
-        # covariance of the last state: inverse of the last Schur complement of J^T J
+        build = self._build_unrolled if self.mode == "unrolled" else self._build_mapped
+        it_gn, it_newton, cost, cov = build(N, slices, n_params)
+        self._iter_gn = FastFunction(ca.Function("gn_iter", *it_gn, opts))
+        self._iter_newton = FastFunction(ca.Function("newton_iter", *it_newton, opts))
+        self._cost = FastFunction(ca.Function("gn_cost", *cost, opts))
+        self._cov = FastFunction(ca.Function("gn_cov", *cov))
+
+    def _parts(self, p, slices, N):
+        m = self.model
+        nu, ny = m.nu, m.ny
+        part = {k: p[s] for k, s in slices.items()}
+        return {
+            "Y": ca.reshape(part["y"], ny, N), "WY": ca.reshape(part["wy"], ny * ny, N),
+            "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
+            "a": ca.reshape(part["a"], 1, N), "omega": ca.reshape(part["omega"], 1, N - 1),
+            "xbar": part["xbar"], "W0": part["w0"],
+        }
+
+    @staticmethod
+    def _direction(gvec, Dd, free, eliminate):
+        """Fixed variables take a scaled gradient step, free ones the eliminated step."""
+        scaled = -gvec / (Dd + 1e-300)
+        return ca.if_else(1 - free, scaled, eliminate)
+
+    def _build_unrolled(self, N, slices, n_params):
+        """One SX expression graph over all slots (fastest for short windows)."""
+        st, nx = self._stages, self.model.nx
+        p = ca.SX.sym("p", n_params)
+        X = ca.SX.sym("X", nx, N)
+        lam = ca.SX.sym("lam")
+        q = self._parts(p, slices, N)
+        D, Dh, g, cost = [], [], [], 0
+        for j in range(N):
+            Dg, Dhj, gj, cj = st.meas(X[:, j], q["Y"][:, j], q["WY"][:, j], q["Up"][:, j],
+                                      q["a"][j], q["xbar"], q["W0"])
+            D.append(Dg)
+            Dh.append(Dhj)
+            g.append(gj)
+            cost += cj
+        E, Eh = [], []
+        for j in range(N - 1):
+            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, cj = st.trans(
+                X[:, j], X[:, j + 1], q["U"][:, j], q["omega"][j])
+            D[j] += Daa
+            D[j + 1] += Dbb
+            Dh[j] += Haa
+            Dh[j + 1] += Hbb
+            E.append(Eab)
+            Eh.append(Hab)
+            g[j] += ga
+            g[j + 1] += gb
+            cost += cj
+        gvec, xv = ca.vertcat(*g), ca.vec(X)
+        free = self._free(xv, gvec)
+        Dd = ca.vertcat(*[ca.diag(Dj) for Dj in D])
+        d_gn = self._direction(gvec, Dd, free, _eliminate(D, E, g, free, lam, nx))
+        d_nt = self._direction(gvec, Dd, free, _eliminate(Dh, Eh, g, free, lam, nx))
         S_last = D[0]
         for j in range(1, N):
             S_last = D[j] - E[j - 1].T @ _sym_solve(S_last, E[j - 1])
         cov = _sym_solve(S_last, ca.SX.eye(nx))
-        self._cov = FastFunction(ca.Function("gn_cov", [xv, p], [0.5 * (cov + cov.T)]))
+        return (([xv, p, lam], [cost, gvec, d_gn]), ([xv, p, lam], [cost, gvec, d_nt, d_gn]),
+                ([xv, p], [cost]), ([xv, p], [0.5 * (cov + cov.T)]))
+
+    def _build_mapped(self, N, slices, n_params):
+        """Stage functions mapped over the slots and the elimination as two scans
+        (``mapaccum``): the graph does not grow with ``N``, the work is linear in it."""
+        st, nx = self._stages, self.model.nx
+        p = ca.MX.sym("p", n_params)
+        X = ca.MX.sym("X", nx, N)
+        lam = ca.MX.sym("lam")
+        q = self._parts(p, slices, N)
+        Z = ca.MX.zeros(nx, nx)
+        Dg, Dhm, gm, cm = st.meas.map(N)(X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"],
+                                         q["W0"])
+        Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = st.trans.map(N - 1)(
+            X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1], q["omega"])
+        D = Dg + ca.horzcat(Daa, Z) + ca.horzcat(Z, Dbb)
+        Dh = Dhm + ca.horzcat(Haa, Z) + ca.horzcat(Z, Hbb)
+        E = ca.horzcat(Eab, Z)
+        Eh = ca.horzcat(Hab, Z)
+        zc = ca.MX.zeros(nx, 1)
+        g = gm + ca.horzcat(ga, zc) + ca.horzcat(zc, gb)
+        cost = ca.sum2(cm) + ca.sum2(ct)
+        gvec, xv = ca.vec(g), ca.vec(X)
+        free = self._free(xv, gvec)
+        Fm = ca.reshape(free, nx, N)
+        Fnext = ca.horzcat(Fm[:, 1:], ca.MX.zeros(nx, 1))
+        Dd = ca.vec(st.diag.map(N)(D))
+
+        def solve(Db, Eb):
+            Dm, Em, z = st.mask.map(N)(Db, Eb, g, Fm, Fnext, lam)
+            return _scan_solve(st, Dm, Em, z, N, nx)
+
+        d_gn = self._direction(gvec, Dd, free, ca.vec(solve(D, E)))
+        d_nt = self._direction(gvec, Dd, free, ca.vec(solve(Dh, Eh)))
+        cov = _scan_last_inverse(st, D, E, N, nx)
+        cm_only = st.meas_cost.map(N)(X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"], q["W0"])
+        ct_only = st.trans_cost.map(N - 1)(X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1],
+                                          q["omega"])
+        c_only = ca.sum2(cm_only) + ca.sum2(ct_only)
+        return (([xv, p, lam], [cost, gvec, d_gn]), ([xv, p, lam], [cost, gvec, d_nt, d_gn]),
+                ([xv, p], [c_only]), ([xv, p], [cov]))
+
+    def _free(self, xv, gvec):
+        """1 for free variables, 0 at a bound with the gradient (of f/2) pushing outward."""
+        lo, hi = ca.DM(self.lower), ca.DM(self.upper)
+        fixed = ca.logic_or(ca.logic_and(xv <= lo, gvec > 0), ca.logic_and(xv >= hi, gvec < 0))
+        return 1 - fixed
 
     def solve(self, X0: np.ndarray, p: np.ndarray):
         r"""Minimise from ``X0`` (N, nx).
@@ -254,7 +397,7 @@ class StructuredGaussNewton:
                 continue
             xn, alpha, evaluated = new
             step = np.max(np.abs(xn - x))
-            switch = not newton and step > 0.25 * last_step
+            switch = not newton and step > SWITCH_RATIO * last_step
             x, steps, last_step = xn, steps + 1, step
             if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0

@@ -121,7 +121,7 @@ class LeastSquaresNLP:
         W0 = ca.reshape(part["w0"], nx, nx)
         WQd = ca.DM(WQ)
         pm = ca.DM(model.p)
-        gn_keys = ("max_iter", "xtol", "newton", "jit")
+        gn_keys = ("max_iter", "xtol", "newton", "jit", "mode")
         gn_opts = {k: options[k] for k in gn_keys if k in options} \
             if solver == "gauss-newton" else {}
         if solver == "gauss-newton" and set(options) - set(gn_opts):

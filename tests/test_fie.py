@@ -1,0 +1,155 @@
+"""Full-information estimation: RTS smoother equality, Ipopt agreement, bounds, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import make_linear
+from filterpy.kalman import KalmanFilter
+from test_kalman import _record
+
+import estim
+
+
+def _rts_reference(sys, Y):
+    """Kalman filter (update first: x0, P0 is the prior of x_0) then filterpy's RTS smoother.
+
+    filterpy's ``batch_filter`` predicts before its first update, so the
+    filtered means and covariances are produced here and handed to
+    ``KalmanFilter.rts_smoother``. Missing rows (NaN) are skipped in the update.
+    """
+    nx = sys.A.shape[0]
+    kf = KalmanFilter(dim_x=nx, dim_z=sys.C.shape[0])
+    kf.F, kf.H, kf.Q, kf.R = sys.A, sys.C, sys.Q, sys.R
+    kf.x, kf.P = sys.x0.copy(), sys.P0.copy()
+    xs, Ps = [], []
+    for k, y in enumerate(Y):
+        if k:
+            kf.predict()
+        rows = np.isfinite(y)
+        if rows.all():
+            kf.update(y)
+        elif rows.any():
+            kf.update(y[rows], R=sys.R[np.ix_(rows, rows)], H=sys.C[rows])
+        xs.append(kf.x.copy())
+        Ps.append(kf.P.copy())
+    xs, Ps = np.array(xs), np.array(Ps)
+    Fs = np.array([sys.A] * len(Y))
+    Qs = np.array([sys.Q] * len(Y))
+    x_smooth, P_smooth, _, _ = kf.rts_smoother(xs, Ps, Fs, Qs)
+    return x_smooth, P_smooth, Ps
+
+
+@pytest.mark.parametrize("solver", ["gauss-newton", "ipopt"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fit_equals_rts_smoother(solver, seed):
+    sys = make_linear(seed)
+    Y, _ = _record(sys, T=40, seed=seed + 7)
+    x_ref, _, P_filt = _rts_reference(sys, Y)
+    fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
+                                solver=solver, solver_options={} if solver != "ipopt"
+                                else {"ipopt.tol": 1e-12})
+    res = fie.fit(Y, np.zeros((len(Y) - 1, 1)))
+    assert res.success and res.status == "ok"
+    np.testing.assert_allclose(res.x, x_ref, atol=1e-8)
+    # the smoother's last state is the filter's: same covariance
+    np.testing.assert_allclose(res.P_last, P_filt[-1], atol=1e-10)
+    assert res.w.shape == (39, 4) and res.v.shape == (40, 2)
+
+
+def test_missing_rows_are_dropped_exactly():
+    sys = make_linear(2)
+    Y, _ = _record(sys, T=30, seed=5)
+    Y[4] = np.nan
+    Y[10, 0] = np.nan
+    x_ref, _, _ = _rts_reference(sys, Y)
+    fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
+    res = fie.fit(Y)
+    np.testing.assert_allclose(res.x, x_ref, atol=1e-8)
+    assert np.isnan(res.v[4]).all() and np.isnan(res.v[10, 0])
+
+
+def _lorenz_record(T, seed=0):
+    m = estim.models.lorenz()
+    ekf = estim.EKF(m, Q=0.02**2, R=0.1**2, x0=[-10, -12, 27], P0=1.0)
+    return estim.simulate(m, ekf, x0=[-10.0, -12.0, 27.0], n_steps=T, Q=0.02**2, R=0.1**2,
+                          seed=seed)
+
+
+def test_lorenz_gauss_newton_and_ipopt_reach_the_same_optimum():
+    """Seed 000: weights 20 / 1, no prior, from zeros."""
+    log = _lorenz_record(100)
+    m = estim.models.lorenz()
+    res = {s: estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3), solver=s,
+                                    solver_options={"ipopt.tol": 1e-12} if s == "ipopt" else {}
+                                    ).fit(log.y)
+           for s in ("gauss-newton", "ipopt")}
+    assert all(r.success for r in res.values())
+    np.testing.assert_allclose(res["gauss-newton"].x, res["ipopt"].x, atol=1e-6)
+    assert res["gauss-newton"].cost == pytest.approx(res["ipopt"].cost, rel=1e-9)
+    # the estimate is far better than inverting the output sample by sample
+    assert np.sqrt(np.mean((res["gauss-newton"].x - log.x) ** 2)) < 0.1
+
+
+def test_mapped_and_unrolled_modes_agree():
+    log = _lorenz_record(80, seed=1)
+    m = estim.models.lorenz()
+    xs = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3),
+                                solver_options={"mode": mode}).fit(log.y).x
+          for mode in ("unrolled", "mapped")]
+    np.testing.assert_allclose(xs[0], xs[1], atol=1e-9)
+
+
+def test_bounds_gauss_newton_matches_ipopt():
+    """The reactor near equilibrium (C_A ~ 0.01), 25 samples, no prior: x >= 0 is
+    active at the optimum and the projection reaches Ipopt's constrained optimum."""
+    sc = estim.scenarios.batch_reactor()
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    Y = log.y[300:325]
+    kw = dict(Q=0.002**2, R=0.25**2, x0=[0.1, 0.2, 0.6])
+    gn = estim.FullInformation(sc.model, **kw).fit(Y)
+    ip = estim.FullInformation(sc.model, solver="ipopt", solver_options={"ipopt.tol": 1e-12},
+                               **kw).fit(Y)
+    assert gn.success and ip.success
+    assert gn.x.min() >= 0.0
+    assert (gn.x <= 1e-12).any()  # a bound is active at the optimum
+    np.testing.assert_allclose(gn.x, ip.x, atol=1e-6)
+    assert gn.cost == pytest.approx(ip.cost, rel=1e-7)
+
+
+def test_step_resolves_the_growing_record():
+    sc = estim.scenarios.van_der_pol(n_steps=20)
+    fie = estim.FullInformation(sc.model, **sc.tuning)
+    log = estim.simulate(sc, fie, seed=0)
+    assert log.success.all()
+    for k in (0, 5, 19):
+        res = estim.FullInformation(sc.model, **sc.tuning).fit(log.y[: k + 1])
+        np.testing.assert_allclose(log.x_hat[k], res.x[-1], atol=1e-7)
+
+
+def test_bad_input():
+    m = estim.models.lorenz()
+    fie = estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3))
+    with pytest.raises(ValueError, match=r"Y must have shape \(T, 3\)"):
+        fie.fit(np.zeros((10, 2)))
+    with pytest.raises(ValueError, match="at least one sample"):
+        fie.fit(np.zeros((0, 3)))
+    with pytest.raises(ValueError, match="no measured value"):
+        fie.fit(np.full((5, 3), np.nan))
+    with pytest.raises(ValueError, match="must not contain inf"):
+        fie.fit(np.full((5, 3), np.inf))
+    with pytest.raises(TypeError, match="Y must be a numeric"):
+        fie.fit([["a", "b", "c"]])
+    with pytest.raises(ValueError, match=r"U must have shape"):
+        estim.FullInformation(estim.models.satellite(), Q=1e-6, R=1e-6).fit(
+            np.zeros((5, 3)), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"guess must have shape"):
+        fie.fit(np.zeros((5, 3)), guess=np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="P0 must be positive definite"):
+        estim.FullInformation(m, Q=0.05, R=1.0, x0=[0, 0, 0], P0=np.diag([1.0, 1.0, 0.0]))
+    with pytest.raises(ValueError, match="P0 was given without x0"):
+        estim.FullInformation(m, Q=0.05, R=1.0, P0=1.0)
+    with pytest.raises(ValueError, match="Q must be positive definite"):
+        estim.FullInformation(m, Q=[0.05, 0.05, 0.0], R=1.0)
+    with pytest.raises(ValueError, match="solver must be one of"):
+        estim.FullInformation(m, Q=0.05, R=1.0, solver="panoc")
