@@ -5,13 +5,22 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import casadi as ca
 import numpy as np
 
+from estim._fast import FastFunction
 from estim._validate import check_options
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.mhe import _weight_factor
+from estim.estimators.mhe import _is_diagonal, _weight_factor
 from estim.estimators.nlp import SOLVERS, LeastSquaresNLP
 from estim.model import Model
+
+
+def _mapped(fun: ca.Function, T: int) -> ca.Function:
+    """``fun(x, u, p)`` evaluated on ``T`` columns with one shared ``p``."""
+    x, u, p = (ca.MX.sym(n, fun.size1_in(i), T if i < 2 else 1)
+               for i, n in enumerate(("x", "u", "p")))
+    return ca.Function(fun.name() + "_map", [x, u, p], [fun.map(T)(x, u, p)])
 
 
 @dataclass(frozen=True)
@@ -128,7 +137,8 @@ class FullInformation(Estimator):
     def _problem(self, N: int) -> LeastSquaresNLP:
         if N not in self._nlps:
             self._nlps[N] = LeastSquaresNLP(self.model, N, self._WQ, self.lower, self.upper,
-                                            self.solver, self.solver_options)
+                                            self.solver, self.solver_options,
+                                            diagonal_R=_is_diagonal(self.R))
         return self._nlps[N]
 
     # ------------------------------------------------------------------ batch
@@ -215,10 +225,11 @@ class FullInformation(Estimator):
         X = Xfull[pad:]
         T = len(X)
         if T not in self._maps:
-            self._maps[T] = (m.F.map(T), m.H.map(T))
+            self._maps[T] = tuple(FastFunction(_mapped(fun, T)) for fun in (m.F, m.H))
         Fmap, Hmap = self._maps[T]
-        w = X[1:] - np.asarray(Fmap(X.T, U.T, m.p)).T[:-1]
-        v = Y - np.asarray(Hmap(X.T, Uprev.T, m.p)).T
+        Fx = Fmap(X.T, U.T, m.p)[0].reshape(T, m.nx)
+        w = X[1:] - Fx[:-1]
+        v = Y - Hmap(X.T, Uprev.T, m.p)[0].reshape(T, m.ny)
         P = nlp.covariance(Xfull) if sol.success else None
         return FitResult(x=X.copy(), w=w, v=v, cost=sol.cost, iterations=sol.iterations,
                          status=sol.status, success=sol.success, solve_time=sol.solve_time,

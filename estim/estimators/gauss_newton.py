@@ -107,32 +107,44 @@ class _StageFunctions:
     scanned for long records.
     """
 
-    def __init__(self, model: Model, WQ: np.ndarray):
+    def __init__(self, model: Model, WQ: np.ndarray, diagonal_R: bool = False):
         nx, nu, ny = model.nx, model.nu, model.ny
-        pm, eye, WQd = ca.DM(model.p), ca.DM.eye(nx), ca.DM(WQ)
+        pm, eye = ca.DM(model.p), ca.DM.eye(nx)
         x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
         y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
         u, up = ca.SX.sym("u", nu), ca.SX.sym("up", nu)
         a, om = ca.SX.sym("a"), ca.SX.sym("omega")
-        xbar, w0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx)
-        W0, Wy = ca.reshape(w0, nx, nx), ca.reshape(wy, ny, ny)
-        # arrival and measurement terms of one slot
+        xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
+        W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
+        # arrival and measurement terms of one slot; a diagonal R gives diagonal
+        # weights (also with missing rows), applied as row scalings
         r0 = W0 @ (x - xbar)
-        ry = Wy @ (y - model.H(x, up, pm))
-        Jy = -Wy @ model.H_x(x, up, pm)
+        e = y - model.H(x, up, pm)
+        C = model.H_x(x, up, pm)
+        if diagonal_R:
+            wd = wy[[i * ny + i for i in range(ny)]]
+            ry, Jy = wd * e, -(wd @ ca.DM.ones(1, nx)) * C
+        else:
+            Wy = ca.reshape(wy, ny, ny)
+            ry, Jy = Wy @ e, -Wy @ C
         c = a * ca.sumsqr(r0) + ca.sumsqr(ry)
-        A0 = a * (W0.T @ W0)
-        margs = [x, y, wy, up, a, xbar, w0]
+        A0a = a * A0
+        margs = [x, y, wy, up, a, xbar, w0, a0]
         self.meas = ca.Function("meas", margs, [
-            A0 + Jy.T @ Jy, A0 + ca.hessian(0.5 * ca.sumsqr(ry), x)[0],
-            a * (W0.T @ r0) + Jy.T @ ry, c])
+            A0a + Jy.T @ Jy, A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0],
+            A0a @ (x - xbar) + Jy.T @ ry, c])
         self.meas_cost = ca.Function("meas_cost", margs, [c])
-        # process term between slots
-        M = om * WQd + (1 - om) * eye
+        # process term between slots (a diagonal weight is a row scaling)
         A = om * model.F_x(x, u, pm) + (1 - om) * eye
         G = om * model.F(x, u, pm) + (1 - om) * x
-        rw = M @ (xb - G)
-        Ja, Jb = -M @ A, M
+        if np.allclose(WQ, np.diag(np.diag(WQ))):
+            mv = om * ca.DM(np.diag(WQ)) + (1 - om)
+            rw = mv * (xb - G)
+            Ja, Jb = -(mv @ ca.DM.ones(1, nx)) * A, ca.diag(mv)
+        else:
+            M = om * ca.DM(WQ) + (1 - om) * eye
+            rw = M @ (xb - G)
+            Ja, Jb = -M @ A, M
         Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(x, xb))[0]
         targs = [x, xb, u, om]
         self.trans = ca.Function("trans", targs, [
@@ -220,7 +232,7 @@ class StructuredGaussNewton:
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, slices: dict, n_params: int, max_iter: int = 50,
                  xtol: float = 1e-10, newton: bool = False, jit: bool = False,
-                 mode: str = "auto"):
+                 mode: str = "auto", diagonal_R: bool = False):
         if mode not in ("auto", "unrolled", "mapped"):
             raise ValueError(f"mode must be 'auto', 'unrolled' or 'mapped', got {mode!r}")
         self.model, self.N = model, N
@@ -230,7 +242,7 @@ class StructuredGaussNewton:
         self.mode = ("unrolled" if N <= 60 else "mapped") if mode == "auto" else mode
         if self.mode == "mapped" and N < 2:
             self.mode = "unrolled"
-        self._stages = _StageFunctions(model, WQ)
+        self._stages = _StageFunctions(model, WQ, diagonal_R)
         opts = {"jit": True, "compiler": "shell",
                 "jit_options": {"flags": ["-O1"], "verbose": False}} if self.jit else {}
         build = self._build_unrolled if self.mode == "unrolled" else self._build_mapped
@@ -242,13 +254,14 @@ class StructuredGaussNewton:
 
     def _parts(self, p, slices, N):
         m = self.model
-        nu, ny = m.nu, m.ny
+        nx, nu, ny = m.nx, m.nu, m.ny
         part = {k: p[s] for k, s in slices.items()}
         return {
             "Y": ca.reshape(part["y"], ny, N), "WY": ca.reshape(part["wy"], ny * ny, N),
             "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
             "a": ca.reshape(part["a"], 1, N), "omega": ca.reshape(part["omega"], 1, N - 1),
             "xbar": part["xbar"], "W0": part["w0"],
+            "A0": ca.vec(ca.reshape(part["w0"], nx, nx).T @ ca.reshape(part["w0"], nx, nx)),
         }
 
     @staticmethod
@@ -267,7 +280,7 @@ class StructuredGaussNewton:
         D, Dh, g, cost = [], [], [], 0
         for j in range(N):
             Dg, Dhj, gj, cj = st.meas(X[:, j], q["Y"][:, j], q["WY"][:, j], q["Up"][:, j],
-                                      q["a"][j], q["xbar"], q["W0"])
+                                      q["a"][j], q["xbar"], q["W0"], q["A0"])
             D.append(Dg)
             Dh.append(Dhj)
             g.append(gj)
@@ -307,7 +320,7 @@ class StructuredGaussNewton:
         q = self._parts(p, slices, N)
         Z = ca.MX.zeros(nx, nx)
         Dg, Dhm, gm, cm = st.meas.map(N)(X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"],
-                                         q["W0"])
+                                         q["W0"], q["A0"])
         Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = st.trans.map(N - 1)(
             X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1], q["omega"])
         D = Dg + ca.horzcat(Daa, Z) + ca.horzcat(Z, Dbb)
@@ -330,7 +343,8 @@ class StructuredGaussNewton:
         d_gn = self._direction(gvec, Dd, free, ca.vec(solve(D, E)))
         d_nt = self._direction(gvec, Dd, free, ca.vec(solve(Dh, Eh)))
         cov = _scan_last_inverse(st, D, E, N, nx)
-        cm_only = st.meas_cost.map(N)(X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"], q["W0"])
+        cm_only = st.meas_cost.map(N)(X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"], q["W0"],
+                                      q["A0"])
         ct_only = st.trans_cost.map(N - 1)(X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1],
                                           q["omega"])
         c_only = ca.sum2(cm_only) + ca.sum2(ct_only)

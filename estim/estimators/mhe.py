@@ -16,6 +16,10 @@ from estim.model import Model
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
 
 
+def _is_diagonal(M: np.ndarray) -> bool:
+    return bool(np.array_equal(M, np.diag(np.diag(M))))
+
+
 def _weight_factor(cov: np.ndarray) -> np.ndarray:
     """``W`` with ``W^T W = cov^{-1}``, so ``||W r||^2 = r^T cov^{-1} r``."""
     L = np.linalg.cholesky(np.linalg.inv(cov))
@@ -138,7 +142,8 @@ class MHE(Estimator):
         self._WQ = _weight_factor(self.Q)
         self._WR = _weight_factor(self.R)
         self._nlp = LeastSquaresNLP(model, self.horizon, self._WQ, self.lower, self.upper,
-                                    solver, solver_options or {})
+                                    solver, solver_options or {},
+                                    diagonal_R=_is_diagonal(self.R))
         self._cov_step = FastFunction(self._build_cov_step())
         self._reset()
 

@@ -91,10 +91,12 @@ class LeastSquaresNLP:
     solver : {"ipopt", "sqp", "fatrop"}
     options : dict
         Solver options merged over the defaults.
+    diagonal_R : bool
+        The measurement weights are diagonal (cheaper stage functions).
     """
 
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
-                 upper: np.ndarray, solver: str, options: dict):
+                 upper: np.ndarray, solver: str, options: dict, diagonal_R: bool = False):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -128,7 +130,7 @@ class LeastSquaresNLP:
             raise ValueError(f"solver_options for gauss-newton are {gn_keys}, got "
                              f"{sorted(options)}")
         self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
-                                        self.np, **gn_opts)
+                                        self.np, diagonal_R=diagonal_R, **gn_opts)
         if solver == "gauss-newton":
             self.reset()
             return
