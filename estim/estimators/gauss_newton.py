@@ -239,7 +239,7 @@ class StructuredGaussNewton:
         self.lower, self.upper = lower, upper
         self.max_iter, self.xtol = int(max_iter), float(xtol)
         self.newton, self.jit = bool(newton), bool(jit)
-        self.mode = ("unrolled" if N <= 60 else "mapped") if mode == "auto" else mode
+        self.mode = ("unrolled" if N <= 128 else "mapped") if mode == "auto" else mode
         if self.mode == "mapped" and N < 2:
             self.mode = "unrolled"
         self._stages = _StageFunctions(model, WQ, diagonal_R)
@@ -369,7 +369,7 @@ class StructuredGaussNewton:
         :math:`\lambda\,\mathrm{diag}(H)` is raised until one does (and
         relaxed after full steps). Converged when the next projected step
         would move no variable by more than ``xtol * (1 + max|x|)``, or when
-        the decrease it predicts is below 1e-13 of the cost (rounding level).
+        the decrease it predicts is below 1e-15 of the cost (rounding level).
 
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
@@ -391,7 +391,7 @@ class StructuredGaussNewton:
             move = np.clip(x + dirs[-1], lo, hi) - x
             decrease = -float(g @ move)
             if np.max(np.abs(move)) <= self.xtol * scale or \
-                    0.0 <= decrease <= 1e-13 * max(abs(f), 1e-300):
+                    0.0 <= decrease <= 1e-15 * max(abs(f), 1e-300):
                 status = "ok"
                 break
             new = None

@@ -5,7 +5,7 @@ The residual vector is
 
 .. math::
     r(X) = \begin{bmatrix}
-      W_0 (x_{s_0} - \bar x) \\
+      a_j W_0 (x_j - \bar x), \; j = 0..N-1 \\
       \omega_j W_Q (x_{j+1} - F(x_j, u_j)) + (1 - \omega_j)(x_{j+1} - x_j),
           \; j = 0..N-2 \\
       W_{y,j} (y_j - h(x_j, u^-_j)), \; j = 0..N-1
@@ -15,8 +15,9 @@ and the cost :math:`\|r\|^2`. Only the last ``n`` slots hold data
 (:math:`s_0 = N - n`): for them :math:`\omega_j = 1`; the unused slots before
 them are chained to :math:`x_{s_0}` at no cost (:math:`\omega_j = 0`), so the
 optimum of the full-length problem is exactly that of the ``n``-slot problem.
-The arrival weight acts on :math:`x_{s_0}` (selected by a one-hot
-parameter), measurement weights :math:`W_{y,j}` carry zero rows for missing
+The arrival weight acts on :math:`x_{s_0}` (selected by the one-hot
+parameter :math:`a`, one residual block per slot so the Hessian stays
+banded); measurement weights :math:`W_{y,j}` carry zero rows for missing
 outputs. One NLP thus serves every window length, built once.
 """
 
@@ -138,7 +139,9 @@ class LeastSquaresNLP:
             self._build_fatrop(p, Y, U, Up, part, a, xbar, W0, WQd, pm, options)
             return
         X = ca.SX.sym("X", nx, N)
-        res = [W0 @ (X @ a - xbar)]
+        # arrival on the first active slot, one residual block per slot (a_j in {0, 1}):
+        # a single W0 (X a - xbar) would couple every slot and make the Hessian dense
+        res = [a[j] * (W0 @ (X[:, j] - xbar)) for j in range(N)]
         for j in range(N - 1):
             om = part["omega"][j]
             xn = model.F(X[:, j], U[:, j], pm)
@@ -180,7 +183,7 @@ class LeastSquaresNLP:
         xs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
         ws = [ca.SX.sym(f"w{k}", nx) for k in range(N - 1)]
         variables, g, lbg, ubg = [], [], [], []
-        cost = ca.sumsqr(W0 @ (sum(a[k] * xs[k] for k in range(N)) - xbar))
+        cost = sum(a[k] * ca.sumsqr(W0 @ (xs[k] - xbar)) for k in range(N))
         for k in range(N):
             variables.append(xs[k])
             Wy = ca.reshape(part["wy"][k * ny * ny:(k + 1) * ny * ny], ny, ny)
