@@ -369,7 +369,8 @@ class StructuredGaussNewton:
         :math:`\lambda\,\mathrm{diag}(H)` is raised until one does (and
         relaxed after full steps). Converged when the next projected step
         would move no variable by more than ``xtol * (1 + max|x|)``, or when
-        the decrease it predicts is below 1e-15 of the cost (rounding level).
+        the decrease it predicts is below 1e-13 of the cost (rounding level;
+        on Lorenz FIE this stops within 3e-8 of the optimum Ipopt finds at 1e-12).
 
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
@@ -391,7 +392,7 @@ class StructuredGaussNewton:
             move = np.clip(x + dirs[-1], lo, hi) - x
             decrease = -float(g @ move)
             if np.max(np.abs(move)) <= self.xtol * scale or \
-                    0.0 <= decrease <= 1e-15 * max(abs(f), 1e-300):
+                    0.0 <= decrease <= 1e-13 * max(abs(f), 1e-300):
                 status = "ok"
                 break
             new = None
