@@ -9,7 +9,16 @@ True
 
 from estim import models, scenarios
 from estim.compare import Comparison, compare
-from estim.estimators import EKF, MHE, UKF, Estimator, FitResult, FullInformation, StepInfo
+from estim.estimators import (
+    EKF,
+    MHE,
+    UKF,
+    Estimator,
+    FitResult,
+    FullInformation,
+    ShootingObserver,
+    StepInfo,
+)
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
@@ -18,7 +27,7 @@ from estim.simulate import simulate
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "Estimator", "FitResult", "FullInformation", "Log",
-    "Model", "RMSE", "Scenario", "StepInfo", "chi2_bounds", "compare", "convergence_time",
-    "errors", "models", "nees", "nis", "rmse", "scenarios", "simulate",
+    "Model", "RMSE", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds", "compare",
+    "convergence_time", "errors", "models", "nees", "nis", "rmse", "scenarios", "simulate",
 ]
 __version__ = "0.1.0"

@@ -1,0 +1,498 @@
+r"""Single-shooting optimisation-based observer (Oliva & Carnevale).
+
+Measurements enter a buffer of ``w`` samples taken every ``N_Ts`` steps.
+Whenever the full buffer receives a new sample, the (augmented) state at the
+start of the window (``direction="forward"``) or at the current time
+(``direction="backward"``) is chosen so that the outputs predicted by the
+model match the buffer,
+
+.. math::
+    J(\hat\xi) = \sum_{i=1}^{w} W_1 \|Y_i - h(\hat\xi_i)\|^2_{R^{-1}}
+                 + W_2 \|\dot Y_i - \tfrac{d}{dt} h(\hat\xi_i)\|^2_{R^{-1}},
+
+where :math:`\hat\xi_i` is the propagation of the optimised state to the
+i-th buffer time, :math:`\dot Y_i` a numerical derivative of the measured
+output and :math:`\frac{d}{dt}h = \frac{\partial h}{\partial x} f(x, u)`
+its exact counterpart from the model. Between optimisations the estimate is
+propagated open loop, so :meth:`step` returns :math:`\hat x_{k|k}` at every
+sample.
+
+References
+----------
+F. Oliva, D. Carnevale, "Optimisation based observer", report, 2020;
+H. K. Khalil, *Nonlinear Systems*, 3rd ed., 2002 (sensitivity equations).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import casadi as ca
+import numpy as np
+from scipy import optimize
+
+from estim._fast import FastFunction
+from estim._validate import check_options
+from estim.estimators.base import Estimator, StepInfo
+from estim.model import Model, euler_step, rk4_step
+
+METHODS = ("bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient")
+
+
+def derivative_filter(samples: np.ndarray, dt: float) -> np.ndarray:
+    r"""Derivative at the newest sample from a least-squares quadratic fit.
+
+    Fits :math:`y(t) \approx c_0 + c_1 t + c_2 t^2` to the last ``m`` samples
+    (times :math:`-(m-1)\,dt, \dots, 0`) and returns :math:`c_1 = \dot y(0)`:
+    a causal Savitzky-Golay differentiator, exact for quadratics, whose
+    noise gain falls as :math:`m^{-3/2}`.
+
+    Parameters
+    ----------
+    samples : (m, ny) array, oldest first, m >= 3
+    dt : float
+    """
+    m = samples.shape[0]
+    t = (np.arange(m) - (m - 1)) * dt
+    V = np.vander(t, 3, increasing=True)
+    coef = np.linalg.lstsq(V, samples, rcond=None)[0]
+    return coef[1]
+
+
+class ShootingObserver(Estimator):
+    r"""Optimisation-based observer on a downsampled measurement buffer.
+
+    Parameters
+    ----------
+    model : Model
+        Usually ``model.augment(...)`` so that parameters are estimated.
+    window : int
+        ``w``, the number of buffered samples (>= 1).
+    every : int
+        ``N_Ts``, steps between buffered samples (>= 1).
+    derivative_weight : float or None
+        :math:`W_2/W_1`. ``None`` (default) sets it on the first full buffer
+        so that both terms have the same magnitude (report sec. 1.2.1); 0
+        removes the derivative term. Requires a continuous model.
+    derivative_samples : int
+        Samples of the quadratic differentiator (:func:`derivative_filter`).
+    method : {"bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient"}
+        ``"bfgs"``: scipy's BFGS (fminunc's analogue) with the AD gradient;
+        ``"lbfgsb"``/``"ipopt"``: with the bounds (fmincon's analogue);
+        ``"nelder-mead"``: the simplex method (fminsearch's analogue);
+        ``"gradient"``: gradient descent :math:`\xi_0 \leftarrow \xi_0 -
+        \alpha\, \partial J/\partial \xi_0` with the gradient from the forward
+        sensitivity equations (report eqs. 1.8-1.10) and a backtracking step.
+    direction : {"forward", "backward"}
+        Optimise the state at the window's start and propagate forward, or
+        the current state and propagate backward (the report's Figure 2).
+    Q : accepted for interchangeability (unused).
+    R : float, (ny,) or (ny, ny)
+        Output covariance: the residuals are weighted by :math:`R^{-1}`.
+    x0 : (nx,) array
+        Initial guess.
+    P0 : optional
+        If given, a prior :math:`\|\xi_0 - \bar\xi\|^2_{P_0^{-1}}` on the
+        optimised state around its propagated previous estimate
+        (regularisation; none by default).
+    lower, upper : optional
+        Bounds for ``lbfgsb``/``ipopt`` (default: the model's).
+    max_iter : int
+        Iterations per optimisation.
+    tol : float
+        Smallest significant decrease of the cost. The cost is weighted by
+        :math:`R^{-1}`, a :math:`\chi^2` statistic in the noise, so a decrease
+        far below 1 is not information; the methods stop when the decrease
+        they can still predict is below ``tol`` (in the Gauss-Newton-scaled
+        variables the gradient tolerance is :math:`\sqrt{2\,tol}`). This keeps
+        windows without information (the satellite without excitation, the
+        runaway model between bursts) from moving the estimate along
+        directions they do not determine.
+    rcond : float
+        ``"bfgs"`` and ``"nelder-mead"`` optimise only along the directions
+        whose output sensitivity is at least ``rcond`` times the largest (a
+        truncated-SVD Gauss-Newton subspace); the others keep the propagated
+        previous estimate. The bounded methods use the full space.
+
+    Attributes
+    ----------
+    info : StepInfo
+        After an optimisation: ``iterations``, ``cost``, ``status`` and
+        ``extra`` with ``optimised=True``, ``singular_values`` and
+        ``condition`` of the output sensitivity to relative changes,
+        :math:`R^{-1/2}\,\partial (Y_1..Y_w)/\partial \xi_0\,\mathrm{diag}(|\xi_0|)`
+        (the identifiability diagnostic: a huge condition number means the
+        window carries no information on some direction; the Fisher
+        information's condition number is its square), ``derivative_weight``
+        and ``window_start``.
+    """
+
+    name = "shooting"
+    _requires_P0 = False
+
+    def __init__(self, model: Model, *, window: int, every: int, R, x0, Q=None, P0=None,
+                 derivative_weight: float | None = None, derivative_samples: int = 5,
+                 method: str = "bfgs", direction: str = "forward", lower=None, upper=None,
+                 max_iter: int = 100, tol: float = 1e-3, rcond: float = 1e-3, **options):
+        check_options(options, (), "ShootingObserver")
+        super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
+        for name, val, least in (("window", window, 1), ("every", every, 1),
+                                 ("derivative_samples", derivative_samples, 3),
+                                 ("max_iter", max_iter, 1)):
+            if not isinstance(val, int | np.integer) or val < least:
+                raise ValueError(f"{name} must be an integer >= {least}, got {val!r}")
+        if method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        if direction not in ("forward", "backward"):
+            raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
+        if derivative_weight is not None and (not np.isfinite(derivative_weight)
+                                              or derivative_weight < 0):
+            raise ValueError(f"derivative_weight must be >= 0 or None, got {derivative_weight!r}")
+        if not model.continuous and derivative_weight != 0:
+            if derivative_weight is not None:
+                raise ValueError("derivative_weight needs a continuous model (ode=): the "
+                                 "output derivative comes from dh/dx f(x, u)")
+            derivative_weight = 0.0
+        if direction == "backward" and not model.continuous:
+            raise ValueError("direction='backward' needs a continuous model (ode=)")
+        self.window, self.every = int(window), int(every)
+        self.derivative_samples = int(derivative_samples)
+        self.method, self.direction = method, direction
+        self.max_iter = int(max_iter)
+        if not np.isfinite(tol) or tol <= 0:
+            raise ValueError(f"tol must be a positive number, got {tol!r}")
+        self.tol = float(tol)
+        if not 0 < rcond < 1:
+            raise ValueError(f"rcond must be in (0, 1), got {rcond!r}")
+        self.rcond = float(rcond)
+        nx = model.nx
+        lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
+        up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
+        self.lower, self.upper = np.array(lo, float), np.array(up, float)
+        self._fixed_w2 = derivative_weight
+        self._Rinv = np.linalg.inv(self.R)
+        self._span = (self.window - 1) * self.every  # steps from first to last sample
+        self._build()
+        self._reset()
+
+    # ------------------------------------------------------------------ build
+    def _build(self) -> None:
+        """Cost, gradient and sensitivity Functions of the shooting problem."""
+        m, w, n = self.model, self.window, self.every
+        nx, nu, ny = m.nx, m.nu, m.ny
+        p = ca.DM(m.p)
+        steps = self._span
+        x0 = ca.SX.sym("xi0", nx)
+        U = ca.SX.sym("U", nu, max(steps, 1))
+        Y = ca.SX.sym("Y", ny, w)
+        Yd = ca.SX.sym("Yd", ny, w)
+        W2 = ca.SX.sym("W2")
+        xbar = ca.SX.sym("xbar", nx)
+        Wp = ca.SX.sym("Wp", nx, nx)
+        Rinv = ca.DM(self._Rinv)
+        sign = 1.0 if self.direction == "forward" else -1.0
+        F = self._stepper(sign)
+        # states at every step from the optimised one, and at the buffer times
+        # (oldest first); backward propagation uses the inputs in reverse order
+        traj = [x0]
+        for k in range(steps):
+            uk = U[:, k] if self.direction == "forward" else U[:, steps - 1 - k]
+            traj.append(F(traj[-1], uk, p))
+        if self.direction == "backward":
+            traj = traj[::-1]
+        xs = traj[::n]
+        # the held input at each sample: the one that acted just before it
+        def u_at(i):
+            if nu == 0 or steps == 0:
+                return ca.SX.zeros(nu, 1)
+            k = min(max(i * n - 1, 0), steps - 1)
+            return U[:, k]
+        yhat = ca.horzcat(*[m.H(xs[i], u_at(i), p) for i in range(w)])
+        E = Y - yhat
+        cost = sum(ca.bilin(Rinv, E[:, i], E[:, i]) for i in range(w))
+        if m.continuous:
+            ydot = ca.horzcat(*[m.H_x(xs[i], u_at(i), p) @ m.f_c(xs[i], u_at(i), p)
+                                for i in range(w)])
+            Ed = Yd - ydot
+            cost_d = sum(ca.bilin(Rinv, Ed[:, i], Ed[:, i]) for i in range(w))
+        else:
+            cost_d = ca.SX(0)
+        prior = ca.sumsqr(Wp @ (x0 - xbar))
+        J = cost + W2 * cost_d + prior
+        args = [x0, U, Y, Yd, W2, xbar, ca.vec(Wp)]
+        self._J = FastFunction(ca.Function("J", args, [J, ca.gradient(J, x0)]))
+        self._terms = FastFunction(ca.Function("terms", args, [cost, cost_d]))
+        # gradient of the terms outside report eqs. 1.8-1.10 (derivative term, prior)
+        self._grad_other = FastFunction(ca.Function("grad_other", args, [
+            ca.gradient(W2 * cost_d + prior, x0)]))
+        sens = ca.jacobian(ca.vec(ca.mtimes(ca.diag(ca.sqrt(ca.diag(Rinv))), yhat)), x0)
+        self._sens = FastFunction(ca.Function("sens", args[:2], [sens]))
+        self._traj = FastFunction(ca.Function("traj", [x0, U], [ca.horzcat(*traj)]))
+        if self.method == "gradient":
+            self._build_sensitivity_gradient(sign, steps, U, Y, p, args)
+        if self.method == "ipopt":
+            nlp = {"x": x0, "p": ca.vertcat(*[ca.vec(a) for a in args[1:]]), "f": J}
+            self._ipopt = ca.nlpsol("shooting_ipopt", "ipopt", nlp, {
+                "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+                "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-10})
+
+    def _stepper(self, sign: float):
+        """One sample of the dynamics, forward or backward in time."""
+        m = self.model
+        if not m.continuous:
+            return m.F
+        x, u = ca.SX.sym("x", m.nx), ca.SX.sym("u", m.nu)
+        p = ca.SX.sym("p", m.p.size)
+        step = rk4_step if m.integrator != "euler" else euler_step
+        xn = step(m.f_c, x, u, p, sign * m.dt, m.substeps)
+        return ca.Function("F_dir", [x, u, p], [xn])
+
+    def _build_sensitivity_gradient(self, sign, steps, U, Y, p, args) -> None:
+        r"""Gradient of the output term by the forward sensitivity equations.
+
+        The pair :math:`(\xi_1, \xi_2)` with :math:`\dot\xi_1 = f(\xi_1)`,
+        :math:`\dot\xi_2 = \partial f/\partial x\, \xi_2`, :math:`\xi_2(0) = I`
+        is integrated with the same RK4 step as the state (report eqs.
+        1.8-1.10), then :math:`\partial J/\partial\xi_0 = -2\sum_i E_i^\top
+        R^{-1} \partial h/\partial x\, \xi_2(t_i)`.
+        """
+        m, nx, n, w = self.model, self.model.nx, self.every, self.window
+        if self.direction != "forward":
+            raise ValueError("method='gradient' is implemented for direction='forward'")
+        xi = ca.SX.sym("xi", nx + nx * nx)
+        u = ca.SX.sym("u", m.nu)
+        pp = ca.SX.sym("p", m.p.size)
+
+        if m.continuous:
+            xs_, us_, ps_ = ca.SX.sym("x", nx), ca.SX.sym("u", m.nu), ca.SX.sym("p", m.p.size)
+            f_x = ca.Function("f_x", [xs_, us_, ps_],
+                              [ca.jacobian(m.f_c(xs_, us_, ps_), xs_)])
+
+        def aug(z, uu, q):  # (xi_1, xi_2) of report eq. 1.10
+            x1 = z[:nx]
+            X2 = ca.reshape(z[nx:], nx, nx)
+            return ca.vertcat(m.f_c(x1, uu, q), ca.vec(f_x(x1, uu, q) @ X2))
+
+        if m.continuous:
+            step = rk4_step if m.integrator != "euler" else euler_step
+            zn = step(aug, xi, u, pp, sign * m.dt, m.substeps)
+        else:  # discrete model: the sensitivity map is the Jacobian of F
+            x1 = xi[:nx]
+            X2 = ca.reshape(xi[nx:], nx, nx)
+            zn = ca.vertcat(m.F(x1, u, pp), ca.vec(m.F_x(x1, u, pp) @ X2))
+        Fz = ca.Function("F_sens", [xi, u, pp], [zn])
+        x0 = args[0]
+        z = ca.vertcat(x0, ca.vec(ca.DM.eye(nx)))
+        zs = [z]
+        for k in range(steps):
+            z = Fz(z, U[:, k], p)
+            if (k + 1) % n == 0:
+                zs.append(z)
+        Rinv = ca.DM(self._Rinv)
+        grad = ca.SX.zeros(nx, 1)
+        for i in range(w):
+            k = min(max(i * n - 1, 0), steps - 1) if steps else 0
+            ui = U[:, k] if (m.nu and steps) else ca.SX.zeros(m.nu, 1)
+            xi_i = zs[i][:nx]
+            Phi = ca.reshape(zs[i][nx:], nx, nx)
+            e = Y[:, i] - m.H(xi_i, ui, p)
+            grad += -2 * (m.H_x(xi_i, ui, p) @ Phi).T @ (Rinv @ e)
+        self._grad_sens = FastFunction(ca.Function("grad_sens", args[:3], [grad]))
+
+    # ------------------------------------------------------------------ state
+    def _reset(self) -> None:
+        keep = self._span + self.derivative_samples + 1
+        self._ys: deque = deque(maxlen=keep)       # every sample's y
+        self._us: deque = deque(maxlen=keep)       # input acting after each sample
+        self._xs: deque = deque(maxlen=self._span + 1)  # estimates, oldest first
+        self._x = self.x0.copy()                   # estimate at the current time
+        self._w2 = self._fixed_w2
+
+    # ------------------------------------------------------------------- step
+    def _step(self, y, u, first):
+        m = self.model
+        t0 = time.perf_counter()
+        if not first:
+            self._us.append(u.copy())
+            self._x = m._fast_F(self._x, u, m.p)[0].copy()  # open-loop propagation
+        self._ys.append(y.copy())
+        self._xs.append(self._x.copy())
+        k = self._k  # index of this sample (Estimator increments after the step)
+        ready = k >= self._span and k % self.every == 0 and np.isfinite(y).all()
+        if not ready:
+            return self._x.copy(), StepInfo(status="ok", solve_time=time.perf_counter() - t0,
+                                            extra={"optimised": False})
+        return self._optimise(t0)
+
+    def _window_data(self):
+        """Buffer samples Y (ny, w), derivatives Yd, inputs U (nu, span), oldest first."""
+        ys = np.array(self._ys)
+        n, w, span = self.every, self.window, self._span
+        idx = [len(ys) - 1 - span + i * n for i in range(w)]
+        Y = ys[idx].T
+        Yd = np.zeros_like(Y)
+        ms = self.derivative_samples
+        for c, j in enumerate(idx):
+            lo = j - ms + 1
+            if lo >= 0 and np.isfinite(ys[lo:j + 1]).all():
+                Yd[:, c] = derivative_filter(ys[lo:j + 1], self.model.dt)
+            else:
+                Yd[:, c] = np.nan
+        us = np.array(self._us).reshape(len(self._us), self.model.nu)
+        U = us[len(us) - span:].T if span else np.zeros((self.model.nu, 1))
+        if U.shape[1] == 0:
+            U = np.zeros((self.model.nu, 1))
+        return Y, Yd, U
+
+    def _optimise(self, t0):
+        m, nx = self.model, self.model.nx
+        Y, Yd, U = self._window_data()
+        use_d = m.continuous and self._w2 != 0 and np.isfinite(Yd).all()
+        Yd = np.where(np.isfinite(Yd), Yd, 0.0)
+        # warm start: the propagated previous estimate at the optimised time
+        forward = self.direction == "forward"
+        start = self._xs[0].copy() if forward else self._x.copy()
+        if self._w2 is None and use_d:  # set on the first window with derivatives
+            self._w2 = self._balanced_weight(start, U, Y, Yd)
+        w2 = self._w2 if use_d and self._w2 else 0.0
+        Wp = np.zeros((nx, nx)) if self.P0 is None else np.linalg.cholesky(
+            np.linalg.inv(self.P0)).T
+        args = (U, Y, Yd, w2, start, Wp.ravel(order="F"))
+        x_opt, cost, iters, ok, status = self._minimise(start, args)
+        anchor = x_opt if ok else start
+        if ok:  # the whole window re-propagated from the optimum
+            traj = self._traj(anchor, U)[0].reshape(nx, -1, order="F").T
+            self._xs = deque((row.copy() for row in traj), maxlen=self._span + 1)
+            self._x = traj[-1].copy()
+        # relative sensitivity (columns scaled by |xi|): states span many decades
+        scale = np.maximum(np.abs(anchor), 1e-3 * max(float(np.abs(anchor).max()), 1e-300))
+        S = self._sens(anchor, U)[0].reshape(-1, nx, order="F") * scale
+        if np.isfinite(S).all():
+            sv = np.linalg.svd(S, compute_uv=False)
+            cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+        else:
+            sv, cond = np.full(min(S.shape), np.nan), float("inf")
+        return self._x.copy(), StepInfo(
+            status="ok" if ok else f"failed: {status}", success=ok, iterations=iters,
+            solve_time=time.perf_counter() - t0, cost=cost,
+            extra={"optimised": True, "singular_values": sv, "condition": cond,
+                   "derivative_weight": w2, "window_start": anchor.copy()})
+
+    def _balanced_weight(self, start, U, Y, Yd) -> float:
+        """W2/W1 making both terms equal at the starting point (report sec. 1.2.1)."""
+        Wp = np.zeros(self.model.nx ** 2)
+        c1, c2 = (float(v[0]) for v in self._terms(start, U, Y, Yd, 1.0, start, Wp))
+        if not (np.isfinite(c1) and np.isfinite(c2)) or c2 <= 0 or c1 <= 0:
+            return 0.0
+        return c1 / c2
+
+    def _hessian(self, start, args) -> np.ndarray | None:
+        """Gauss-Newton Hessian of the output term (and prior) at ``start``."""
+        nx = self.model.nx
+        S = self._sens(start, args[0])[0].reshape(-1, nx, order="F")
+        H = 2.0 * S.T @ S
+        if self.P0 is not None:
+            H += 2.0 * np.linalg.inv(self.P0)
+        return H if np.isfinite(H).all() else None
+
+    def _subspace(self, H):
+        r"""Coordinates ``xi = start + T z`` in which the Gauss-Newton Hessian is ``I``,
+        restricted to the directions the window determines.
+
+        With :math:`H = V\Lambda V^\top`, the directions with
+        :math:`\lambda_i \ge rcond^2 \lambda_{max}` (sensitivity singular
+        values above ``rcond`` of the largest) span the optimisation;
+        :math:`T = V_r \Lambda_r^{-1/2}`. The other directions stay at the
+        warm start, the propagated previous estimate.
+        """
+        nx = self.model.nx
+        if H is None:
+            return np.eye(nx)
+        lam, V = np.linalg.eigh(0.5 * (H + H.T))
+        top = max(float(lam.max()), 1e-300)
+        keep = lam >= self.rcond**2 * top
+        return V[:, keep] / np.sqrt(lam[keep])
+
+    def _minimise(self, start, args):
+        """Run the chosen method; returns ``(x, cost, iterations, ok, status)``."""
+        if self.method == "gradient":
+            return self._gradient_descent(start, args)
+        gtol = np.sqrt(2.0 * self.tol)
+        H = self._hessian(start, args)
+        try:
+            if self.method in ("bfgs", "nelder-mead"):
+                T = self._subspace(H)
+
+                def fun(z):
+                    J, g = self._J(start + T @ z, *args)
+                    return float(J[0]), T.T @ g
+
+                z0 = np.zeros(T.shape[1])
+                if self.method == "bfgs":
+                    res = optimize.minimize(fun, z0, jac=True, method="BFGS",
+                                            options={"maxiter": self.max_iter, "gtol": gtol})
+                else:
+                    res = optimize.minimize(lambda z: fun(z)[0], z0, method="Nelder-Mead",
+                                            options={"maxiter": self.max_iter * len(start),
+                                                     "xatol": 1e-3 * gtol, "fatol": self.tol})
+                x = start + T @ res.x
+                # 0: converged; 2: precision loss at the optimum (no further decrease)
+                ok = (res.status in (0, 2) or self.method == "nelder-mead") and \
+                    np.isfinite(x).all() and np.isfinite(res.fun)
+                return x, float(res.fun), int(res.nit), ok, str(res.message)
+            if self.method == "lbfgsb":
+                # diagonal Gauss-Newton scaling keeps the bounds as boxes
+                diag = np.ones(len(start)) if H is None else np.diag(H)
+                d = np.sqrt(diag + 1e-9 * max(float(diag.max()), 1e-300))
+
+                def fun_d(z):
+                    J, g = self._J(start + z / d, *args)
+                    return float(J[0]), g / d
+
+                bounds = list(zip(d * (self.lower - start), d * (self.upper - start),
+                                  strict=True))
+                res = optimize.minimize(fun_d, np.zeros_like(start), jac=True,
+                                        method="L-BFGS-B", bounds=bounds,
+                                        options={"maxiter": self.max_iter, "gtol": gtol,
+                                                 "ftol": 0.0})
+                x = np.clip(start + res.x / d, self.lower, self.upper)
+                ok = res.status in (0, 2) and np.isfinite(x).all() and np.isfinite(res.fun)
+                return x, float(res.fun), int(res.nit), ok, str(res.message)
+            pvec = np.concatenate([np.ravel(a, order="F") for a in args])
+            sol = self._ipopt(x0=np.clip(start, self.lower, self.upper), p=pvec,
+                              lbx=self.lower, ubx=self.upper)
+            st = self._ipopt.stats()
+            x = np.asarray(sol["x"]).ravel()
+            ok = bool(st["success"]) and np.isfinite(x).all()
+            return x, float(sol["f"]), int(st["iter_count"]), ok, st["return_status"]
+        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            return start, float("nan"), 0, False, str(exc)[:120]
+
+    def _gradient_descent(self, start, args):
+        """Report eq. 1.11 with an Armijo backtracking step size."""
+        U, Y = args[0], args[1]
+        x = start.copy()
+        J = float(self._J(x, *args)[0][0])
+        alpha = 1.0
+        for it in range(1, self.max_iter + 1):
+            g = self._grad_sens(x, U, Y)[0] + self._grad_other(x, *args)[0]
+            if not np.isfinite(g).all():
+                return x, J, it, False, "non-finite gradient"
+            gg = float(g @ g)
+            if gg <= 1e-30 * max(J, 1e-300):
+                return x, J, it, True, "gradient vanished"
+            while alpha > 1e-30:
+                xn = x - alpha * g
+                Jn = float(self._J(xn, *args)[0][0])
+                if np.isfinite(Jn) and Jn <= J - 1e-4 * alpha * gg:
+                    break
+                alpha *= 0.5
+            else:
+                return x, J, it, True, "step below 1e-30"
+            converged = abs(J - Jn) <= 1e-12 * max(abs(J), 1e-300)
+            x, J = xn, Jn
+            alpha *= 2.0
+            if converged:
+                return x, J, it, True, "converged"
+        return x, J, self.max_iter, True, "max_iter"

@@ -1,0 +1,126 @@
+"""Single-shooting observer: gradients, differentiator, diagnostics, failures, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import estim
+from estim.estimators.shooting import derivative_filter
+
+
+def _runaway_observer(**kw):
+    sc = estim.scenarios.runaway(n_steps=800)
+    base = dict(window=10, every=20, R=sc.R, x0=sc.tuning["x0"])
+    base.update(kw)
+    return sc, estim.ShootingObserver(sc.model, **base)
+
+
+def _window_args(obs, sc, seed=0, k=720):
+    """Buffer of the window ending at sample k (720: inside the first burst)."""
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=seed, n_steps=k + 20)
+    obs.reset()
+    for y in log.y[:k + 1]:
+        obs.step(y)
+    Y, Yd, U = obs._window_data()
+    nx = sc.model.nx
+    return log, (U, Y, np.zeros_like(Yd), 0.0, np.zeros(nx), np.zeros(nx * nx))
+
+
+def test_sensitivity_equation_gradient_equals_ad_gradient():
+    """Report eqs. 1.8-1.10 integrated with the state give the AD gradient of J."""
+    sc, obs = _runaway_observer(method="gradient", derivative_weight=0.0)
+    log, args = _window_args(obs, sc)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        x = log.x[540] * (1 + 1e-2 * rng.standard_normal(4))
+        g_ad = obs._J(x, *args)[1].copy()
+        g_sens = obs._grad_sens(x, args[0], args[1])[0].copy()
+        np.testing.assert_allclose(g_sens, g_ad, rtol=1e-8, atol=1e-8 * np.abs(g_ad).max())
+
+
+def test_derivative_filter_is_exact_for_quadratics_and_reduces_noise():
+    dt = 0.01
+    t = np.arange(-6, 1) * dt
+    y = np.stack([1 + 2 * t + 3 * t**2, -t**2], axis=1)
+    np.testing.assert_allclose(derivative_filter(y, dt), [2.0, 0.0], atol=1e-10)
+    # noise gain: std of the estimate for white noise of std 1, from the filter weights
+    rng = np.random.default_rng(1)
+    est = [derivative_filter(rng.standard_normal((7, 1)), dt)[0] for _ in range(4000)]
+    V = np.vander(t, 3, increasing=True)
+    gain = np.linalg.norm(np.linalg.pinv(V)[1])
+    assert np.std(est) == pytest.approx(gain, rel=0.05)
+
+
+def test_runaway_windows_identifiable_only_with_a_burst():
+    """models.md: the window's information is large only when it holds a burst."""
+    sc, obs = _runaway_observer(derivative_weight=0.0)
+    log = estim.simulate(sc, obs, seed=0, n_steps=800)
+    assert log.success.all()
+    conds = {}
+    obs.reset()
+    for k, y in enumerate(log.y):
+        obs.step(y)
+        if obs.info.extra.get("optimised"):
+            conds[k] = obs.info.extra["condition"]
+    # relative-sensitivity condition numbers (squared: the Fisher ones): windows
+    # between bursts (ending before the first burst at sample 573) are 100x worse
+    # than windows holding the burst (the first burst reaches the windows at ~600)
+    burst = [c for k, c in conds.items() if 640 <= k <= 1000]
+    quiet = [c for k, c in conds.items() if 200 <= k <= 560]
+    assert max(burst) < 1e4 and min(quiet) > 1e5
+    assert np.median(quiet) > 1e4 * np.median(burst)
+
+
+def test_parameters_found_at_the_first_burst():
+    """From the report's 1e-3 perturbation the burst window pins gamma, gamma1."""
+    sc, obs = _runaway_observer(derivative_weight=0.0)
+    log = estim.simulate(sc, obs, seed=0, n_steps=800)
+    k = 720  # windows ending in the first burst (0.287-0.36 s)
+    rel = np.abs(log.x_hat[k, 2:] - log.x[k, 2:]) / log.x[k, 2:]
+    assert (rel < 5e-3).all()
+
+
+@pytest.mark.parametrize("method", ["bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient"])
+def test_every_method_runs_and_reduces_the_cost(method):
+    sc, obs = _runaway_observer(method=method, derivative_weight=0.0, max_iter=30)
+    log, args = _window_args(obs, sc)
+    start = log.x[540] * np.array([1.0, 1.0, 1.01, 0.99])
+    x, cost, iters, ok, status = obs._minimise(start, args)
+    assert ok, status
+    assert cost <= float(obs._J(start, *args)[0][0]) + 1e-12
+
+
+def test_failed_optimisation_keeps_the_estimate(monkeypatch):
+    sc, obs = _runaway_observer(derivative_weight=0.0)
+    monkeypatch.setattr(obs, "_minimise",
+                        lambda start, args: (start * np.nan, np.nan, 0, False, "broken"))
+    log = estim.simulate(sc, obs, seed=0, n_steps=400)
+    assert np.isfinite(log.x_hat).all()
+    assert any(s == "failed: broken" for s in log.status)
+    # with every optimisation failing, the estimate is the open-loop propagation of x0
+    x = np.array(sc.tuning["x0"])
+    for _ in range(399):
+        x = sc.model.f(x)
+    np.testing.assert_allclose(log.x_hat[-1], x, rtol=1e-12)
+
+
+def test_bad_input():
+    sc = estim.scenarios.runaway()
+    m, kw = sc.model, dict(R=sc.R, x0=sc.tuning["x0"])
+    with pytest.raises(ValueError, match="window must be an integer >= 1"):
+        estim.ShootingObserver(m, window=0, every=20, **kw)
+    with pytest.raises(ValueError, match="every must be an integer >= 1"):
+        estim.ShootingObserver(m, window=5, every=0, **kw)
+    with pytest.raises(ValueError, match="method must be one of"):
+        estim.ShootingObserver(m, window=5, every=2, method="newton", **kw)
+    with pytest.raises(ValueError, match="direction must be"):
+        estim.ShootingObserver(m, window=5, every=2, direction="sideways", **kw)
+    with pytest.raises(ValueError, match="derivative_weight must be >= 0"):
+        estim.ShootingObserver(m, window=5, every=2, derivative_weight=-1.0, **kw)
+    disc = estim.Model(states=1, outputs=1, dynamics=lambda x, u, p: 0.9 * x,
+                       output=lambda x, u, p: x)
+    with pytest.raises(ValueError, match="needs a continuous model"):
+        estim.ShootingObserver(disc, window=5, every=2, derivative_weight=1.0, R=1.0, x0=[0])
+    with pytest.raises(ValueError, match="direction='backward' needs a continuous model"):
+        estim.ShootingObserver(disc, window=5, every=2, direction="backward", R=1.0, x0=[0])
