@@ -22,12 +22,13 @@ from estim.estimators import (
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
-from estim.scenarios import Scenario
-from estim.simulate import simulate
+from estim.scenarios import Record, Scenario
+from estim.simulate import replay, simulate
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "Estimator", "FitResult", "FullInformation", "Log",
-    "Model", "RMSE", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds", "compare",
-    "convergence_time", "errors", "models", "nees", "nis", "rmse", "scenarios", "simulate",
+    "Model", "RMSE", "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds", "compare",
+    "convergence_time", "errors", "models", "nees", "nis", "replay", "rmse", "scenarios",
+    "simulate",
 ]
 __version__ = "0.1.0"

@@ -203,6 +203,67 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     return log
 
 
+def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
+    """Run an estimator over recorded data (e.g. measurements from an experiment).
+
+    Parameters
+    ----------
+    estimator : Estimator
+        Reset first.
+    y : (T, ny) array
+        Measurements, NaN where missing.
+    u : (T, nu) array, optional
+        ``u[k]`` is the input applied after sample ``k`` (so ``u[k-1]`` is
+        passed with ``y[k]``, as in :func:`simulate`); zero if omitted.
+    x : (T, nx) array, optional
+        The true states, where known (for :func:`~estim.rmse` and plots).
+    t : (T,) array, optional
+        Sample times (default ``k * model.dt``).
+
+    Returns
+    -------
+    Log
+        As from :func:`simulate`; ``x`` is NaN where not given.
+    """
+    if not isinstance(estimator, Estimator):
+        raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
+    model = estimator.model
+    Y = np.asarray(y, dtype=float)
+    if Y.ndim == 1 and model.ny == 1:
+        Y = Y[:, None]
+    if Y.ndim != 2 or Y.shape[1] != model.ny:
+        raise ValueError(f"y must have shape (T, {model.ny}), got {Y.shape}")
+    T = Y.shape[0]
+    U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model.nu, model.dt)
+    X = np.full((T, model.nx), np.nan) if x is None else np.asarray(x, dtype=float)
+    if X.shape != (T, model.nx):
+        raise ValueError(f"x must have shape ({T}, {model.nx}), got {X.shape}")
+    ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
+    if ts.shape != (T,):
+        raise ValueError(f"t must have shape ({T},), got {ts.shape}")
+    Xh = np.empty((T, model.nx))
+    P = np.full((T, model.nx, model.nx), np.nan)
+    fields = {k: np.empty(T, dtype=d) for k, d in (("solve_time", float), ("iterations", int),
+                                                      ("success", bool), ("nis", float),
+                                                      ("cost", float), ("status", object))}
+    estimator.reset()
+    for k in range(T):
+        Xh[k] = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
+        info = estimator.info
+        if info.P is not None:
+            P[k] = info.P
+        for key in fields:
+            fields[key][k] = getattr(info, key)
+    log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
+              estimator=getattr(estimator, "name", type(estimator).__name__),
+              output_state=output_state_map(model), model_name=model.name)
+    for key, arr in (("t", ts), ("x", X), ("y", Y), ("u", U), ("x_hat", Xh), ("P", P)):
+        log.set(key, arr)
+    for key, arr in fields.items():
+        log.set(key, arr.astype(str) if key == "status" else arr)
+    return log
+
+
 def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:
     if inputs is None:
         return None

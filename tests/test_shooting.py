@@ -83,7 +83,7 @@ def test_parameters_found_at_the_first_burst():
 
 @pytest.mark.parametrize("method", ["bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient"])
 def test_every_method_runs_and_reduces_the_cost(method):
-    sc, obs = _runaway_observer(method=method, derivative_weight=0.0, max_iter=30)
+    sc, obs = _runaway_observer(method=method, derivative_weight=0.0)
     log, args = _window_args(obs, sc)
     start = log.x[540] * np.array([1.0, 1.0, 1.01, 0.99])
     x, cost, iters, ok, status = obs._minimise(start, args)
@@ -124,3 +124,74 @@ def test_bad_input():
         estim.ShootingObserver(disc, window=5, every=2, derivative_weight=1.0, R=1.0, x0=[0])
     with pytest.raises(ValueError, match="direction='backward' needs a continuous model"):
         estim.ShootingObserver(disc, window=5, every=2, direction="backward", R=1.0, x0=[0])
+
+
+def _settling(log, tol=0.01):
+    """Last time a parameter (states 2, 3) is off by ``tol`` or more (0 if never)."""
+    rel = np.abs(log.x_hat[:, 2:] - log.x[:, 2:]) / log.x[:, 2:]
+    bad = np.flatnonzero((rel >= tol).any(axis=1))
+    return float(log.t[bad[-1] + 1]) if len(bad) and bad[-1] + 1 < len(log) else (
+        0.0 if not len(bad) else np.inf)
+
+
+@pytest.mark.parametrize("derivative_weight", [0.0, None])
+def test_runaway_parameters_settle_within_one_percent(derivative_weight):
+    """Report sec. 2.5 with the guess 5 % off in (gamma, gamma1): the parameters
+    settle within 1 % at the first burst window (~0.3 s) and stay there; the
+    resolution 0.003 (a third of the 1 % to hold) keeps windows between bursts
+    from moving them."""
+    sc = estim.scenarios.runaway(n_steps=3000)
+    x0 = np.array(sc.tuning["x0"]) * [1, 1, 1.05, 0.95]
+    obs = estim.ShootingObserver(sc.model, window=10, every=20, R=sc.R, x0=x0,
+                                 derivative_weight=derivative_weight, resolution=0.003)
+    log = estim.simulate(sc, obs, seed=0)
+    assert log.success.all()
+    assert _settling(log) <= 0.35  # the first burst peaks at 0.287 s
+    rel = np.abs(log.x_hat[1000:, 2:] - log.x[1000:, 2:]) / log.x[1000:, 2:]
+    assert rel.mean() < 2e-3
+
+
+def test_satellite_inertia_identified_with_excitation_not_without():
+    """Report sec. 2.2: with a persistently exciting target the inertias converge
+    (<= 5 %); without excitation the window sees only the scale-invariant
+    dynamics (condition ~1e16) and the guess (20-25 % off) is not corrected."""
+    res = {}
+    for exc in (True, False):
+        rec = estim.scenarios.satellite_inertia(excitation=exc, fault=False, n_steps=200)
+        obs = estim.ShootingObserver(rec.model, window=20, every=3, R=rec.tuning["R"],
+                                     x0=rec.tuning["x0"], resolution=0.05)
+        log = estim.replay(obs, rec.y, rec.u, rec.x)
+        assert log.success.all()
+        conds = []
+        obs.reset()
+        for k in range(len(rec.y)):
+            obs.step(rec.y[k], rec.u[k - 1] if k else None)
+            if obs.info.extra.get("optimised"):
+                conds.append(obs.info.extra["condition"])
+        res[exc] = (np.abs(log.x_hat[-1, 3:] - rec.x[-1, 3:]) / rec.x[-1, 3:], np.median(conds))
+    assert res[True][0].max() <= 0.05 and res[True][1] < 100
+    assert res[False][0].max() > 0.1 and res[False][1] > 1e8
+
+
+def test_satellite_fault_tracked_with_dense_buffer_not_with_sparse():
+    """Report secs. 2.3-2.4: w = 20, N_Ts = 3 follows the inertia drop at 200 s
+    within 100 s; w = 5, N_Ts = 20 does not."""
+    rec = estim.scenarios.satellite_inertia(excitation=True, fault=True, n_steps=320)
+    err = {}
+    for w, n in ((20, 3), (5, 20)):
+        obs = estim.ShootingObserver(rec.model, window=w, every=n, R=rec.tuning["R"],
+                                     x0=rec.tuning["x0"], resolution=0.05)
+        log = estim.replay(obs, rec.y, rec.u, rec.x)
+        err[w] = np.abs(log.x_hat[300, 3:] - rec.x[300, 3:]) / rec.x[300, 3:]
+    assert err[20].max() < 0.05
+    assert err[5].max() > 0.5
+
+
+def test_replay_matches_simulate():
+    sc = estim.scenarios.van_der_pol()
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=1)
+    again = estim.replay(estim.EKF(sc.model, **sc.tuning), log.y, log.u, log.x)
+    np.testing.assert_array_equal(again.x_hat, log.x_hat)
+    np.testing.assert_array_equal(again.P, log.P)
+    with pytest.raises(ValueError, match=r"y must have shape"):
+        estim.replay(estim.EKF(sc.model, **sc.tuning), log.y[:, :1])

@@ -109,11 +109,14 @@ class ShootingObserver(Estimator):
         windows without information (the satellite without excitation, the
         runaway model between bursts) from moving the estimate along
         directions they do not determine.
-    rcond : float
+    resolution : float
         ``"bfgs"`` and ``"nelder-mead"`` optimise only along the directions
-        whose output sensitivity is at least ``rcond`` times the largest (a
-        truncated-SVD Gauss-Newton subspace); the others keep the propagated
-        previous estimate. The bounded methods use the full space.
+        the window determines to a relative standard error below
+        ``resolution`` (a truncated Gauss-Newton subspace, see
+        :meth:`_subspace`); the others keep the propagated previous estimate,
+        so windows with little information (between bursts, without
+        excitation) do not push the estimate around. The bounded methods use
+        the full space.
 
     Attributes
     ----------
@@ -134,7 +137,7 @@ class ShootingObserver(Estimator):
     def __init__(self, model: Model, *, window: int, every: int, R, x0, Q=None, P0=None,
                  derivative_weight: float | None = None, derivative_samples: int = 5,
                  method: str = "bfgs", direction: str = "forward", lower=None, upper=None,
-                 max_iter: int = 100, tol: float = 1e-3, rcond: float = 1e-3, **options):
+                 max_iter: int = 100, tol: float = 1e-3, resolution: float = 0.01, **options):
         check_options(options, (), "ShootingObserver")
         super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
         for name, val, least in (("window", window, 1), ("every", every, 1),
@@ -163,9 +166,9 @@ class ShootingObserver(Estimator):
         if not np.isfinite(tol) or tol <= 0:
             raise ValueError(f"tol must be a positive number, got {tol!r}")
         self.tol = float(tol)
-        if not 0 < rcond < 1:
-            raise ValueError(f"rcond must be in (0, 1), got {rcond!r}")
-        self.rcond = float(rcond)
+        if not np.isfinite(resolution) or resolution <= 0:
+            raise ValueError(f"resolution must be a positive number, got {resolution!r}")
+        self.resolution = float(resolution)
         nx = model.nx
         lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
         up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
@@ -396,23 +399,27 @@ class ShootingObserver(Estimator):
             H += 2.0 * np.linalg.inv(self.P0)
         return H if np.isfinite(H).all() else None
 
-    def _subspace(self, H):
-        r"""Coordinates ``xi = start + T z`` in which the Gauss-Newton Hessian is ``I``,
-        restricted to the directions the window determines.
+    def _subspace(self, H, start):
+        r"""Coordinates ``xi = start + T z`` spanning the directions this window determines.
 
-        With :math:`H = V\Lambda V^\top`, the directions with
-        :math:`\lambda_i \ge rcond^2 \lambda_{max}` (sensitivity singular
-        values above ``rcond`` of the largest) span the optimisation;
-        :math:`T = V_r \Lambda_r^{-1/2}`. The other directions stay at the
-        warm start, the propagated previous estimate.
+        In relative coordinates (``xi_i = start_i (1 + e_i)``, scales floored at
+        1e-3 of the largest) the Gauss-Newton Hessian is
+        :math:`H_r = V \Lambda V^\top`; as the weighted residuals have unit
+        noise, eigen-direction :math:`i` is determined to the relative standard
+        error :math:`\sqrt{2/\lambda_i}`. Directions known better than
+        ``resolution`` span the optimisation, with :math:`T = D V_r
+        \Lambda_r^{-1/2}` so the Hessian in ``z`` is the identity; the others
+        keep the warm start (the propagated previous estimate). Returns an
+        ``(nx, 0)`` matrix when the window determines nothing.
         """
         nx = self.model.nx
         if H is None:
-            return np.eye(nx)
-        lam, V = np.linalg.eigh(0.5 * (H + H.T))
-        top = max(float(lam.max()), 1e-300)
-        keep = lam >= self.rcond**2 * top
-        return V[:, keep] / np.sqrt(lam[keep])
+            return np.zeros((nx, 0))
+        D = np.maximum(np.abs(start), 1e-3 * max(float(np.abs(start).max()), 1e-300))
+        Hr = H * np.outer(D, D)
+        lam, V = np.linalg.eigh(0.5 * (Hr + Hr.T))
+        keep = lam >= 2.0 / self.resolution**2
+        return (D[:, None] * V[:, keep]) / np.sqrt(lam[keep])
 
     def _minimise(self, start, args):
         """Run the chosen method; returns ``(x, cost, iterations, ok, status)``."""
@@ -422,7 +429,9 @@ class ShootingObserver(Estimator):
         H = self._hessian(start, args)
         try:
             if self.method in ("bfgs", "nelder-mead"):
-                T = self._subspace(H)
+                T = self._subspace(H, start)
+                if T.shape[1] == 0:  # nothing determined to the resolution: keep it
+                    return start, float(self._J(start, *args)[0][0]), 0, True, "no update"
 
                 def fun(z):
                     J, g = self._J(start + T @ z, *args)

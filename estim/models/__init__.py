@@ -8,8 +8,14 @@ rate constant.
 from estim.models.batch_reactor import batch_reactor
 from estim.models.lorenz import lorenz
 from estim.models.runaway import runaway
-from estim.models.satellite import PDAttitudeController, reference_attitude, satellite
+from estim.models.satellite import (
+    PDAttitudeController,
+    nadir_in_body,
+    reference_attitude,
+    satellite,
+    satellite_rates,
+)
 from estim.models.van_der_pol import van_der_pol
 
-__all__ = ["batch_reactor", "lorenz", "runaway", "satellite", "van_der_pol",
-           "PDAttitudeController", "reference_attitude"]
+__all__ = ["batch_reactor", "lorenz", "runaway", "satellite", "satellite_rates", "van_der_pol",
+           "PDAttitudeController", "nadir_in_body", "reference_attitude"]

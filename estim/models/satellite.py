@@ -105,6 +105,42 @@ def satellite(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
     )
 
 
+def satellite_rates(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
+                    mu: float = MU_EARTH, r: float = 7.0e6, dt: float = 1.0,
+                    integrator: str = "rk4") -> Model:
+    r"""Euler's equations alone, the attitude entering as a known input.
+
+    State :math:`\omega`; input :math:`u = (\tau, n_B)`, the body torque and
+    the nadir direction in body axes (from a known attitude), both held over
+    the sample; output the gyro :math:`y = \omega`:
+
+    .. math:: I \dot\omega = -\omega \times I\omega
+              + \frac{3\mu}{r^3} n_B \times I n_B + \tau
+
+    ``satellite_rates().augment("I1", "I2", "I3")`` identifies the principal
+    inertias (Oliva & Carnevale, sec. 2.1-2.4). With zero torque the output
+    is unchanged by :math:`I \to cI`; a known torque fixes the scale.
+    """
+    def ode(x, u, p):
+        inertia = ca.vertcat(p["I1"], p["I2"], p["I3"])
+        tau, n_b = u[0:3], u[3:6]
+        torque_gg = 3 * p["mu"] / p["r"] ** 3 * ca.cross(n_b, inertia * n_b)
+        return (-ca.cross(x, inertia * x) + torque_gg + tau) / inertia
+
+    return Model(
+        states=["wx", "wy", "wz"], outputs=["gyro_x", "gyro_y", "gyro_z"],
+        inputs=["tau_x", "tau_y", "tau_z", "nadir_x", "nadir_y", "nadir_z"],
+        ode=ode, output=lambda x, u, p: x, dt=dt, integrator=integrator,
+        params={"I1": I1, "I2": I2, "I3": I3, "mu": mu, "r": r}, name="satellite_rates",
+    )
+
+
+def nadir_in_body(x: np.ndarray) -> np.ndarray:
+    """Nadir direction in body axes from the full satellite state ``(q, omega, theta)``."""
+    q, theta = np.asarray(x[:4], float), float(x[7])
+    return quat_rotate_to_body(q, np.array([-np.cos(theta), -np.sin(theta), 0.0]))
+
+
 def reference_attitude(t: float, amplitude: float = 0.4,
                        periods=(100.0, 73.0, 131.0), phases=(0.0, 1.0, 2.0)) -> np.ndarray:
     r"""Persistently exciting target :math:`q_{ref}(t) = \exp(\phi(t)/2)`.
