@@ -87,3 +87,53 @@ def plot_comparison(result, path=None, seed_index: int = 0):
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
+
+
+def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float | None = None,
+                   title: str | None = None, marker_time: float | None = None):
+    """Truth (from the first log) and every log's estimate, one axis per state.
+
+    Parameters
+    ----------
+    logs : dict of name -> Log
+        Runs on the same truth (same scenario and seed).
+    path : str or Path, optional
+        Write the figure there.
+    labels, styles : dict, optional
+        Legend label and matplotlib keyword arguments per name.
+    symlog : float, optional
+        Symmetric-log y axes, linear within ``±symlog`` (large transients and
+        small values on one axis).
+    title : str, optional
+    marker_time : float, optional
+        A dotted vertical line (e.g. the end of a burn-in).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    plt = _pyplot()
+    labels, styles = labels or {}, styles or {}
+    truth = next(iter(logs.values()))
+    names = truth.state_names or [f"x{i + 1}" for i in range(truth.x.shape[1])]
+    fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 2.5 * len(names)),
+                             constrained_layout=True, squeeze=False)
+    for i, (ax, name) in enumerate(zip(axes[:, 0], names, strict=True)):
+        ax.plot(truth.t, truth.x[:, i], color="black", lw=2, label="truth")
+        for key, log in logs.items():
+            ax.plot(log.t, log.x_hat[:, i], lw=1.2, label=labels.get(key, key),
+                    **styles.get(key, {}))
+        if symlog is not None:
+            ax.axhline(0.0, color="0.6", lw=0.6)
+            ax.set_yscale("symlog", linthresh=symlog)
+        if marker_time is not None:
+            ax.axvline(marker_time, color="0.6", lw=0.6, ls=":")
+        ax.set_ylabel(name)
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0, 0].legend(loc="upper right", ncol=min(4, len(logs) + 1), fontsize="small")
+    if title:
+        axes[0, 0].set_title(title, fontsize="medium")
+    axes[-1, 0].set_xlabel("time")
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig

@@ -48,6 +48,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import estim  # noqa: E402
+from estim.plotting import plot_estimates  # noqa: E402
 
 BURN_IN = 200
 
@@ -68,24 +69,12 @@ def summary(log: estim.Log, burn_in: int = BURN_IN) -> dict:
 
 def plot(logs: dict[str, estim.Log], out: str) -> None:
     """Truth and both estimates, one axis per concentration, symlog y."""
-    truth = next(iter(logs.values()))
-    names = truth.state_names
-    fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 7.5),
-                             constrained_layout=True)
-    styles = {"EKF": {"color": "tab:red"}, "clipped EKF": {"color": "tab:blue"}}
-    for i, (ax, name) in enumerate(zip(axes, names, strict=True)):
-        ax.plot(truth.t, truth.x[:, i], color="black", lw=2, label="truth")
-        for label, log in logs.items():
-            ax.plot(log.t, log.x_hat[:, i], lw=1.2, label=label, **styles.get(label, {}))
-        ax.axhline(0.0, color="0.6", lw=0.6)
-        ax.axvline(BURN_IN * truth.dt, color="0.6", lw=0.6, ls=":")
-        ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_ylabel(name)
-        ax.grid(True, which="major", alpha=0.3)
-    axes[0].legend(loc="upper right", ncol=3, fontsize="small")
-    axes[0].set_title("Batch reactor, guess (1, 0, 4): EKF vs EKF clipped to x ≥ 0 "
-                      "(symlog y, linear within ±0.1)", fontsize="medium")
-    axes[-1].set_xlabel("time [s]  (dotted: end of burn-in)")
+    fig = plot_estimates(
+        logs, styles={"EKF": {"color": "tab:red"}, "clipped EKF": {"color": "tab:blue"}},
+        symlog=0.1, marker_time=BURN_IN * next(iter(logs.values())).dt,
+        title="Batch reactor, guess (1, 0, 4): EKF vs EKF clipped to x ≥ 0 "
+              "(symlog y, linear within ±0.1)")
+    fig.axes[-1].set_xlabel("time [s]  (dotted: end of burn-in)")
     fig.savefig(out, dpi=120)
     plt.close(fig)
 

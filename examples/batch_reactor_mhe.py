@@ -70,6 +70,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import estim  # noqa: E402
+from estim.plotting import plot_estimates  # noqa: E402
 
 BURN_IN = 200
 HORIZONS = (10, 25)
@@ -100,23 +101,11 @@ def summary(log: estim.Log, skip: int = 0, burn_in: int = BURN_IN) -> dict:
 
 def plot(logs: dict[str, estim.Log], out: str) -> None:
     """Truth and the three estimates, one axis per concentration, symlog y."""
-    truth = logs["ekf"]
-    names = truth.state_names
-    fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 7.5),
-                             constrained_layout=True)
-    for i, (ax, name) in enumerate(zip(axes, names, strict=True)):
-        ax.plot(truth.t, truth.x[:, i], color="black", lw=2, label="truth")
-        for key, log in logs.items():
-            ax.plot(log.t, log.x_hat[:, i], lw=1.2, label=LABELS[key], **STYLES[key])
-        ax.axhline(0.0, color="0.6", lw=0.6)
-        ax.axvline(BURN_IN * truth.dt, color="0.6", lw=0.6, ls=":")
-        ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_ylabel(name)
-        ax.grid(True, which="major", alpha=0.3)
-    axes[0].legend(loc="upper right", ncol=4, fontsize="small")
-    axes[0].set_title("Batch reactor, guess (1, 0, 4): EKF vs zero-prior MHE with 0 ≤ x ≤ 10\n"
-                      "(symlog y, linear within ±0.1)", fontsize="medium")
-    axes[-1].set_xlabel("time [s]  (dotted: 200 samples)")
+    fig = plot_estimates(
+        logs, labels=LABELS, styles=STYLES, symlog=0.1, marker_time=BURN_IN * logs["ekf"].dt,
+        title="Batch reactor, guess (1, 0, 4): EKF vs zero-prior MHE with 0 ≤ x ≤ 10\n"
+              "(symlog y, linear within ±0.1)")
+    fig.axes[-1].set_xlabel("time [s]  (dotted: 200 samples)")
     fig.savefig(out, dpi=120)
     plt.close(fig)
 
