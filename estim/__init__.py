@@ -7,7 +7,7 @@
 True
 """
 
-from estim import models, scenarios
+from estim import models, observability, scenarios
 from estim.compare import Comparison, compare
 from estim.estimators import (
     EKF,
@@ -27,8 +27,8 @@ from estim.simulate import replay, simulate
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "Estimator", "FitResult", "FullInformation", "Log",
-    "Model", "RMSE", "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds", "compare",
-    "convergence_time", "errors", "models", "nees", "nis", "replay", "rmse", "scenarios",
-    "simulate",
+    "Model", "RMSE", "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
+    "compare", "convergence_time", "errors", "models", "nees", "nis", "observability", "replay",
+    "rmse", "scenarios", "simulate",
 ]
 __version__ = "0.1.0"
