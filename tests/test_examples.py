@@ -84,8 +84,68 @@ def test_lorenz_fie(tmp_path, capsys):
     assert "gauss-newton vs ipopt" in capsys.readouterr().out
 
 
+def test_runaway_observer(tmp_path, capsys):
+    out = tmp_path / "runaway.png"
+    # 2.5 s instead of 4 s: the first burst (0.287 s) and four more, 0.5 s after 2 s
+    res = load("runaway_observer").main(["--out", str(out), "--steps", "5000"])
+    assert out.stat().st_size > 20_000
+    runs = {(start, d): res[f"{start}_{d}"] for start in ("report", "hard")
+            for d in ("none", "balanced")}
+    for (start, _), r in runs.items():
+        assert r["failed_steps"] == 0
+        if start == "report":
+            # the report's guess is 0.08 % and 0.46 % off and never leaves the 1 % band
+            assert r["settling_time"] == 0.0 and r["max_rel_error"] < 0.01
+        else:
+            # 5 % off: the window closing at 0.30 s holds the first burst (peak at 0.287 s)
+            # and is the first to determine (gamma, gamma1); earlier windows cannot
+            assert 0.28 <= r["settling_time"] <= 0.35
+        # noise-limited afterwards: 3e-4 on average, 1.8e-3 at most over 2-2.5 s (seed 0);
+        # a run that lost the parameters again would exceed the 1 % band
+        assert r["mean_rel_error_after"] < 2e-3 and r["max_rel_error_after"] < 0.01
+        # quiet windows before the first burst (x2 < 1e-3, below the noise) carry no
+        # information on the parameters; the limit cycle's windows all do (median 2.7e2)
+        assert r["condition_quiet"][1] > 1e6 and r["condition_cycle"][1] < 1e3
+        assert r["condition_cycle"][2] < 1e5
+    # the derivative term changes nothing measurable: its balanced weight is ~7e-8
+    # (numerical dy/dt of noise 1e-4 at 5e-4 s has std ~0.2) and the estimates differ by
+    # 4.5e-4 relative at most, a tenth of the 1 % band
+    assert 0 < runs[("report", "balanced")]["derivative_weight"] < 1e-6
+    assert res["max_relative_difference_derivative"] < 5e-3
+    assert runs[("hard", "none")]["settling_time"] == runs[("hard", "balanced")]["settling_time"]
+    assert "eq. 2.15" in capsys.readouterr().out
+
+
+def test_satellite_inertia(tmp_path, capsys):
+    out = tmp_path / "satellite.png"
+    res = load("satellite_inertia").main(["--out", str(out)])
+    assert out.stat().st_size > 20_000
+    exc, free, sparse, no_d = (res[k] for k in ("excited", "no_excitation", "sparse",
+                                                "no_derivative"))
+    assert all(r["failed_steps"] == 0 for r in (exc, free, sparse, no_d))
+    # exciting target, w = 20, N_Ts = 3: identified (3.2 %) and the fault tracked (2.5 %);
+    # the guess is 20-25 % off and the fault moves the truth by 60 %, so 5 % separates
+    # identification from failure with margin; models.md: condition 3 to 20
+    assert exc["error"][199] < 0.05 and exc["error"][300] < 0.05
+    assert 3 <= exc["median_condition"] <= 20
+    # no torque: I -> cI leaves the gyro signal unchanged (condition ~1e16, i.e. singular
+    # to double precision); the scale stays at the guess's (0.342, truth 0.373), the
+    # estimate is 17 % off before the fault and, the fault being a pure scale change,
+    # over 100 % off after it
+    assert free["median_condition"] > 1e12
+    assert abs(free["scale_199"] / 0.342 - 1) < 0.03 and abs(free["scale_399"] / 0.342 - 1) < 0.03
+    assert free["error"][199] > 0.1 and free["error"][300] > 1.0
+    # w = 5, N_Ts = 20: fine before the fault (2.9 %), stuck at a local minimum after it
+    # (200 %, window cost about 24 times its pre-fault value)
+    assert sparse["error"][199] < 0.05 and sparse["error"][300] > 1.0
+    assert sparse["median_cost_after"] > 10 * sparse["median_cost_before"]
+    # the derivative term makes no measurable difference (0.1 percentage point at most)
+    assert all(abs(no_d["error"][t] - exc["error"][t]) < 0.01 for t in res["times"])
+    assert "no torque" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("name", ["batch_reactor_ekf", "batch_reactor_mhe", "van_der_pol_mhe",
-                                  "lorenz_fie"])
+                                  "lorenz_fie", "runaway_observer", "satellite_inertia"])
 def test_example_has_docstring_and_main(name):
     module = load(name)
     assert module.__doc__ and len(module.__doc__) > 200

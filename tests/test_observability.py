@@ -1,4 +1,4 @@
-"""Observability rank condition, symmetries and classification on PyNOA's and the seeds' examples."""
+"""Observability rank condition, symmetries and classification on PyNOA's and seed examples."""
 
 from __future__ import annotations
 
