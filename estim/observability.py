@@ -333,7 +333,7 @@ def _classify(names, N: np.ndarray, tol: float = 1e-6):
 def analyze(model: Model, order: int | None = None, inputs: str = "varying",
             method: str = "numeric", at=None, seed: int = 0, n_points: int = 3,
             arrangement: str | None = None, max_order: int | None = None,
-            rtol: float = 1e-9) -> ObservabilityReport:
+            rtol: float = 1e-9, input_samples: int | None = None) -> ObservabilityReport:
     """Observability rank condition and continuous symmetries of a model.
 
     Parameters
@@ -364,6 +364,10 @@ def analyze(model: Model, order: int | None = None, inputs: str = "varying",
     rtol : float
         Singular values below ``rtol`` times the largest (rows normalised)
         count as zero.
+    input_samples : int, optional
+        With ``inputs="varying"``: draws of the inputs and their derivatives
+        stacked at every state point (default ``2 nx``), so that few output
+        derivatives suffice.
 
     Returns
     -------
@@ -391,6 +395,7 @@ def analyze(model: Model, order: int | None = None, inputs: str = "varying",
         raise ValueError(f"n_points must be a positive integer, got {n_points!r}")
     n = model.nx
     rng = np.random.default_rng(seed)
+    input_samples = 2 * n if input_samples is None else int(input_samples)
     max_order = max_order if max_order is not None else n + 2
     orders = [order] if order is not None else range(0, max_order + 1)
     history: list[int] = []
@@ -406,7 +411,9 @@ def analyze(model: Model, order: int | None = None, inputs: str = "varying",
         else:
             ranks, s, gap, N = [], None, None, None
             for i, pt in enumerate(pts):
-                mat = np.asarray(O_fun(*pt)).reshape(-1, n)
+                mat = np.vstack([np.asarray(O_fun(*q)).reshape(-1, n)
+                                 for q in _input_samples(pt, variables, inputs, arrangement,
+                                                         input_samples, rng)])
                 r, si, gi, A = _numeric_rank(mat, rtol)
                 ranks.append(r)
                 if i == 0:
@@ -457,6 +464,20 @@ def _fix_inputs(model: Model, values: dict) -> Model:
     return Model(states=model.state_names, outputs=model.output_names, inputs=free,
                  output=lambda x, u, _: model.H(x, full(u), p), dt=model.dt,
                  lower=model.lower, upper=model.upper, name=model.name, **kwargs)
+
+
+def _input_samples(pt, variables, inputs, arrangement, count, rng):
+    """The point with ``count`` random draws of the input variables (same state).
+
+    With inputs varying, the codistribution is spanned over all input histories:
+    rows at several values of ``(u, u', u'', ...)`` at one state belong to the
+    same matrix and reach its generic rank at a low order. Constant inputs and
+    the arrangements (inputs already factored out) use the point as it is.
+    """
+    if inputs != "varying" or arrangement is not None or len(variables) == 1:
+        return [pt]
+    return [pt] + [[pt[0]] + [rng.standard_normal(v.numel()) for v in variables[1:]]
+                   for _ in range(count - 1)]
 
 
 def _extend(pt, variables, rng):

@@ -34,6 +34,57 @@ def test_martinelli_simple_localisation(method, arrangement):
     assert "jointly observable: (phi_R, theta_R)" in str(rep)
 
 
+def odometry_noncircular():
+    """Martinelli 2010 odometry calibration (PyNOA notebook), wheel speeds as inputs."""
+    def ode(x, u, p):
+        mu, g, phi, psi, eta, delta, xi = (x[i] for i in range(7))
+        f1 = ca.vertcat(-mu**2 * eta * ca.cos(g - phi), xi - mu * eta * ca.sin(g - phi),
+                        0, 0, 0, 0, 0)
+        f2 = ca.vertcat(-mu**2 * eta * delta * ca.cos(g - phi),
+                        -xi * delta - mu * eta * delta * ca.sin(g - phi), 0, 0, 0, 0, 0)
+        return f1 * u[0] + f2 * u[1]
+
+    return estim.Model(
+        states=["mu", "gamma", "phi", "psi", "eta", "delta", "xi"], outputs=["beta"],
+        inputs=["omega_R", "omega_L"], ode=ode, dt=0.1, name="odometry_noncircular",
+        output=lambda x, u, p: -ca.atan2(ca.sin(x[1]), x[0] + ca.cos(x[1])) - x[3],
+        lower=[0.2, -np.inf, -np.inf, -np.inf, 0.2, 0.2, 0.2], upper=[3, np.inf, np.inf,
+                                                                       np.inf, 3, 3, 3])
+
+
+def odometry_circular():
+    """The same robot on a circular trajectory (PyNOA notebook's 5-state model)."""
+    def ode(x, u, p):
+        mu, g, eta, xi, phi = (x[i] for i in range(5))
+        return ca.vertcat(-mu**2 * eta * ca.cos(g - phi), xi - mu * eta * ca.sin(g - phi),
+                          0, 0, 0) * u[0]
+
+    return estim.Model(
+        states=["mu", "gamma", "eta_q", "xi_q", "phi"], outputs=["y"], inputs=["nu"], ode=ode,
+        output=lambda x, u, p: ca.sin(x[1]) / (x[0] + ca.cos(x[1])), dt=0.1,
+        lower=[0.2, -np.inf, 0.2, 0.2, -np.inf], upper=[3, np.inf, 3, 3, np.inf],
+        name="odometry_circular")
+
+
+def test_odometry_calibration_noncircular_is_observable():
+    rep = analyze(odometry_noncircular())
+    assert rep.rank == 7 and rep.is_observable and not rep.point_dependent
+
+
+def test_odometry_calibration_circular_has_martinelli_symmetry():
+    """Rank 4 of 5 (PyNOA prints 5 with floating-point primes), only xi_q observable,
+    and the null space is Martinelli's symmetry
+    [mu cos g + 1, sin g, (xi_q sin phi - eta_q) / mu, 0, xi_q cos phi / (eta_q mu)]."""
+    x = np.array([1.3, 0.7, 1.1, 0.8, -0.4])
+    rep = analyze(odometry_circular(), at=x)
+    assert rep.rank == 4 and rep.observable == ["xi_q"] and rep.gap > 1e10
+    assert rep.jointly_observable == [["mu", "gamma", "eta_q", "phi"]]
+    mu, g, eta, xi, phi = x
+    v = np.array([mu * np.cos(g) + 1, np.sin(g), (xi * np.sin(phi) - eta) / mu, 0,
+                  xi * np.cos(phi) / (eta * mu)])
+    np.testing.assert_allclose(rep.symmetries[0], v / v[0], atol=1e-8)
+
+
 def test_lorenz_with_x3_is_locally_weakly_observable_only():
     """The rank test passes; the report says it cannot see (x1, x2) -> (-x1, -x2)."""
     m = estim.Model(states=3, outputs=1, dt=0.02, name="lorenz_x3",
