@@ -179,6 +179,10 @@ def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
     p = ca.DM(model.p)
     if arrangement is not None:
         x, f0, fs = _control_affine_fields(model)
+        u = ca.SX.sym("u", nu)
+        if ca.depends_on(model.H(x, u, p), u):
+            raise ValueError("the arrangements need an output independent of the inputs; use "
+                             "inputs='varying' (extended Lie derivatives) instead")
         h = model.H(x, ca.DM.zeros(nu), p)
         fields = [f0, *fs]
         words = _words(arrangement, len(fields), order)
@@ -221,7 +225,8 @@ def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
 def _words(arrangement: str, m: int, order: int) -> list[tuple[int, ...]]:
     """Sequences of vector-field indices (0 = drift) applied to ``h``, by order.
 
-    ``"permutation"``: every ordered sequence of distinct fields;
+    ``"permutation"``: every ordered sequence of fields, repetitions included
+    (PyNOA's notebooks append ``f1 f1``, ``f1 f1 f1``, ...);
     ``"combination"``: every increasing sequence of distinct fields;
     ``"drift2ndOrder"``: order 1 all fields, order 2 only pairs of the drift
     with an input field.
@@ -229,7 +234,7 @@ def _words(arrangement: str, m: int, order: int) -> list[tuple[int, ...]]:
     words: list[tuple[int, ...]] = [()]
     for k in range(1, order + 1):
         if arrangement == "permutation":
-            words += list(itertools.permutations(range(m), k))
+            words += list(itertools.product(range(m), repeat=k))
         elif arrangement == "combination":
             words += list(itertools.combinations(range(m), k))
         else:

@@ -7,17 +7,8 @@ import numpy as np
 import pytest
 
 import estim
+from estim.models.localization import martinelli_simple, odometry_circular, odometry_noncircular
 from estim.observability import analyze, window
-
-
-def martinelli_simple():
-    """Martinelli 2010, simple localisation: (D, phi_R, theta_R), inputs (v, omega)."""
-    return estim.Model(
-        states=["D", "phi_R", "theta_R"], outputs=["beta"], inputs=["v", "omega"],
-        ode=lambda x, u, p: ca.vertcat(u[0] * ca.cos(x[2] - x[1]),
-                                       u[0] * ca.sin(x[2] - x[1]) / x[0], u[1]),
-        output=lambda x, u, p: ca.pi - x[2] + x[1], dt=0.1,
-        lower=[0.5, -np.inf, -np.inf], upper=[5.0, np.inf, np.inf], name="martinelli_simple")
 
 
 @pytest.mark.parametrize("method", ["numeric", "symbolic"])
@@ -32,38 +23,6 @@ def test_martinelli_simple_localisation(method, arrangement):
     np.testing.assert_allclose(rep.symmetries, [[0.0, 1.0, 1.0]], atol=1e-9)
     assert rep.gap > 1e10
     assert "jointly observable: (phi_R, theta_R)" in str(rep)
-
-
-def odometry_noncircular():
-    """Martinelli 2010 odometry calibration (PyNOA notebook), wheel speeds as inputs."""
-    def ode(x, u, p):
-        mu, g, phi, psi, eta, delta, xi = (x[i] for i in range(7))
-        f1 = ca.vertcat(-mu**2 * eta * ca.cos(g - phi), xi - mu * eta * ca.sin(g - phi),
-                        0, 0, 0, 0, 0)
-        f2 = ca.vertcat(-mu**2 * eta * delta * ca.cos(g - phi),
-                        -xi * delta - mu * eta * delta * ca.sin(g - phi), 0, 0, 0, 0, 0)
-        return f1 * u[0] + f2 * u[1]
-
-    return estim.Model(
-        states=["mu", "gamma", "phi", "psi", "eta", "delta", "xi"], outputs=["beta"],
-        inputs=["omega_R", "omega_L"], ode=ode, dt=0.1, name="odometry_noncircular",
-        output=lambda x, u, p: -ca.atan2(ca.sin(x[1]), x[0] + ca.cos(x[1])) - x[3],
-        lower=[0.2, -np.inf, -np.inf, -np.inf, 0.2, 0.2, 0.2], upper=[3, np.inf, np.inf,
-                                                                       np.inf, 3, 3, 3])
-
-
-def odometry_circular():
-    """The same robot on a circular trajectory (PyNOA notebook's 5-state model)."""
-    def ode(x, u, p):
-        mu, g, eta, xi, phi = (x[i] for i in range(5))
-        return ca.vertcat(-mu**2 * eta * ca.cos(g - phi), xi - mu * eta * ca.sin(g - phi),
-                          0, 0, 0) * u[0]
-
-    return estim.Model(
-        states=["mu", "gamma", "eta_q", "xi_q", "phi"], outputs=["y"], inputs=["nu"], ode=ode,
-        output=lambda x, u, p: ca.sin(x[1]) / (x[0] + ca.cos(x[1])), dt=0.1,
-        lower=[0.2, -np.inf, 0.2, 0.2, -np.inf], upper=[3, np.inf, 3, 3, np.inf],
-        name="odometry_circular")
 
 
 def test_odometry_calibration_noncircular_is_observable():
@@ -156,3 +115,47 @@ def test_bad_input():
         analyze(m, order=-1)
     with pytest.raises(TypeError, match="model must be an estim.Model"):
         analyze("robot")
+
+
+def _in_null_space(rep, v):
+    Q, _ = np.linalg.qr(rep.symmetries.T)
+    v = v / np.linalg.norm(v)
+    return np.linalg.norm(v - Q @ (Q.T @ v))
+
+
+def test_quadrotor_parameters_have_two_scale_symmetries():
+    """Ko 2019 with IMU, GNSS and barometer (33 states): rank 31, not 33 as PyNOA
+    prints. IMU specific force and dynamics are unchanged by scaling (m, lambda, k_f,
+    I, k_m) together, and by scaling (I, d, k_m) together; these span the null space.
+    (PyNOA holds the rotor speeds in h at constant values while differentiating along
+    the input fields, which adds rows that do not belong to the system.)"""
+    m = estim.models.quadrotor_ko2019("imu_gnss_baro")
+    x = np.random.default_rng(3).uniform(0.5, 2.0, m.nx)
+    rep = analyze(m, order=2, at=x)
+    assert rep.rank == 31 and rep.gap > 1e8
+
+    def direction(names):
+        v = np.zeros(m.nx)
+        for n in names:
+            v[m.state_names.index(n)] = x[m.state_names.index(n)]
+        return v
+
+    mass = direction(["m", "lambda_l", "k_f1", "k_f2", "k_f3", "k_f4", "i_xx", "i_yy", "i_zz",
+                      "k_m1", "k_m2", "k_m3", "k_m4"])
+    inertia = direction(["i_xx", "i_yy", "i_zz", "d_12", "d_23", "d_34", "d_14",
+                         "k_m1", "k_m2", "k_m3", "k_m4"])
+    assert _in_null_space(rep, mass) < 1e-8 and _in_null_space(rep, inertia) < 1e-8
+    assert {"r_x", "r_y", "r_z", "v_x", "q_w", "w_x", "g_z"} <= set(rep.observable)
+
+
+def test_quadrotor_navigation_yaw_is_unobservable():
+    """IMU and barometer, parameters known (13 states): horizontal position and the
+    rotation of the world about gravity (yaw) are symmetries: rank 10 (PyNOA: 11)."""
+    m = estim.models.quadrotor_ko2019("imu_baro")
+    x = np.random.default_rng(4).uniform(-1.0, 1.0, 13)
+    rep = analyze(m, order=2, at=x)
+    assert rep.rank == 10 and rep.unobservable == ["r_x", "r_y"]
+    r, v, q = x[0:3], x[3:6], x[6:10]
+    yaw = np.concatenate([[-r[1], r[0], 0], [-v[1], v[0], 0],
+                          0.5 * np.array([-q[3], -q[2], q[1], q[0]]), np.zeros(3)])
+    assert _in_null_space(rep, yaw) < 1e-8

@@ -6,6 +6,12 @@ rate constant.
 """
 
 from estim.models.batch_reactor import batch_reactor
+from estim.models.localization import (
+    martinelli_simple,
+    odometry_circular,
+    odometry_noncircular,
+    quadrotor_ko2019,
+)
 from estim.models.lorenz import lorenz
 from estim.models.runaway import runaway
 from estim.models.satellite import (
@@ -17,5 +23,6 @@ from estim.models.satellite import (
 )
 from estim.models.van_der_pol import van_der_pol
 
-__all__ = ["batch_reactor", "lorenz", "runaway", "satellite", "satellite_rates", "van_der_pol",
-           "PDAttitudeController", "nadir_in_body", "reference_attitude"]
+__all__ = ["batch_reactor", "lorenz", "martinelli_simple", "odometry_circular",
+           "odometry_noncircular", "quadrotor_ko2019", "runaway", "satellite", "satellite_rates",
+           "van_der_pol", "PDAttitudeController", "nadir_in_body", "reference_attitude"]
