@@ -1,4 +1,4 @@
-"""Command line: ``estim list`` and ``estim run``.
+"""Command line: ``estim list``, ``estim run`` and ``estim observe``.
 
 ``estim run`` with no arguments is the main job: the batch reactor of the
 KU Leuven course with EKF, clipped EKF and UKF over 5 seeds, a table on
@@ -62,6 +62,7 @@ def _cmd_list(args) -> int:
     for name, cls in ESTIMATORS.items():
         doc = (cls.__doc__ or "").strip().splitlines()[0]
         print(f"  {name:<16}{doc}")
+    print("models for `estim observe`: " + ", ".join(OBSERVE_MODELS))
     return 0
 
 
@@ -74,13 +75,40 @@ def _cmd_run(args) -> int:
     for spec in specs:
         label, cls, kwargs = parse_estimator(spec)
         factories[label] = _factory(cls, kwargs)
-    result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot))
+    result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot),
+                     n_jobs=args.jobs)
     print(result.table())
     if args.plot:
         from estim.plotting import plot_comparison
 
         plot_comparison(result, args.plot)
         print(f"plot written to {args.plot}")
+    return 0
+
+
+OBSERVE_MODELS = {
+    "martinelli_simple": "estim.models.martinelli_simple()",
+    "odometry_noncircular": "estim.models.odometry_noncircular()",
+    "odometry_circular": "estim.models.odometry_circular()",
+    "quadrotor": "estim.models.quadrotor_ko2019()",
+}
+
+
+def _cmd_observe(args) -> int:
+    from estim import models, observability
+
+    if args.target in scenarios.SCENARIOS:
+        model = scenarios.get(args.target).model
+    elif args.target in OBSERVE_MODELS:
+        model = {"martinelli_simple": models.martinelli_simple,
+                 "odometry_noncircular": models.odometry_noncircular,
+                 "odometry_circular": models.odometry_circular,
+                 "quadrotor": models.quadrotor_ko2019}[args.target]()
+    else:
+        raise ValueError(f"unknown scenario or model {args.target!r}; known: "
+                         f"{sorted(scenarios.SCENARIOS) + sorted(OBSERVE_MODELS)}")
+    print(observability.analyze(model, order=args.order, inputs=args.inputs,
+                                method=args.method))
     return 0
 
 
@@ -97,11 +125,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--steps", type=int, default=None, help="override the scenario length")
     run.add_argument("--plot", default="estim_run.png",
                      help="PNG for truth vs estimates of seed 0 ('' for none)")
+    run.add_argument("--jobs", type=int, default=1, help="parallel jobs (joblib; -1: all cores)")
+    obs = sub.add_parser("observe", help="observability analysis of a scenario's model")
+    obs.add_argument("target", help="a scenario name or one of " + ", ".join(OBSERVE_MODELS))
+    obs.add_argument("--order", type=int, default=None)
+    obs.add_argument("--inputs", default="varying", choices=["varying", "constant"])
+    obs.add_argument("--method", default="numeric", choices=["numeric", "symbolic"])
     args = parser.parse_args(argv)
     if args.command is None:
         args = parser.parse_args(["run", *(argv or [])])
     try:
-        return {"list": _cmd_list, "run": _cmd_run}[args.command](args)
+        return {"list": _cmd_list, "run": _cmd_run, "observe": _cmd_observe}[args.command](args)
     except ValueError as exc:
         print(f"estim: error: {exc}", file=sys.stderr)
         return 2

@@ -174,6 +174,18 @@ class Log:
 
         return plot_log(self, path=path, states=states, sigma=sigma)
 
+    def _repr_html_(self) -> str:
+        rows = "".join(f"<tr><td>{k}</td><td>{getattr(self, k).shape}</td></tr>"
+                       for k in self.keys())
+        title = f"Log {self.estimator}" + (f" on {self.model_name}" if self.model_name else "")
+        extra = ""
+        if "x" in self and "x_hat" in self and np.isfinite(self.x).all():
+            from estim.metrics import rmse
+
+            extra = f"<p>RMSE {rmse(self)!r}</p>"
+        return (f"<p><b>{title}</b>: T = {len(self)}</p>{extra}"
+                f"<table><tr><th>series</th><th>shape</th></tr>{rows}</table>")
+
     def __repr__(self) -> str:
         fields = ", ".join(f"{k} {getattr(self, k).shape}" for k in self.keys()
                            if getattr(self, k).ndim > 1 or k == "t")
