@@ -69,12 +69,13 @@ class Comparison:
 
     def table(self) -> str:
         """Plain-text table."""
-        head = (f"{'estimator':<22}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>7}"
+        w = max([22] + [len(r.name) + 2 for r in self.rows])
+        head = (f"{'estimator':<{w}}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>7}"
                 f"{'step med':>11}{'step p90':>11}{'failed':>8}")
         lines = [f"{self.scenario}: {len(self.seeds)} seed(s)", head, "-" * len(head)]
         for r in self.rows:
             cons = "-" if r.consistent is None else ("yes" if r.consistent else "no")
-            lines.append(f"{r.name:<22}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
+            lines.append(f"{r.name:<{w}}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
                          f"{r.nees_mean:>9.3g}{cons:>7}{_fmt_time(r.step_median):>11}"
                          f"{_fmt_time(r.step_p90):>11}{r.failures:>8}")
         return "\n".join(lines)
