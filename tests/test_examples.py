@@ -145,8 +145,18 @@ def test_satellite_inertia(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("name", ["batch_reactor_ekf", "batch_reactor_mhe", "van_der_pol_mhe",
-                                  "lorenz_fie", "runaway_observer", "satellite_inertia"])
+                                  "lorenz_fie", "runaway_observer", "satellite_inertia",
+                                  "observability_pynoa"])
 def test_example_has_docstring_and_main(name):
     module = load(name)
     assert module.__doc__ and len(module.__doc__) > 200
     assert callable(module.main)
+
+
+def test_observability_pynoa(tmp_path, capsys):
+    out = tmp_path / "obs.png"
+    ranks = load("observability_pynoa").main(["--out", str(out)])
+    assert out.stat().st_size > 20_000
+    assert ranks == {"simple localisation": 2, "odometry, non-circular": 7,
+                     "odometry, circular": 4, "quadrotor IMU+GNSS+baro": 31}
+    assert "rank" in capsys.readouterr().out
