@@ -79,10 +79,14 @@ def _cmd_run(args) -> int:
                      n_jobs=args.jobs)
     print(result.table())
     if args.plot:
-        from estim.plotting import plot_comparison
+        from estim.plotting import plot_comparison, plot_errors, plot_solve_times
 
         plot_comparison(result, args.plot)
-        print(f"plot written to {args.plot}")
+        stem = args.plot[:-4] if args.plot.endswith(".png") else args.plot
+        first = {name: logs[0] for name, logs in result.logs.items()}
+        plot_errors(first, f"{stem}_errors.png")
+        plot_solve_times(first, f"{stem}_times.png")
+        print(f"plots written to {args.plot}, {stem}_errors.png and {stem}_times.png")
     return 0
 
 

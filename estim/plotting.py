@@ -137,3 +137,71 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
+
+
+def plot_errors(logs, path=None, sigma: float = 2.0):
+    """Estimation error per state with ``±sigma`` standard-deviation bands where ``P`` exists.
+
+    Parameters
+    ----------
+    logs : Log or dict of name -> Log
+    path : str or Path, optional
+    sigma : float
+        Width of the band in standard deviations (2: about 95 % for a
+        consistent Gaussian estimator).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    plt = _pyplot()
+    from estim.log import Log
+
+    logs = {getattr(logs, "estimator", "estimate") or "estimate": logs} \
+        if isinstance(logs, Log) else dict(logs)
+    first = next(iter(logs.values()))
+    names = first.state_names or [f"x{i + 1}" for i in range(first.x.shape[1])]
+    fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 2.2 * len(names)),
+                             constrained_layout=True, squeeze=False)
+    for k, (label, log) in enumerate(logs.items()):
+        err = log.x_hat - log.x
+        for i, ax in enumerate(axes[:, 0]):
+            ax.plot(log.t, err[:, i], lw=1.0, color=f"C{k}", label=label)
+            sd = np.sqrt(np.maximum(log.P[:, i, i], 0.0)) if "P" in log else None
+            if sd is not None and np.isfinite(sd).any():
+                ax.fill_between(log.t, -sigma * sd, sigma * sd, color=f"C{k}", alpha=0.15,
+                                lw=0)
+    for i, ax in enumerate(axes[:, 0]):
+        ax.axhline(0.0, color="0.5", lw=0.6)
+        ax.set_ylabel(f"error {names[i]}")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize="small")
+    axes[0, 0].set_title(f"estimation error, ±{sigma:g}σ bands where a covariance exists",
+                         fontsize="medium")
+    axes[-1, 0].set_xlabel("time")
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig
+
+
+def plot_solve_times(logs, path=None):
+    """Wall time of every step, per estimator (log scale).
+
+    Parameters
+    ----------
+    logs : dict of name -> Log (or name -> list of Log, the first is drawn)
+    path : str or Path, optional
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 3.2), constrained_layout=True)
+    for k, (label, log) in enumerate(logs.items()):
+        log = log[0] if isinstance(log, list) else log
+        ax.semilogy(log.t, np.maximum(log.solve_time, 1e-9), ".", ms=2, color=f"C{k}",
+                    label=f"{label} (median {np.median(log.solve_time) * 1e3:.3g} ms)")
+    ax.set_xlabel("time")
+    ax.set_ylabel("solve time per step [s]")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize="small")
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig

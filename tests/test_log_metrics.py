@@ -114,3 +114,20 @@ def test_convergence_time():
     assert estim.convergence_time(log, 10.0) == 0.0
     log.set("x_hat", np.ones((6, 1)))
     assert estim.convergence_time(log, 0.1) == np.inf
+
+
+def test_error_and_solve_time_plots(tmp_path):
+    from estim.plotting import plot_errors, plot_solve_times
+
+    sc = estim.scenarios.van_der_pol(n_steps=60)
+    logs = {"ekf": estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0),
+            "mhe": estim.simulate(sc, estim.MHE(sc.model, horizon=8, solver="gauss-newton",
+                                                **sc.tuning), seed=0)}
+    fig = plot_errors(logs, tmp_path / "err.png")
+    assert (tmp_path / "err.png").stat().st_size > 10_000 and len(fig.axes) == 2
+    # the band is drawn where the covariance exists: +-2 sigma of the EKF's P
+    band = fig.axes[0].collections[0].get_paths()[0].vertices[:, 1]
+    assert np.isclose(np.abs(band).max(), 2 * np.sqrt(logs["ekf"].P[:, 0, 0]).max())
+    plot_solve_times(logs, tmp_path / "t.png")
+    assert (tmp_path / "t.png").stat().st_size > 10_000
+    plot_errors(logs["ekf"])
