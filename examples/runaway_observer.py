@@ -119,22 +119,6 @@ COLORS = {("report", "none"): "tab:blue", ("report", "balanced"): "tab:cyan",
           ("hard", "none"): "tab:red", ("hard", "balanced"): "tab:orange"}
 
 
-class RecordingObserver(estim.ShootingObserver):
-    """A ShootingObserver keeping ``(k, condition, solve_time, success, W2)`` per optimisation."""
-
-    def reset(self, x0=None, P0=None) -> None:
-        super().reset(x0, P0)
-        self.history: list[tuple] = []
-
-    def step(self, y, u=None) -> np.ndarray:
-        x_hat = super().step(y, u)
-        info = self.info
-        if info.extra.get("optimised"):
-            self.history.append((self._k - 1, info.extra["condition"], info.solve_time,
-                                 info.success, info.extra["derivative_weight"]))
-        return x_hat
-
-
 def guesses(sc: estim.Scenario) -> dict[str, np.ndarray]:
     """The report's guess (eq. 2.13) and the same with (gamma, gamma1) 5 % off the truth."""
     report = np.asarray(sc.tuning["x0"], float)
@@ -143,11 +127,13 @@ def guesses(sc: estim.Scenario) -> dict[str, np.ndarray]:
     return {"report": report, "hard": hard}
 
 
-def summary(log: estim.Log, history: list[tuple]) -> dict:
+def summary(log: estim.Log, history: list[dict]) -> dict:
     """Settling time, mean errors, timing, failures and condition numbers of one run."""
     rel = np.abs(log.x_hat[:, 2:] - log.x[:, 2:]) / np.abs(log.x[:, 2:])
     bad = np.flatnonzero((rel >= TOLERANCE).any(axis=1))
-    k, cond, solve_time, success, w2 = (np.array(c) for c in zip(*history, strict=True))
+    k, cond, solve_time, success, w2 = (
+        np.array([h[f] for h in history])
+        for f in ("k", "condition", "solve_time", "success", "derivative_weight"))
     # the largest true x2 among each window's buffered samples (k - span, ..., k)
     span = (WINDOW - 1) * EVERY
     peak = np.array([log.x[j - span:j + 1:EVERY, 1].max() for j in k])
@@ -243,7 +229,7 @@ def main(argv: list[str] | None = None) -> dict:
     logs, results = {}, {}
     for start, x0 in guesses(sc).items():
         for d, weight in DERIVATIVE.items():
-            obs = RecordingObserver(sc.model, window=WINDOW, every=EVERY, R=sc.R, x0=x0,
+            obs = estim.ShootingObserver(sc.model, window=WINDOW, every=EVERY, R=sc.R, x0=x0,
                                     resolution=RESOLUTION, derivative_weight=weight)
             logs[(start, d)] = estim.simulate(sc, obs, seed=args.seed)
             results[(start, d)] = summary(logs[(start, d)], obs.history)

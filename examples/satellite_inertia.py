@@ -107,27 +107,12 @@ STYLES = {"excited": {"color": "tab:blue"}, "no_excitation": {"color": "tab:red"
           "no_derivative": {"color": "tab:cyan", "ls": "--"}}
 
 
-class RecordingObserver(estim.ShootingObserver):
-    """A ShootingObserver that keeps ``(k, condition, cost, solve_time, success, W2)``."""
-
-    def reset(self, x0=None, P0=None) -> None:
-        super().reset(x0, P0)
-        self.history: list[tuple] = []
-
-    def step(self, y, u=None) -> np.ndarray:
-        x_hat = super().step(y, u)
-        info = self.info
-        if info.extra.get("optimised"):
-            self.history.append((self._k - 1, info.extra["condition"], info.cost,
-                                 info.solve_time, info.success,
-                                 info.extra["derivative_weight"]))
-        return x_hat
-
-
-def summary(log: estim.Log, history: list[tuple]) -> dict:
+def summary(log: estim.Log, history: list[dict]) -> dict:
     """Inertia errors at ``TIMES``, condition numbers, window costs and timing of one run."""
     rel = np.abs(log.x_hat[:, 3:] - log.x[:, 3:]) / log.x[:, 3:]
-    k, cond, cost, solve_time, success, w2 = (np.array(c) for c in zip(*history, strict=True))
+    k, cond, cost, solve_time, success, w2 = (
+        np.array([h[f] for h in history])
+        for f in ("k", "condition", "cost", "solve_time", "success", "derivative_weight"))
     t = log.t[k]
     before = (t >= 100) & (t < FAULT_TIME)
     after = t >= 300
@@ -201,7 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
     logs, results = {}, {}
     for key, (_, excitation, window, every, weight) in CASES.items():
         rec = records[excitation]
-        obs = RecordingObserver(rec.model, window=window, every=every, R=rec.tuning["R"],
+        obs = estim.ShootingObserver(rec.model, window=window, every=every, R=rec.tuning["R"],
                                 x0=rec.tuning["x0"], resolution=RESOLUTION,
                                 derivative_weight=weight)
         logs[key] = estim.replay(obs, rec.y, rec.u, rec.x)

@@ -129,6 +129,10 @@ class ShootingObserver(Estimator):
         window carries no information on some direction; the Fisher
         information's condition number is its square), ``derivative_weight``
         and ``window_start``.
+    history : list of dict
+        One record per optimisation since the last reset: ``k`` (sample),
+        ``condition``, ``cost``, ``iterations``, ``solve_time``, ``success``,
+        ``derivative_weight``.
     """
 
     name = "shooting"
@@ -311,6 +315,7 @@ class ShootingObserver(Estimator):
         self._xs: deque = deque(maxlen=self._span + 1)  # estimates, oldest first
         self._x = self.x0.copy()                   # estimate at the current time
         self._w2 = self._fixed_w2
+        self.history: list[dict] = []
 
     # ------------------------------------------------------------------- step
     def _step(self, y, u, first):
@@ -376,9 +381,13 @@ class ShootingObserver(Estimator):
             cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
         else:
             sv, cond = np.full(min(S.shape), np.nan), float("inf")
+        elapsed = time.perf_counter() - t0
+        self.history.append({"k": self._k, "condition": cond, "cost": cost,
+                             "iterations": iters, "solve_time": elapsed, "success": ok,
+                             "derivative_weight": w2})
         return self._x.copy(), StepInfo(
             status="ok" if ok else f"failed: {status}", success=ok, iterations=iters,
-            solve_time=time.perf_counter() - t0, cost=cost,
+            solve_time=elapsed, cost=cost,
             extra={"optimised": True, "singular_values": sv, "condition": cond,
                    "derivative_weight": w2, "window_start": anchor.copy()})
 
