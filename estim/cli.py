@@ -140,7 +140,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(["run", *(argv or [])])
     try:
         return {"list": _cmd_list, "run": _cmd_run, "observe": _cmd_observe}[args.command](args)
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:
         print(f"estim: error: {exc}", file=sys.stderr)
         return 2
 

@@ -59,7 +59,19 @@ class ComparisonRow:
 
 @dataclass
 class Comparison:
-    """Result of :func:`compare`: one row per estimator, per-seed RMSEs, logs if kept."""
+    """Result of :func:`compare`: one row per estimator, per-seed RMSEs, logs if kept.
+
+    Attributes
+    ----------
+    scenario : str
+        Scenario name.
+    seeds : list of int
+    rows : list of ComparisonRow
+    rmse : dict of str -> (n_seeds,) array
+        RMSE of every run, per estimator, in seed order.
+    logs : dict of str -> list of Log
+        Every run's log (with ``keep_logs=True``).
+    """
 
     scenario: str
     seeds: list[int]

@@ -36,6 +36,8 @@ class Log:
     output_state : dict, optional
         ``{output index: state index}`` for outputs that measure a state
         directly (drawn on that state's axes by :meth:`plot`).
+    model_name : str
+        Name of the model (for reprs and titles).
     """
 
     def __init__(self, state_names: Sequence[str] | None = None,

@@ -14,9 +14,20 @@ class RMSE(float):
     ``float(r)`` is :math:`\\sqrt{\\frac{1}{T' n}\\sum_{k,i} (\\hat x_{k,i} - x_{k,i})^2}`
     over the samples after burn-in and the selected states; ``r.per_state``
     maps each state name to its own RMSE.
+
+    Parameters
+    ----------
+    value : float
+        The overall RMSE.
+    per_state : dict of str -> float
+        RMSE of each state.
     """
 
     per_state: dict[str, float]
+
+    def __init__(self, value: float, per_state: dict[str, float]) -> None:
+        # the value is set by __new__ (float is immutable); this gives the signature
+        pass
 
     def __new__(cls, value: float, per_state: dict[str, float]):
         obj = super().__new__(cls, value)
@@ -48,7 +59,15 @@ def _select(log, burn_in: int, states: Sequence[str] | None):
 
 
 def errors(log, burn_in: int = 0) -> np.ndarray:
-    """Estimation error :math:`\\hat x_k - x_k`, shape ``(T - burn_in, nx)``."""
+    """Estimation error :math:`\\hat x_k - x_k`, shape ``(T - burn_in, nx)``.
+
+    Parameters
+    ----------
+    log : Log
+        Needs ``x`` and ``x_hat``.
+    burn_in : int
+        Samples to skip at the start.
+    """
     _select(log, burn_in, None)
     return log.x_hat[burn_in:] - log.x[burn_in:]
 
@@ -76,6 +95,13 @@ def nees(log, burn_in: int = 0) -> np.ndarray:
 
     NaN where the estimator reported no covariance. For a consistent filter
     its expectation is :math:`n_x`.
+
+    Parameters
+    ----------
+    log : Log
+        Needs ``x``, ``x_hat`` and ``P``.
+    burn_in : int
+        Samples to skip at the start.
     """
     _select(log, burn_in, None)
     err = log.x_hat[burn_in:] - log.x[burn_in:]
@@ -89,7 +115,15 @@ def nees(log, burn_in: int = 0) -> np.ndarray:
 
 
 def nis(log, burn_in: int = 0) -> np.ndarray:
-    r"""Normalised innovation squared per sample, :math:`e_k^\top S_k^{-1} e_k`, (T',)."""
+    r"""Normalised innovation squared per sample, :math:`e_k^\top S_k^{-1} e_k`, (T',).
+
+    Parameters
+    ----------
+    log : Log
+        Needs ``nis`` (recorded by :func:`estim.simulate` from ``info.nis``).
+    burn_in : int
+        Samples to skip at the start.
+    """
     _select(log, burn_in, None)
     return np.asarray(log.nis[burn_in:], dtype=float)
 
@@ -100,6 +134,15 @@ def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     A consistent filter's average NEES (dof = nx) or NIS (dof = ny) over
     ``n`` samples or runs should fall inside with the given confidence
     (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4).
+
+    Parameters
+    ----------
+    dof : int
+        Degrees of freedom of one sample (nx for NEES, ny for NIS).
+    n : int
+        Number of independent samples averaged.
+    confidence : float
+        Probability mass inside the interval.
     """
     alpha = 1.0 - confidence
     lo = stats.chi2.ppf(alpha / 2, dof * n) / n
@@ -111,7 +154,15 @@ def convergence_time(log, tol: float, states: Sequence[str] | None = None,
                      relative: bool = False) -> float:
     """First time after which every selected error stays within ``tol`` (inf if never).
 
-    With ``relative=True`` the tolerance is relative to ``|x|``.
+    Parameters
+    ----------
+    log : Log
+    tol : float
+        Error bound.
+    states : list of str, optional
+        States to check (default all).
+    relative : bool
+        Bound the error relative to ``|x|`` instead of absolutely.
     """
     idx, _ = _select(log, 0, states)
     err = np.abs(log.x_hat[:, idx] - log.x[:, idx])

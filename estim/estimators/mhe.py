@@ -91,8 +91,9 @@ class MHE(Estimator):
         Passed to the solver (merged over the defaults), e.g.
         ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``. For
         ``"gauss-newton"``: ``max_iter``, ``xtol``, ``newton`` (exact-Hessian
-        steps from the start) and ``jit`` (compile to machine code; needs a C
-        compiler).
+        steps from the start), ``jit`` (compile to machine code; needs a C
+        compiler) and ``mode`` (``"unrolled"`` graph, ``"mapped"`` stages and
+        scans, or ``"auto"``: unrolled up to 128 slots).
 
     Attributes
     ----------

@@ -1,0 +1,156 @@
+"""The documentation: a strict mkdocs build, and a docstring for every public name.
+
+The docstring checks follow python-control's ``docstrings_test``: every name
+in ``estim.__all__`` has a docstring of its own, and every parameter of every
+public callable (a function, or a class's constructor) is listed in the
+numpydoc ``Parameters`` section of its docstring. For a dataclass the
+constructor's parameters are its fields, so an ``Attributes`` section counts
+too. ``**kwargs``-style catch-alls are exempt: the estimators take
+``**options`` only to reject unknown keywords with a clear error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import inspect
+import re
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import pytest
+
+import estim
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS_PACKAGES = {"mkdocs": "mkdocs", "mkdocstrings": "mkdocstrings[python]",
+                 "mkdocstrings_handlers": "mkdocstrings[python]",
+                 "pymdownx": "pymdown-extensions"}
+
+
+def _missing_docs_packages() -> list[str]:
+    return sorted({pip for module, pip in DOCS_PACKAGES.items()
+                   if importlib.util.find_spec(module) is None})
+
+
+def test_mkdocs_build_strict(tmp_path):
+    missing = _missing_docs_packages()
+    if missing:
+        pytest.skip(f"the documentation build needs {', '.join(missing)} "
+                    f"(pip install mkdocs 'mkdocstrings[python]')")
+    site = tmp_path / "site"
+    res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict",
+                          "--site-dir", str(site)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "WARNING" not in res.stderr, res.stderr
+    for page in ("index", "ekf", "mhe", "fie", "shooting", "models", "observability",
+                 "comparisons", "performance", "api"):
+        path = site / "index.html" if page == "index" else site / page / "index.html"
+        assert path.exists(), f"{page}.md was not built"
+    # the API page documents every public name as what it is (estim.simulate and
+    # estim.compare are functions that share their names with modules)
+    api = (site / "api" / "index.html").read_text(encoding="utf-8")
+    absent = []
+    for name in estim.__all__:
+        obj = getattr(estim, name)
+        kind = "module" if isinstance(obj, types.ModuleType) else \
+            "class" if inspect.isclass(obj) else "function"
+        path = rf"estim\.{name}" if kind == "module" else rf"estim(?:\.\w+)*\.{name}"
+        if not re.search(rf'<div class="doc doc-object doc-{kind}">\s*<h\d id="{path}"', api):
+            absent.append(f"estim.{name} ({kind})")
+    assert not absent, "not on the API page: " + ", ".join(absent)
+
+
+# ------------------------------------------------------------------ docstrings
+_UNDERLINE = re.compile(r"^\s*-{3,}\s*$")
+
+
+def _sections(doc: str) -> dict[str, list[str]]:
+    """numpydoc sections: ``{"Parameters": [lines], ...}`` (header underlined by dashes)."""
+    lines = doc.splitlines()
+    out: dict[str, list[str]] = {}
+    current = None
+    for i, line in enumerate(lines):
+        if line.strip() and i + 1 < len(lines) and _UNDERLINE.match(lines[i + 1]):
+            current = line.strip()
+            out.setdefault(current, [])
+        elif current is not None and not _UNDERLINE.match(line):
+            out[current].append(line)
+    return out
+
+
+def _entry_names(lines: list[str]) -> set[str]:
+    """Names in a section: ``name : type``, ``a, b : type``, ``*args``, bare ``name``."""
+    indents = [len(line) - len(line.lstrip()) for line in lines if line.strip()]
+    if not indents:
+        return set()
+    base = min(indents)
+    names = set()
+    for line in lines:
+        if line.strip() and len(line) - len(line.lstrip()) == base:
+            head = line.strip()
+            head = head.split(" :")[0] if " :" in head else head.split(":")[0]
+            names.update(n.strip().lstrip("*") for n in head.split(",") if n.strip())
+    return names
+
+
+def _own_doc(obj) -> str:
+    """The object's own docstring (not inherited, not a dataclass's generated signature)."""
+    doc = obj.__doc__ or ""
+    if inspect.isclass(obj) and dataclasses.is_dataclass(obj) \
+            and doc.startswith(obj.__name__ + "("):
+        doc = ""
+    return inspect.cleandoc(doc) if doc.strip() else ""
+
+
+def _public():
+    return [(name, getattr(estim, name)) for name in estim.__all__]
+
+
+def test_every_public_name_has_a_docstring():
+    missing = [f"estim.{name}" for name, obj in _public() if not _own_doc(obj)]
+    assert not missing, "public names without a docstring: " + ", ".join(missing)
+
+
+def _parameters():
+    """``(label, parameters to document, all parameters, documented names, names listed
+    under Parameters)`` for every public callable."""
+    out = []
+    for name, obj in _public():
+        if isinstance(obj, types.ModuleType) or not callable(obj):
+            continue
+        try:
+            sig = inspect.signature(obj)
+        except (TypeError, ValueError):  # pragma: no cover - builtins without a signature
+            continue
+        docs = [_own_doc(obj)]
+        if inspect.isclass(obj) and "__init__" in vars(obj):
+            docs.append(_own_doc(obj.__init__))
+        documented: set[str] = set()
+        listed: set[str] = set()
+        for doc in docs:
+            sections = _sections(doc)
+            listed |= _entry_names(sections.get("Parameters", []))
+            if inspect.isclass(obj) and dataclasses.is_dataclass(obj):
+                documented |= _entry_names(sections.get("Attributes", []))
+        params = [p.name for p in sig.parameters.values()
+                  if p.name not in ("self", "cls") and p.kind is not p.VAR_KEYWORD]
+        out.append((f"estim.{name}", params, set(sig.parameters), documented | listed, listed))
+    return out
+
+
+def test_every_public_parameter_is_documented():
+    undocumented = [f"{label}({p})" for label, params, _, documented, _ in _parameters()
+                    for p in params if p not in documented]
+    assert not undocumented, (
+        f"{len(undocumented)} parameter(s) missing from the docstrings' Parameters sections: "
+        + ", ".join(undocumented))
+
+
+def test_documented_parameters_exist():
+    stale = [f"{label}({n})" for label, _, every, _, listed in _parameters()
+             for n in sorted(listed - every)]
+    assert not stale, "Parameters entries that the signature does not have: " + ", ".join(stale)
