@@ -1,8 +1,9 @@
 """Command line: ``estim list``, ``estim run`` and ``estim observe``.
 
 ``estim run`` with no arguments is the main job: the batch reactor of the
-KU Leuven course with EKF, clipped EKF and UKF over 5 seeds, a table on
-standard output and a PNG of the first seed.
+KU Leuven course with EKF, clipped EKF, UKF and MHE (N = 25, zero prior,
+0 <= x <= 10) over 5 seeds, a table on standard output and PNGs of the
+first seed.
 """
 
 from __future__ import annotations
@@ -15,19 +16,24 @@ from estim import scenarios
 from estim.compare import compare
 from estim.estimators import ESTIMATORS
 
-DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf")
+DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf",
+                      "mhe-25=mhe:horizon=25,arrival_cost=none,upper=10.0,solver=gauss-newton")
 
 
 def parse_estimator(spec: str):
-    """``"name:key=value,key=value"`` to ``(label, class, kwargs)``.
+    """``"[label=]name:key=value,key=value"`` to ``(label, class, kwargs)``.
 
     Values are read as Python literals where possible (numbers, True/False,
-    lists), else kept as strings; ``true``/``false`` are booleans.
+    lists), else kept as strings; ``true``/``false`` are booleans. The label
+    (default: the whole spec) names the row of the table.
     """
     import ast
 
-    name, _, rest = spec.partition(":")
-    name = name.strip().lower()
+    head, _, rest = spec.partition(":")
+    label = spec
+    if "=" in head:
+        label, head = (p.strip() for p in head.split("=", 1))
+    name = head.strip().lower()
     if name not in ESTIMATORS:
         raise ValueError(f"unknown estimator {name!r}; known: {sorted(ESTIMATORS)}")
     kwargs = {}
@@ -43,7 +49,7 @@ def parse_estimator(spec: str):
             kwargs[key.strip()] = ast.literal_eval(val.strip())
         except (ValueError, SyntaxError):
             kwargs[key.strip()] = val.strip()
-    return spec, ESTIMATORS[name], kwargs
+    return label, ESTIMATORS[name], kwargs
 
 
 def _factory(cls, kwargs):
@@ -124,7 +130,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("scenario", nargs="?", default="batch_reactor",
                      choices=sorted(scenarios.SCENARIOS))
     run.add_argument("--estimator", "-e", action="append",
-                     help="name[:key=value,...], repeatable (default: ekf, ekf:clip=true, ukf)")
+                     help="[label=]name[:key=value,...], repeatable (default: ekf, ekf:clip=true, "
+                          "ukf, mhe-25)")
     run.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
     run.add_argument("--steps", type=int, default=None, help="override the scenario length")
     run.add_argument("--plot", default="estim_run.png",

@@ -12,6 +12,7 @@ def test_main_job_prints_table_and_writes_png(tmp_path, capsys):
     assert cli.main(["run", "batch_reactor", "--seeds", "2", "--plot", str(out)]) == 0
     text = capsys.readouterr().out
     assert "RMSE mean" in text and "ekf:clip=true" in text and "ukf" in text
+    assert "mhe-25" in text
     assert out.stat().st_size > 20_000
 
 
@@ -27,6 +28,9 @@ def test_parse_estimator():
     assert cls.__name__ == "EKF" and kwargs == {"clip": True} and label == "ekf:clip=true"
     _, cls, kwargs = cli.parse_estimator("ukf:alpha=0.5,kappa=1")
     assert cls.__name__ == "UKF" and kwargs == {"alpha": 0.5, "kappa": 1}
+    label, cls, kwargs = cli.parse_estimator("mhe-25=mhe:horizon=25,solver=gauss-newton")
+    assert label == "mhe-25" and cls.__name__ == "MHE"
+    assert kwargs == {"horizon": 25, "solver": "gauss-newton"}
     with pytest.raises(ValueError, match="unknown estimator"):
         cli.parse_estimator("kalman")
     with pytest.raises(ValueError, match="key=value"):
