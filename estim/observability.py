@@ -174,7 +174,7 @@ def _control_affine_fields(model: Model):
 
 def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
     """Symbolic rows of the observability matrix up to ``order`` and the variables
-    they depend on (x first). Returns ``(rows_per_order, variables, nvars_extra)``."""
+    they depend on (x first). Returns ``(rows_per_order, variables)``."""
     nx, nu = model.nx, model.nu
     p = ca.DM(model.p)
     if arrangement is not None:
@@ -197,7 +197,7 @@ def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
                     cache[w] = phi
                 exprs.append(phi)
             rows.append(ca.jacobian(ca.vertcat(*exprs), x) if exprs else ca.SX(0, nx))
-        return rows, [x], 0
+        return rows, [x]
     x = ca.SX.sym("x", nx)
     us = [ca.SX.sym(f"u{j}", nu) for j in range(order + 1)]  # u, u', u'', ...
     continuous = model.continuous
@@ -207,7 +207,7 @@ def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
             uk = us[0] if inputs == "constant" else us[k]
             rows.append(ca.jacobian(model.H(xk, uk, p), x))
             xk = model.F(xk, uk, p)
-        return rows, [x, *(us[:1] if inputs == "constant" else us)], 0
+        return rows, [x, *(us[:1] if inputs == "constant" else us)]
     f = model.f_c(x, us[0], p)
     phi = model.H(x, us[0], p)
     rows = [ca.jacobian(phi, x)]
@@ -219,7 +219,7 @@ def _lie_rows(model: Model, order: int, inputs: str, arrangement: str | None):
         phi = dphi
         rows.append(ca.jacobian(phi, x))
     used = us[:1] if inputs == "constant" or not nu else us
-    return rows, [x, *used], 0
+    return rows, [x, *used]
 
 
 def _words(arrangement: str, m: int, order: int) -> list[tuple[int, ...]]:
@@ -406,10 +406,10 @@ def analyze(model: Model, order: int | None = None, inputs: str = "varying",
     history: list[int] = []
     result = None
     for k in orders:
-        rows, variables, _ = _lie_rows(model, k, inputs, arrangement)
+        rows, variables = _lie_rows(model, k, inputs, arrangement)
         O_fun = ca.Function("O", variables, [ca.densify(ca.vertcat(*rows))])
         if result is None:
-            points = _points(model, [v for v in variables], n_points, at, rng)
+            points = _points(model, variables, n_points, at, rng)
         pts = [_extend(pt, variables, rng) for pt in points]
         if method == "symbolic":
             ranks, s, gap, N = _symbolic_rank(O_fun, pts, n)

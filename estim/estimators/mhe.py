@@ -182,7 +182,6 @@ class MHE(Estimator):
         self._Pbar = None if self.P0 is None else self.P0.copy()
         self._history: list[np.ndarray] = []      # MHE estimates of the window's times
         self._last = self.x0.copy()
-        self._last_u = np.zeros(m.nu)
         self._nlp.reset()
 
     # ------------------------------------------------------------------- step

@@ -152,7 +152,6 @@ class LeastSquaresNLP:
         r = ca.vertcat(*res)
         x = ca.vec(X)
         f = ca.dot(r, r)
-        self.residual = ca.Function("residual", [x, p], [r])
         nlp = {"x": x, "p": p, "f": f}
         if solver == "ipopt":
             self._solver = ca.nlpsol("mhe_ipopt", "ipopt", nlp, _merge(_IPOPT_DEFAULTS, options))
