@@ -353,6 +353,8 @@ class StructuredGaussNewton:
 
     def _free(self, xv, gvec):
         """1 for free variables, 0 at a bound with the gradient (of f/2) pushing outward."""
+        if not (np.isfinite(self.lower).any() or np.isfinite(self.upper).any()):
+            return ca.DM.ones(xv.shape[0])  # no bounds: constant, folded away by CasADi
         lo, hi = ca.DM(self.lower), ca.DM(self.upper)
         fixed = ca.logic_or(ca.logic_and(xv <= lo, gvec > 0), ca.logic_and(xv >= hi, gvec < 0))
         return 1 - fixed
