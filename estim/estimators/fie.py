@@ -3,7 +3,7 @@ r"""Full-information estimation: the least-squares trajectory over a whole recor
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
@@ -14,6 +14,10 @@ from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.mhe import _is_diagonal, _weight_factor
 from estim.estimators.nlp import SOLVERS, LeastSquaresNLP
 from estim.model import Model
+
+
+def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
+    return P if np.isfinite(P).all() else None
 
 
 def _mapped(fun: ca.Function, T: int) -> ca.Function:
@@ -45,7 +49,9 @@ class FitResult:
         Seconds spent in the solver.
     P_last : (nx, nx) array or None
         Laplace covariance of the last state (the Kalman filter's covariance on
-        a linear-Gaussian model with a prior).
+        a linear-Gaussian model with a prior); computed on first access.
+    _covariance : callable or None
+        Internal: computes ``P_last`` when it is first read.
     """
 
     x: np.ndarray
@@ -56,7 +62,15 @@ class FitResult:
     status: str
     success: bool
     solve_time: float
-    P_last: np.ndarray | None
+    _covariance: object = field(default=None, repr=False, compare=False)
+
+    @property
+    def P_last(self) -> np.ndarray | None:
+        if self._covariance is None:
+            return None
+        if callable(self._covariance):  # computed once, on first access
+            object.__setattr__(self, "_covariance", (self._covariance(),))
+        return self._covariance[0]
 
 
 class FullInformation(Estimator):
@@ -130,16 +144,17 @@ class FullInformation(Estimator):
         self._WQ = _weight_factor(self.Q)
         self._WR = _weight_factor(self.R)
         self._W0 = _weight_factor(self.P0) if self._prior else None
-        self._nlps: dict[int, LeastSquaresNLP] = {}
+        self._nlps: dict[tuple[int, bool], LeastSquaresNLP] = {}
         self._maps: dict[int, tuple] = {}
         self._reset()
 
-    def _problem(self, N: int) -> LeastSquaresNLP:
-        if N not in self._nlps:
-            self._nlps[N] = LeastSquaresNLP(self.model, N, self._WQ, self.lower, self.upper,
-                                            self.solver, self.solver_options,
-                                            diagonal_R=_is_diagonal(self.R))
-        return self._nlps[N]
+    def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
+        """The problem of N slots, built once (``full``: fit's exact-length records)."""
+        if (N, full) not in self._nlps:
+            self._nlps[N, full] = LeastSquaresNLP(
+                self.model, N, self._WQ, self.lower, self.upper, self.solver,
+                self.solver_options, diagonal_R=_is_diagonal(self.R), full=full)
+        return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
     def _record(self, Y, U):
@@ -200,9 +215,9 @@ class FullInformation(Estimator):
             X0 = np.asarray(guess, dtype=float)
             if X0.shape != (T, nx):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
-        return self._solve(Y, U, Uprev, X0, T)
+        return self._solve(Y, U, Uprev, X0, T, full=True)
 
-    def _solve(self, Y, U, Uprev, X0, capacity: int) -> FitResult:
+    def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False) -> FitResult:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
@@ -216,7 +231,7 @@ class FullInformation(Estimator):
             U = np.vstack([np.zeros((pad, m.nu)), U])
             Uprev = np.vstack([np.zeros((pad, m.nu)), Uprev])
             X0 = np.vstack([np.repeat(X0[:1], pad, axis=0), X0])
-        nlp = self._problem(C)
+        nlp = self._problem(C, full=full and pad == 0)
         sol = nlp.solve(X0, Y, U, Uprev, T, self.x0, self._W0, self._WR, self.R)
         return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad)
 
@@ -230,10 +245,12 @@ class FullInformation(Estimator):
         Fx = Fmap(X.T, U.T, m.p)[0].reshape(T, m.nx)
         w = X[1:] - Fx[:-1]
         v = Y - Hmap(X.T, Uprev.T, m.p)[0].reshape(T, m.ny)
-        P = nlp.covariance(Xfull) if sol.success else None
+        p_snapshot = nlp._p.copy()  # the covariance is evaluated later, maybe after other fits
+        cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot))) \
+            if sol.success else None
         return FitResult(x=X.copy(), w=w, v=v, cost=sol.cost, iterations=sol.iterations,
                          status=sol.status, success=sol.success, solve_time=sol.solve_time,
-                         P_last=P)
+                         _covariance=cov)
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:

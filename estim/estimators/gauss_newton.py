@@ -232,13 +232,16 @@ class StructuredGaussNewton:
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, slices: dict, n_params: int, max_iter: int = 50,
                  xtol: float = 1e-10, newton: bool = False, jit: bool = False,
-                 mode: str = "auto", diagonal_R: bool = False):
+                 mode: str = "auto", diagonal_R: bool = False, full: bool = False):
         if mode not in ("auto", "unrolled", "mapped"):
             raise ValueError(f"mode must be 'auto', 'unrolled' or 'mapped', got {mode!r}")
         self.model, self.N = model, N
         self.lower, self.upper = lower, upper
+        bounded = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
+        self._project = (lambda z: np.clip(z, lower, upper)) if bounded else (lambda z: z)
         self.max_iter, self.xtol = int(max_iter), float(xtol)
         self.newton, self.jit = bool(newton), bool(jit)
+        self.full = bool(full)
         self.mode = ("unrolled" if N <= 128 else "mapped") if mode == "auto" else mode
         if self.mode == "mapped" and N < 2:
             self.mode = "unrolled"
@@ -260,6 +263,13 @@ class StructuredGaussNewton:
             "Y": ca.reshape(part["y"], ny, N), "WY": ca.reshape(part["wy"], ny * ny, N),
             "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
             "a": ca.reshape(part["a"], 1, N), "omega": ca.reshape(part["omega"], 1, N - 1),
+            "xbar": part["xbar"], "W0": part["w0"],
+            "A0": ca.vec(ca.reshape(part["w0"], nx, nx).T @ ca.reshape(part["w0"], nx, nx)),
+        } if not self.full else {
+            # every slot active, arrival on the first: constants fold away in the graph
+            "Y": ca.reshape(part["y"], ny, N), "WY": ca.reshape(part["wy"], ny * ny, N),
+            "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
+            "a": ca.DM([[1.0] + [0.0] * (N - 1)]), "omega": ca.DM.ones(1, N - 1),
             "xbar": part["xbar"], "W0": part["w0"],
             "A0": ca.vec(ca.reshape(part["w0"], nx, nx).T @ ca.reshape(part["w0"], nx, nx)),
         }
@@ -363,8 +373,8 @@ class StructuredGaussNewton:
         r"""Minimise from ``X0`` (N, nx).
 
         Gauss-Newton iterations first (cheap: no second derivatives). When
-        they contract slowly (a step more than a quarter of the previous one,
-        as on large-residual problems) or stop descending, the iterations
+        they contract slowly (a step more than ``SWITCH_RATIO`` = 0.8 of the
+        previous one, as on large-residual problems) or stop descending, the iterations
         switch to Newton steps with the exact Hessian blocks, falling back to
         the Gauss-Newton direction where the Newton one does not descend. If
         no direction decreases the cost, Levenberg-Marquardt damping
@@ -377,8 +387,10 @@ class StructuredGaussNewton:
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
         t0 = time.perf_counter()
-        lo, hi = self.lower, self.upper
-        x = np.clip(np.asarray(X0, float).ravel(), lo, hi)
+        proj = self._project
+        x = proj(np.asarray(X0, float).ravel())
+        for fun in (self._iter_gn, self._iter_newton, self._cost):
+            fun.args[1][:] = p  # fixed for the whole solve: written once
         lam, newton, last_step = 0.0, self.newton, np.inf
         f, g, dirs = self._evaluate(x, p, lam, newton)
         if not np.isfinite(f):
@@ -391,7 +403,7 @@ class StructuredGaussNewton:
             # step is negligible or the decrease it predicts is at rounding level
             # (an ascending one means the near-singular solve lost accuracy: not converged;
             # the line search rejects it and the damping below regularises the system)
-            move = np.clip(x + dirs[-1], lo, hi) - x
+            move = proj(x + dirs[-1]) - x
             decrease = -float(g @ move)
             if np.max(np.abs(move)) <= self.xtol * scale or \
                     0.0 <= decrease <= 1e-13 * max(abs(f), 1e-300):
@@ -433,29 +445,33 @@ class StructuredGaussNewton:
         the next iteration when accepted), shorter ones with the cost only.
         Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
         """
-        lo, hi = self.lower, self.upper
-        if float(g @ (np.clip(x + 1e-8 * d, lo, hi) - x)) >= 0.0:
+        proj = self._project
+        if float(g @ (proj(x + 1e-8 * d) - x)) >= 0.0:
             return None  # not a descent direction
-        xn = np.clip(x + d, lo, hi)
+        xn = proj(x + d)
         ev = self._evaluate(xn, p, lam, newton)
         # Armijo test; the gradient of f is 2 g
         if np.isfinite(ev[0]) and ev[0] <= f + 2e-4 * float(g @ (xn - x)):
             return xn, 1.0, ev
         alpha = 0.5
         while alpha > 1e-8:
-            xn = np.clip(x + alpha * d, lo, hi)
-            fn = float(self._cost(xn, p)[0][0])
+            xn = proj(x + alpha * d)
+            self._cost.args[0][:] = xn
+            fn = float(self._cost.evaluate()[0][0])
             if np.isfinite(fn) and fn <= f + 2e-4 * float(g @ (xn - x)):
                 return xn, alpha, None
             alpha *= 0.5
         return None
 
     def _evaluate(self, x, p, lam, newton):
+        """Cost, gradient and direction(s) at ``x`` (``p`` already in the buffers)."""
+        fun = self._iter_newton if newton else self._iter_gn
+        fun.args[0][:] = x
+        fun.args[2][0] = lam
+        out = fun.evaluate()
         if newton:
-            f, g, d_newton, d_gn = self._iter_newton(x, p, lam)
-            return float(f[0]), g.copy(), (d_newton.copy(), d_gn.copy())
-        f, g, d_gn = self._iter_gn(x, p, lam)
-        return float(f[0]), g.copy(), (d_gn.copy(),)
+            return float(out[0][0]), out[1].copy(), (out[2].copy(), out[3].copy())
+        return float(out[0][0]), out[1].copy(), (out[2].copy(),)
 
     def covariance(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
         """``(J^T J)^{-1}`` block of the last state at ``x`` (the posterior covariance)."""

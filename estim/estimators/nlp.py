@@ -94,10 +94,14 @@ class LeastSquaresNLP:
         Solver options merged over the defaults.
     diagonal_R : bool
         The measurement weights are diagonal (cheaper stage functions).
+    full : bool
+        Solved only with every slot holding data (``n == N``); the
+        Gauss-Newton graph then treats the window bookkeeping as constants.
     """
 
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
-                 upper: np.ndarray, solver: str, options: dict, diagonal_R: bool = False):
+                 upper: np.ndarray, solver: str, options: dict, diagonal_R: bool = False,
+                 full: bool = False):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -130,8 +134,9 @@ class LeastSquaresNLP:
         if solver == "gauss-newton" and set(options) - set(gn_opts):
             raise ValueError(f"solver_options for gauss-newton are {gn_keys}, got "
                              f"{sorted(options)}")
+        self.full = bool(full)
         self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
-                                        self.np, diagonal_R=diagonal_R, **gn_opts)
+                                        self.np, diagonal_R=diagonal_R, full=full, **gn_opts)
         if solver == "gauss-newton":
             self.reset()
             return
@@ -251,6 +256,8 @@ class LeastSquaresNLP:
 
     def solve(self, X0, Y, U, Uprev, n, xbar, W0, WR, R) -> Solution:
         """Solve from the initial guess ``X0 (N, nx)``; never raises on solver failure."""
+        if self.full and n != self.N:
+            raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
         x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         t0 = time.perf_counter()
