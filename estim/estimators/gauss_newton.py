@@ -238,6 +238,7 @@ class StructuredGaussNewton:
         self.model, self.N = model, N
         self.lower, self.upper = lower, upper
         bounded = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
+        self._bounded = bounded
         self._project = (lambda z: np.clip(z, lower, upper)) if bounded else (lambda z: z)
         self.max_iter, self.xtol = int(max_iter), float(xtol)
         self.newton, self.jit = bool(newton), bool(jit)
@@ -397,15 +398,15 @@ class StructuredGaussNewton:
             return x, False, "non-finite cost at the initial guess", 0, f, time.perf_counter() - t0
         status, steps = "max_iter", 0
         while steps < self.max_iter:
-            scale = 1.0 + np.max(np.abs(x))
+            scale = 1.0 + np.abs(x).max()
             # judged on the Gauss-Newton direction, a descent direction (J^T J is positive
             # semi-definite) where the Newton one may not be: converged when the next
             # step is negligible or the decrease it predicts is at rounding level
             # (an ascending one means the near-singular solve lost accuracy: not converged;
             # the line search rejects it and the damping below regularises the system)
-            move = proj(x + dirs[-1]) - x
+            move = proj(x + dirs[-1]) - x if self._bounded else dirs[-1]
             decrease = -float(g @ move)
-            if np.max(np.abs(move)) <= self.xtol * scale or \
+            if np.abs(move).max() <= self.xtol * scale or \
                     0.0 <= decrease <= 1e-13 * max(abs(f), 1e-300):
                 status = "ok"
                 break
@@ -425,7 +426,7 @@ class StructuredGaussNewton:
                 f, g, dirs = self._evaluate(x, p, lam, newton)
                 continue
             xn, alpha, evaluated = new
-            step = np.max(np.abs(xn - x))
+            step = np.abs(xn - x).max()
             switch = not newton and step > SWITCH_RATIO * last_step
             x, steps, last_step = xn, steps + 1, step
             if alpha == 1.0 and lam:
@@ -446,12 +447,14 @@ class StructuredGaussNewton:
         Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
         """
         proj = self._project
-        if float(g @ (proj(x + 1e-8 * d) - x)) >= 0.0:
+        slope = float(g @ (proj(x + 1e-8 * d) - x)) if self._bounded else float(g @ d)
+        if slope >= 0.0:
             return None  # not a descent direction
         xn = proj(x + d)
         ev = self._evaluate(xn, p, lam, newton)
         # Armijo test; the gradient of f is 2 g
-        if np.isfinite(ev[0]) and ev[0] <= f + 2e-4 * float(g @ (xn - x)):
+        gd = float(g @ (xn - x)) if self._bounded else float(g @ d)
+        if np.isfinite(ev[0]) and ev[0] <= f + 2e-4 * gd:
             return xn, 1.0, ev
         alpha = 0.5
         while alpha > 1e-8:

@@ -230,9 +230,20 @@ class LeastSquaresNLP:
         nx, ny = m.nx, m.ny
         p, s = self._p, self._slices
         mask = np.isfinite(Y)
+        s0 = N - n
+        if s0 == 0 and mask.all():  # complete data in a full window: the common case
+            p[s["y"]] = Y.ravel()
+            p[s["wy"]] = np.tile(WR.ravel(order="F"), N)
+            p[s["u"]] = U.ravel()
+            p[s["up"]] = Uprev.ravel()
+            p[s["omega"]] = 1.0
+            p[s["a"]] = 0.0
+            p[s["a"].start] = 1.0
+            p[s["xbar"]] = xbar
+            p[s["w0"]] = 0.0 if W0 is None else W0.ravel(order="F")
+            return p
         p[s["y"]] = np.where(mask, Y, 0.0).ravel()          # column-major (ny, N)
         wy = np.zeros((N, ny, ny))
-        s0 = N - n
         full = mask.all(axis=1)
         full[:s0] = False
         wy[full] = WR
