@@ -36,6 +36,42 @@ def _sqrt_psd(M: np.ndarray) -> np.ndarray:
     return V * np.sqrt(np.maximum(w, 0.0))
 
 
+class _Recorder:
+    """What an estimator reports at every step, stored time-major, and the final Log."""
+
+    def __init__(self, T: int, nx: int):
+        self.x_hat = np.empty((T, nx))
+        self.P = np.full((T, nx, nx), np.nan)
+        self.solve_time = np.empty(T)
+        self.iterations = np.zeros(T, dtype=int)
+        self.success = np.ones(T, dtype=bool)
+        self.nis = np.full(T, np.nan)
+        self.cost = np.full(T, np.nan)
+        self.status = np.empty(T, dtype=object)
+
+    def record(self, k: int, x_hat: np.ndarray, info) -> None:
+        self.x_hat[k] = x_hat
+        if info.P is not None:
+            self.P[k] = info.P
+        self.solve_time[k] = info.solve_time
+        self.iterations[k] = info.iterations
+        self.success[k] = info.success
+        self.nis[k] = info.nis
+        self.cost[k] = info.cost
+        self.status[k] = info.status
+
+    def log(self, model: Model, estimator: Estimator, t, x, y, u) -> Log:
+        log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
+                  estimator=getattr(estimator, "name", type(estimator).__name__),
+                  output_state=output_state_map(model), model_name=model.name)
+        for key, arr in (("t", t), ("x", x), ("y", y), ("u", u), ("x_hat", self.x_hat),
+                         ("P", self.P), ("solve_time", self.solve_time),
+                         ("status", self.status.astype(str)), ("iterations", self.iterations),
+                         ("success", self.success), ("nis", self.nis), ("cost", self.cost)):
+            log.set(key, arr)
+        return log
+
+
 def output_state_map(model: Model) -> dict[int, int]:
     """Outputs that equal one state, ``y_i = x_j``: ``{i: j}`` (for plots)."""
     rng = np.random.default_rng(12345)
@@ -145,14 +181,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     X = np.empty((T, nx))
     Y = np.empty((T, ny))
     Uk = np.zeros((T, nu))
-    Xh = np.empty((T, nx))
-    P = np.full((T, nx, nx), np.nan)
-    solve_time = np.empty(T)
-    iterations = np.zeros(T, dtype=int)
-    success = np.ones(T, dtype=bool)
-    nis = np.full(T, np.nan)
-    cost = np.full(T, np.nan)
-    status = np.empty(T, dtype=object)
+    rec = _Recorder(T, nx)
 
     estimator.reset()
     u_prev = np.zeros(nu) if U is None else U[0].copy()
@@ -168,16 +197,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
             y[miss[k]] = np.nan
         X[k], Y[k] = x, y
         xh = estimator.step(y.copy(), u_prev)
-        info = estimator.info
-        Xh[k] = xh
-        if info.P is not None:
-            P[k] = info.P
-        solve_time[k] = info.solve_time
-        iterations[k] = info.iterations
-        success[k] = info.success
-        nis[k] = info.nis
-        cost[k] = info.cost
-        status[k] = info.status
+        rec.record(k, xh, estimator.info)
         if U is not None:
             u = U[k]
         elif controller is not None:
@@ -191,16 +211,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
         if not np.isfinite(x).all():
             raise FloatingPointError(f"the plant state became non-finite at step {k} (t={t:g})")
         u_prev = u.copy()
-
-    log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
-              estimator=getattr(estimator, "name", type(estimator).__name__),
-              output_state=output_state_map(model), model_name=model.name)
-    for key, arr in (("t", ts), ("x", X), ("y", Y), ("u", Uk), ("x_hat", Xh), ("P", P),
-                     ("solve_time", solve_time), ("status", status.astype(str)),
-                     ("iterations", iterations), ("success", success), ("nis", nis),
-                     ("cost", cost)):
-        log.set(key, arr)
-    return log
+    return rec.log(model, estimator, ts, X, Y, Uk)
 
 
 def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
@@ -241,27 +252,12 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
     ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
     if ts.shape != (T,):
         raise ValueError(f"t must have shape ({T},), got {ts.shape}")
-    Xh = np.empty((T, model.nx))
-    P = np.full((T, model.nx, model.nx), np.nan)
-    fields = {k: np.empty(T, dtype=d) for k, d in (("solve_time", float), ("iterations", int),
-                                                      ("success", bool), ("nis", float),
-                                                      ("cost", float), ("status", object))}
+    rec = _Recorder(T, model.nx)
     estimator.reset()
     for k in range(T):
-        Xh[k] = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
-        info = estimator.info
-        if info.P is not None:
-            P[k] = info.P
-        for key in fields:
-            fields[key][k] = getattr(info, key)
-    log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
-              estimator=getattr(estimator, "name", type(estimator).__name__),
-              output_state=output_state_map(model), model_name=model.name)
-    for key, arr in (("t", ts), ("x", X), ("y", Y), ("u", U), ("x_hat", Xh), ("P", P)):
-        log.set(key, arr)
-    for key, arr in fields.items():
-        log.set(key, arr.astype(str) if key == "status" else arr)
-    return log
+        x_hat = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
+        rec.record(k, x_hat, estimator.info)
+    return rec.log(model, estimator, ts, X, Y, U)
 
 
 def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from estim._validate import as_covariance, as_vector
+from estim._validate import as_bounds, as_covariance, as_vector
 from estim.model import Model
 
 
@@ -155,6 +155,17 @@ class Estimator:
         """Reset method-specific state (called by :meth:`reset`)."""
 
     # -------------------------------------------------------------- helpers
+    def _bounds(self, lower, upper) -> tuple[np.ndarray, np.ndarray]:
+        """State bounds given to an estimator (scalar, sequence or dict), default the model's."""
+        m = self.model
+        lo = m.lower.copy() if lower is None else as_bounds(lower, m.state_names, "lower",
+                                                           -np.inf)
+        up = m.upper.copy() if upper is None else as_bounds(upper, m.state_names, "upper",
+                                                           np.inf)
+        if np.any(lo > up):
+            raise ValueError("lower must not exceed upper")
+        return lo, up
+
     def _check_y(self, y) -> np.ndarray:
         ny = self.model.ny
         if type(y) is np.ndarray and y.shape == (ny,) and y.dtype == np.float64:

@@ -71,10 +71,7 @@ class EKF(Estimator):
         check_options(options, (), "EKF")
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.clip = bool(clip)
-        self.lower = model.lower if lower is None else np.broadcast_to(
-            np.asarray(lower, float), (model.nx,)).copy()
-        self.upper = model.upper if upper is None else np.broadcast_to(
-            np.asarray(upper, float), (model.nx,)).copy()
+        self.lower, self.upper = self._bounds(lower, upper)
         nx = model.nx
         # the filter state [x; vec(P)] lives where both compiled functions read it
         self._s = np.zeros(nx + nx * nx)

@@ -11,8 +11,7 @@ import numpy as np
 from estim._fast import FastFunction
 from estim._validate import check_options
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.mhe import _is_diagonal, _weight_factor
-from estim.estimators.nlp import SOLVERS, LeastSquaresNLP
+from estim.estimators.nlp import SOLVERS, LeastSquaresNLP, is_diagonal, weight_factor
 from estim.model import Model
 
 
@@ -135,15 +134,11 @@ class FullInformation(Estimator):
         if np.linalg.eigvalsh(self.Q)[0] <= 0:
             raise ValueError("Q must be positive definite for full-information estimation "
                              "(the weights are Q^-1)")
-        nx = model.nx
-        lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
-        up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
-        self.lower, self.upper = np.array(lo, float), np.array(up, float)
+        self.lower, self.upper = self._bounds(lower, upper)
         self.solver = solver
         self.solver_options = dict(solver_options or {})
-        self._WQ = _weight_factor(self.Q)
-        self._WR = _weight_factor(self.R)
-        self._W0 = _weight_factor(self.P0) if self._prior else None
+        self._WQ = weight_factor(self.Q)
+        self._WR = weight_factor(self.R)
         self._nlps: dict[tuple[int, bool], LeastSquaresNLP] = {}
         self._maps: dict[int, tuple] = {}
         self._reset()
@@ -153,7 +148,7 @@ class FullInformation(Estimator):
         if (N, full) not in self._nlps:
             self._nlps[N, full] = LeastSquaresNLP(
                 self.model, N, self._WQ, self.lower, self.upper, self.solver,
-                self.solver_options, diagonal_R=_is_diagonal(self.R), full=full)
+                self.solver_options, diagonal_R=is_diagonal(self.R), full=full)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
@@ -254,6 +249,7 @@ class FullInformation(Estimator):
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:
+        self._W0 = weight_factor(self.P0) if self._prior else None  # reset may change P0
         self._Ys: list[np.ndarray] = []
         self._Us: list[np.ndarray] = []
         self._X: np.ndarray | None = None

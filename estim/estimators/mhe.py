@@ -10,20 +10,10 @@ import numpy as np
 from estim._fast import FastFunction
 from estim._validate import check_options
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.nlp import SOLVERS, LeastSquaresNLP
+from estim.estimators.nlp import SOLVERS, LeastSquaresNLP, is_diagonal, weight_factor
 from estim.model import Model
 
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
-
-
-def _is_diagonal(M: np.ndarray) -> bool:
-    return bool(np.array_equal(M, np.diag(np.diag(M))))
-
-
-def _weight_factor(cov: np.ndarray) -> np.ndarray:
-    """``W`` with ``W^T W = cov^{-1}``, so ``||W r||^2 = r^T cov^{-1} r``."""
-    L = np.linalg.cholesky(np.linalg.inv(cov))
-    return L.T
 
 
 class MHE(Estimator):
@@ -134,17 +124,12 @@ class MHE(Estimator):
         self.horizon = int(horizon)
         self.arrival_cost = arrival_cost
         self.solver = solver
-        nx = model.nx
-        lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
-        up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
-        self.lower, self.upper = np.array(lo, float), np.array(up, float)
-        if np.any(self.lower > self.upper):
-            raise ValueError("lower must not exceed upper")
-        self._WQ = _weight_factor(self.Q)
-        self._WR = _weight_factor(self.R)
+        self.lower, self.upper = self._bounds(lower, upper)
+        self._WQ = weight_factor(self.Q)
+        self._WR = weight_factor(self.R)
         self._nlp = LeastSquaresNLP(model, self.horizon, self._WQ, self.lower, self.upper,
                                     solver, solver_options or {},
-                                    diagonal_R=_is_diagonal(self.R))
+                                    diagonal_R=is_diagonal(self.R))
         self._cov_step = FastFunction(self._build_cov_step())
         self._reset()
 
@@ -172,6 +157,7 @@ class MHE(Estimator):
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
         m, N = self.model, self.horizon
+        self._W0 = None if self.P0 is None else weight_factor(self.P0)  # reset may change P0
         self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
         self._U = np.zeros((N, m.nu))             # _U[j]: input from slot j to j+1
         self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
@@ -220,8 +206,10 @@ class MHE(Estimator):
         s0 = N - self._n
         self._X[:s0] = self._X[s0]
         weight = None
-        if self.arrival_cost != "none":
-            weight = _weight_factor(self._Pbar)
+        if self.arrival_cost == "fixed":
+            weight = self._W0  # P0 is constant: factored at reset, not every step
+        elif self.arrival_cost != "none":
+            weight = weight_factor(self._Pbar)
         sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
                               weight, self._WR, self.R)
         elapsed = time.perf_counter() - t0

@@ -55,6 +55,16 @@ _FATROP_DEFAULTS = {
 }
 
 
+def is_diagonal(M: np.ndarray) -> bool:
+    return bool(np.array_equal(M, np.diag(np.diag(M))))
+
+
+def weight_factor(cov: np.ndarray) -> np.ndarray:
+    """``W`` with ``W^T W = cov^{-1}``, so ``||W r||^2 = r^T cov^{-1} r``."""
+    L = np.linalg.cholesky(np.linalg.inv(cov))
+    return L.T
+
+
 @dataclass
 class Solution:
     """One solve: trajectory ``X (N, nx)``, status and statistics."""

@@ -173,10 +173,7 @@ class ShootingObserver(Estimator):
         if not np.isfinite(resolution) or resolution <= 0:
             raise ValueError(f"resolution must be a positive number, got {resolution!r}")
         self.resolution = float(resolution)
-        nx = model.nx
-        lo = model.lower if lower is None else np.broadcast_to(np.asarray(lower, float), (nx,))
-        up = model.upper if upper is None else np.broadcast_to(np.asarray(upper, float), (nx,))
-        self.lower, self.upper = np.array(lo, float), np.array(up, float)
+        self.lower, self.upper = self._bounds(lower, upper)
         self._fixed_w2 = derivative_weight
         self._Rinv = np.linalg.inv(self.R)
         self._span = (self.window - 1) * self.every  # steps from first to last sample
