@@ -153,3 +153,20 @@ def test_bad_input():
         estim.FullInformation(m, Q=[0.05, 0.05, 0.0], R=1.0)
     with pytest.raises(ValueError, match="solver must be one of"):
         estim.FullInformation(m, Q=0.05, R=1.0, solver="panoc")
+
+
+def test_reset_with_new_prior_uses_it():
+    """reset(P0=...) must refactor the prior weight (it is cached per reset)."""
+    sys = make_linear(0)
+    Y, _ = _record(sys, T=10, seed=2)
+    fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
+    tight = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=1e-6)
+    fie.reset(P0=1e-6)
+    np.testing.assert_allclose(fie.fit(Y).x, tight.fit(Y).x, atol=1e-10)
+    mhe = estim.MHE(sys.model, horizon=4, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
+                    arrival_cost="fixed", solver="gauss-newton")
+    ref = estim.MHE(sys.model, horizon=4, Q=sys.Q, R=sys.R, x0=sys.x0, P0=1e-6,
+                    arrival_cost="fixed", solver="gauss-newton")
+    mhe.reset(P0=1e-6)
+    for y in Y:
+        np.testing.assert_allclose(mhe.step(y), ref.step(y), atol=1e-8)
