@@ -19,11 +19,25 @@ def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
     return P if np.isfinite(P).all() else None
 
 
-def _mapped(fun: ca.Function, T: int) -> ca.Function:
-    """``fun(x, u, p)`` evaluated on ``T`` columns with one shared ``p``."""
-    x, u, p = (ca.MX.sym(n, fun.size1_in(i), T if i < 2 else 1)
-               for i, n in enumerate(("x", "u", "p")))
-    return ca.Function(fun.name() + "_map", [x, u, p], [fun.map(T)(x, u, p)])
+def _residual_map(model: Model, T: int) -> FastFunction:
+    """Residuals of a trajectory in one call.
+
+    Inputs ``X (nx, T)``, ``U (nu, T)``, ``U_prev (nu, T)``, ``Y (ny, T)``, flat
+    column-major (a C-ordered ``(T, nx)`` array raveled as it is); outputs
+    ``w (nx, T-1) = X[:, 1:] - F(X[:, :-1], U[:, :-1])`` and
+    ``v (ny, T) = Y - h(X, U_prev)``. Expanded to one SX graph when the model
+    allows it.
+    """
+    nx, nu, ny, pm = model.nx, model.nu, model.ny, ca.DM(model.p)
+    X, U, Up, Y = (ca.MX.sym(n, k, T) for n, k in (("X", nx), ("U", nu), ("Up", nu),
+                                                    ("Y", ny)))
+    w = X[:, 1:] - model.F.map(T - 1)(X[:, :-1], U[:, :-1], pm) if T > 1 else ca.MX(nx, 0)
+    fun = ca.Function("residuals", [X, U, Up, Y], [w, Y - model.H.map(T)(X, Up, pm)])
+    try:
+        fun = fun.expand()
+    except RuntimeError:  # e.g. an integrator inside the model: stays mapped
+        pass
+    return FastFunction(fun)
 
 
 @dataclass(frozen=True)
@@ -148,7 +162,8 @@ class FullInformation(Estimator):
         if (N, full) not in self._nlps:
             self._nlps[N, full] = LeastSquaresNLP(
                 self.model, N, self._WQ, self.lower, self.upper, self.solver,
-                self.solver_options, diagonal_R=is_diagonal(self.R), full=full)
+                self.solver_options, diagonal_R=is_diagonal(self.R), full=full,
+                weights=self._WR)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
@@ -235,11 +250,9 @@ class FullInformation(Estimator):
         X = Xfull[pad:]
         T = len(X)
         if T not in self._maps:
-            self._maps[T] = tuple(FastFunction(_mapped(fun, T)) for fun in (m.F, m.H))
-        Fmap, Hmap = self._maps[T]
-        Fx = Fmap(X.T, U.T, m.p)[0].reshape(T, m.nx)
-        w = X[1:] - Fx[:-1]
-        v = Y - Hmap(X.T, Uprev.T, m.p)[0].reshape(T, m.ny)
+            self._maps[T] = _residual_map(m, T)
+        w, v = self._maps[T](X.ravel(), U.ravel(), Uprev.ravel(), Y.ravel())
+        w, v = w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
         p_snapshot = nlp._p.copy()  # the covariance is evaluated later, maybe after other fits
         cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot))) \
             if sol.success else None

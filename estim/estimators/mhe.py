@@ -129,7 +129,7 @@ class MHE(Estimator):
         self._WR = weight_factor(self.R)
         self._nlp = LeastSquaresNLP(model, self.horizon, self._WQ, self.lower, self.upper,
                                     solver, solver_options or {},
-                                    diagonal_R=is_diagonal(self.R))
+                                    diagonal_R=is_diagonal(self.R), weights=self._WR)
         self._cov_step = FastFunction(self._build_cov_step())
         self._reset()
 

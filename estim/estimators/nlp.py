@@ -107,11 +107,14 @@ class LeastSquaresNLP:
     full : bool
         Solved only with every slot holding data (``n == N``); the
         Gauss-Newton graph then treats the window bookkeeping as constants.
+    weights : (ny, ny) array, optional
+        The estimator's measurement weight factor ``W_R``: windows of complete
+        data are solved by Gauss-Newton graphs with these weights as constants.
     """
 
     def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
                  upper: np.ndarray, solver: str, options: dict, diagonal_R: bool = False,
-                 full: bool = False):
+                 full: bool = False, weights: np.ndarray | None = None):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -146,7 +149,10 @@ class LeastSquaresNLP:
                              f"{sorted(options)}")
         self.full = bool(full)
         self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
-                                        self.np, diagonal_R=diagonal_R, full=full, **gn_opts)
+                                        self.np, diagonal_R=diagonal_R, full=full,
+                                        weights=weights, **gn_opts)
+        self._weights = weights
+        self._complete = False  # the last parameters: every slot holds every output
         if solver == "gauss-newton":
             self.reset()
             return
@@ -241,7 +247,10 @@ class LeastSquaresNLP:
         p, s = self._p, self._slices
         mask = np.isfinite(Y)
         s0 = N - n
+        self._complete = False
         if s0 == 0 and mask.all():  # complete data in a full window: the common case
+            self._complete = WR is self._weights or (
+                self._weights is not None and np.array_equal(WR, self._weights))
             p[s["y"]] = Y.ravel()
             p[s["wy"]] = np.tile(WR.ravel(order="F"), N)
             p[s["u"]] = U.ravel()
@@ -280,12 +289,12 @@ class LeastSquaresNLP:
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
-        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
-        t0 = time.perf_counter()
         if self.solver_name == "gauss-newton":
-            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p)
+            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
             return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
                             elapsed)
+        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+        t0 = time.perf_counter()
         try:
             if self.solver_name == "fatrop":
                 sol = self._solve_fatrop(X0, p)
