@@ -197,7 +197,9 @@ class FullInformation(Estimator):
                                  f"got {U.shape}")
             if not np.isfinite(U).all():
                 raise ValueError("U must be finite")
-        Uprev = np.vstack([np.zeros((1, m.nu)), U[:-1]])
+        Uprev = np.empty_like(U)
+        Uprev[0] = 0.0
+        Uprev[1:] = U[:-1]
         return Y, U, Uprev
 
     def fit(self, Y, U=None, guess=None) -> FitResult:
@@ -220,7 +222,8 @@ class FullInformation(Estimator):
         Y, U, Uprev = self._record(Y, U)
         T, nx = Y.shape[0], self.model.nx
         if guess is None:
-            X0 = np.tile(self.x0, (T, 1))
+            X0 = np.empty((T, nx))
+            X0[:] = self.x0
         else:
             X0 = np.asarray(guess, dtype=float)
             if X0.shape != (T, nx):
@@ -253,8 +256,9 @@ class FullInformation(Estimator):
             self._maps[T] = _residual_map(m, T)
         w, v = self._maps[T](X.ravel(), U.ravel(), Uprev.ravel(), Y.ravel())
         w, v = w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
-        p_snapshot = nlp._p.copy()  # the covariance is evaluated later, maybe after other fits
-        cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot))) \
+        # the covariance is evaluated later, maybe after other fits: a snapshot
+        p_snapshot, complete = nlp._p.copy(), nlp._complete
+        cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
             if sol.success else None
         return FitResult(x=X.copy(), w=w, v=v, cost=sol.cost, iterations=sol.iterations,
                          status=sol.status, success=sol.success, solve_time=sol.solve_time,

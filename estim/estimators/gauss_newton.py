@@ -8,15 +8,17 @@ step solves :math:`H d = z` (:math:`z = -J^\top r`) by block elimination, a
 Riccati recursion of :math:`O(N n_x^3)` operations:
 
 .. math::
-    S_0 = D_0,\quad K_{j-1} = S_{j-1}^{-1} E_{j-1},\quad
-    k_{j-1} = S_{j-1}^{-1} \tilde z_{j-1},\quad
-    S_j = D_j - E_{j-1}^\top K_{j-1},\quad
-    \tilde z_j = z_j - E_{j-1}^\top k_{j-1},
+    S_0 = D_0,\quad \tilde z_0 = z_0,\quad
+    S_j = D_j - E_{j-1}^\top S_{j-1}^{-1} E_{j-1},\quad
+    \tilde z_j = z_j - E_{j-1}^\top S_{j-1}^{-1} \tilde z_{j-1},
 
-    d_{N-1} = S_{N-1}^{-1} \tilde z_{N-1},\qquad d_j = k_j - K_j d_{j+1}.
+    d_{N-1} = S_{N-1}^{-1} \tilde z_{N-1},\qquad
+    d_j = S_j^{-1} (\tilde z_j - E_j d_{j+1}).
 
-Each :math:`S_j` is factored once (:math:`L D L^\top`, no square roots) and
-only the lower triangles of the symmetric products are formed.
+Each :math:`S_j = L_j D_j L_j^\top` is factored once (no square roots); with
+:math:`V = L_j^{-1} [E_j, \tilde z_j]` the products are
+:math:`V^\top D_j^{-1} V` (lower triangles only) and the backward step is
+:math:`d_j = L_j^{-\top}(D_j^{-1} V_z - D_j^{-1} V_E d_{j+1})`.
 
 State bounds are handled by the projected Newton method of Bertsekas
 (1982): variables at a bound whose gradient points outward are fixed
@@ -76,33 +78,48 @@ def _ldl(S):
     Reads the lower triangle only. Returns ``(L, inv_D)`` as nested lists
     (unit lower triangular ``L``, reciprocals of ``D``): about :math:`n^3/6`
     operations and no square roots, so indefinite nonsingular blocks (exact
-    Hessians) work too.
+    Hessians) work too. The products :math:`L_{ik} D_k` are kept from the
+    elimination rather than recomputed (Golub and Van Loan, alg. 4.1.2).
     """
     n = S.shape[0]
     L = [[None] * n for _ in range(n)]
-    D, inv_D = [None] * n, [None] * n
+    LD = [[None] * n for _ in range(n)]  # L[i][k] * D[k]
+    inv_D = [None] * n
     for k in range(n):
-        LD = [L[k][m] * D[m] for m in range(k)]
-        D[k] = S[k, k] - _total(L[k][m] * LD[m] for m in range(k))
-        inv_D[k] = 1 / D[k]
+        Dk = S[k, k] - _total(L[k][m] * LD[k][m] for m in range(k))
+        inv_D[k] = 1 / Dk
         for i in range(k + 1, n):
-            L[i][k] = (S[i, k] - _total(L[i][m] * LD[m] for m in range(k))) * inv_D[k]
+            LD[i][k] = S[i, k] - _total(L[i][m] * LD[k][m] for m in range(k))
+            L[i][k] = LD[i][k] * inv_D[k]
     return L, inv_D
 
 
-def _ldl_solve(L, inv_D, B) -> ca.SX:
-    """Solve :math:`L D L^\\top X = B` column by column (``B`` an SX matrix)."""
-    n = len(inv_D)
+def _forward(L, B) -> ca.SX:
+    """:math:`L^{-1} B` for unit lower triangular ``L`` (nested list)."""
+    n = len(L)
     cols = []
     for c in range(B.shape[1]):
         z = [None] * n
         for i in range(n):
             z[i] = B[i, c] - _total(L[i][m] * z[m] for m in range(i))
-        xs = [None] * n
-        for i in range(n - 1, -1, -1):
-            xs[i] = z[i] * inv_D[i] - _total(L[m][i] * xs[m] for m in range(i + 1, n))
-        cols.append(ca.vertcat(*xs))
+        cols.append(ca.vertcat(*z))
     return ca.horzcat(*cols)
+
+
+def _backward(L, b) -> ca.SX:
+    """:math:`L^{-\top} b` for unit lower triangular ``L`` (nested list or SX) and a vector."""
+    n = len(L) if isinstance(L, list) else L.shape[0]
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        x[i] = b[i] - _total(L[m][i] * x[m] if isinstance(L, list) else L[m, i] * x[m]
+                             for m in range(i + 1, n))
+    return ca.vertcat(*x)
+
+
+def _ldl_solve(L, inv_D, B) -> ca.SX:
+    """Solve :math:`L D L^\top X = B` column by column (``B`` an SX matrix)."""
+    Z = ca.diag(ca.vertcat(*inv_D)) @ _forward(L, B)
+    return ca.horzcat(*[_backward(L, Z[:, c]) for c in range(B.shape[1])])
 
 
 def _sym_solve(S, B) -> ca.SX:
@@ -213,16 +230,26 @@ class _StageFunctions:
         self.damp_lam = ca.Function("damp_lam", [Dj, lam], [_damp(Dj, lam)])
         self.mask = ca.Function("mask", [Dj, Ej, gj, fj, fn], list(_mask_row(Dj, Ej, gj, fj, fn)))
         self.diag = ca.Function("diag", [Dj], [ca.diag(Dj)])
-        # one elimination step: factor S_{j-1} once, gains for the backward pass
+        # one elimination step: with S_{j-1} = L D L^T factored once,
+        # V = L^{-1} [E_{j-1}, z~_{j-1}] and Vs = D^{-1} V give
+        # E^T S^{-1} E = V_E^T Vs_E and E^T S^{-1} z~ = V_E^T Vs_z; the backward pass
+        # needs d_{j-1} = L^{-T} (Vs_z - Vs_E d_j): Vs and L are passed on
         Sp, Ep = ca.SX.sym("S_prev", nx, nx), ca.SX.sym("E_prev", nx, nx)
         zp, zj = ca.SX.sym("z_prev", nx), ca.SX.sym("z", nx)
         L, inv_D = _ldl(Sp)
-        K = _ldl_solve(L, inv_D, ca.horzcat(Ep, zp))
+        V = _forward(L, ca.horzcat(Ep, zp))
+        Vs = ca.diag(ca.vertcat(*inv_D)) @ V
+        Lm = ca.SX.zeros(nx, nx)
+        for i in range(nx):
+            for k in range(i):
+                Lm[i, k] = L[i][k]
         self.fwd = ca.Function("fwd", [Sp, zp, Dj, Ep, zj], [
-            Dj - _sym_product(Ep, K[:, :nx]), zj - Ep.T @ K[:, nx], K[:, :nx], K[:, nx]])
+            Dj - _sym_product(V[:, :nx], Vs[:, :nx]), zj - V[:, :nx].T @ Vs[:, nx],
+            Vs[:, :nx], Vs[:, nx], Lm])
         self.last = ca.Function("last", [Dj, zj], [_sym_solve(Dj, zj)])
-        dn, Kj, kj = ca.SX.sym("d_next", nx), ca.SX.sym("K", nx, nx), ca.SX.sym("k", nx)
-        self.bwd = ca.Function("bwd", [dn, Kj, kj], [kj - Kj @ dn])
+        dn, Vj, vj = ca.SX.sym("d_next", nx), ca.SX.sym("Vs", nx, nx), ca.SX.sym("vs", nx)
+        Lj = ca.SX.sym("L", nx, nx)
+        self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [_backward(Lj, vj - Vj @ dn)])
         inv = _sym_solve(Dj, ca.SX.eye(nx))
         self.inverse = ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
 
@@ -239,11 +266,13 @@ def _scan_solve(st, D, E, z, N, nx):
     if N == 1:
         return st.last(D, z)
     Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
-    S, zt, K, k = st.fwd.mapaccum("fwd_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep, z)
-    # the gains returned at step j belong to slot j - 1
+    S, zt, Vs, vs, L = st.fwd.mapaccum("fwd_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1),
+                                                          D, Ep, z)
+    # what step j returns besides S_j, z~_j belongs to slot j - 1
     d_last = st.last(S[:, (N - 1) * nx:], zt[:, N - 1])
     d_rev = st.bwd.mapaccum("bwd_scan", N - 1, 1)(
-        d_last, _reverse_cols(K[:, nx:], N - 1, nx), _reverse_cols(k[:, 1:], N - 1, 1))
+        d_last, _reverse_cols(Vs[:, nx:], N - 1, nx), _reverse_cols(vs[:, 1:], N - 1, 1),
+        _reverse_cols(L[:, nx:], N - 1, nx))
     return ca.horzcat(_reverse_cols(d_rev, N - 1, 1), d_last)
 
 
@@ -323,19 +352,22 @@ class StructuredGaussNewton:
         self._slices, self._n_params = slices, n_params
         # input buffers shared by every compiled function
         self._xbuf, self._pbuf, self._lbuf = np.zeros(N * model.nx), np.zeros(n_params), np.zeros(1)
-        self._funs: dict[tuple[str, bool], FastFunction] = {}
+        self._funs: dict[tuple[str, bool], object] = {}  # FastFunction or a pair
         self._complete = False  # graphs of the current solve
 
     # ------------------------------------------------------------------ graphs
-    def _function(self, key: str) -> FastFunction:
+    def _function(self, key: str, complete: bool | None = None):
         """The compiled function ``key`` ("gn", "gn_lam", "newton", "newton_lam",
-        "cost" or "cov") for the current solve's data, built on first use."""
-        fun = self._funs.get((key, self._complete))
+        "cost" or "cov") for complete data or not (default: as the current
+        solve), built on first use. The iterations come as a pair of
+        FastFunctions with separate output buffers."""
+        complete = self._complete if complete is None else complete
+        fun = self._funs.get((key, complete))
         if fun is None:
-            fun = self._funs[key, self._complete] = self._build(key, self._complete)
+            fun = self._funs[key, complete] = self._build(key, complete)
         return fun
 
-    def _build(self, key: str, complete: bool) -> FastFunction:
+    def _build(self, key: str, complete: bool):
         st, nx, N = self._stages, self.model.nx, self.N
         p = ca.MX.sym("p", self._n_params)
         X = ca.MX.sym("X", nx, N)
@@ -365,7 +397,10 @@ class StructuredGaussNewton:
             fun = ca.Function(name, ins, outs).expand(name, opts)
         else:
             fun = ca.Function(name, ins, outs, opts)
-        return FastFunction(fun, [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else []))
+        bufs = [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else [])
+        if key in ("cost", "cov"):
+            return FastFunction(fun, bufs)
+        return FastFunction(fun, bufs), FastFunction(fun, bufs)  # two output buffers
 
     def _solve_graph(self, Db, E, D, g, gvec, free, lam, damped, N):
         """Projected (Gauss-)Newton direction for the blocks ``Db``, ``E`` (``D``: the
@@ -484,7 +519,9 @@ class StructuredGaussNewton:
         self._complete = bool(complete) and self._weights is not None
         self._pbuf[:] = p  # fixed for the whole solve: written once
         lam, newton, last_step, last_full = 0.0, self.newton, np.inf, np.inf
-        f, g, dirs = self._evaluate(x, lam, newton)
+        # two output buffers: the current point's, and the one a trial point writes
+        slot = 0
+        f, g, dirs = self._evaluate(x, lam, newton, slot)
         if not np.isfinite(f):
             return x, False, "non-finite cost at the initial guess", 0, f, time.perf_counter() - t0
         status, steps = "max_iter", 0
@@ -494,7 +531,8 @@ class StructuredGaussNewton:
             # after the next step is negligible or the decrease it predicts is at rounding
             # level (an ascending one means the near-singular solve lost accuracy: not
             # converged; the line search rejects it and the damping below regularises)
-            move = proj(x + dirs[-1]) - x if bounded else dirs[-1]
+            d_gn = dirs[-1]
+            move = proj(x + d_gn) - x if bounded else d_gn
             decrease = -float(g @ move)
             size = np.abs(move).max()
             # contraction rate of unbounded iterations (with bounds, a tiny step can
@@ -512,7 +550,8 @@ class StructuredGaussNewton:
                 break
             new = None
             for d in dirs:
-                new = self._line_search(x, f, g, d, lam, newton)
+                slope = -decrease if d is d_gn and not bounded else None
+                new = self._line_search(x, f, g, d, lam, newton, 1 - slot, slope)
                 if new is not None:
                     break
             if new is None:
@@ -523,11 +562,12 @@ class StructuredGaussNewton:
                     if lam > 1e10:
                         status = "line search failed"
                         break
-                f, g, dirs = self._evaluate(x, lam, newton)
+                slot = 1 - slot
+                f, g, dirs = self._evaluate(x, lam, newton, slot)
                 last_full = np.inf
                 continue
             xn, alpha, evaluated = new
-            step = np.abs(xn - x).max()
+            step = alpha * size if d is d_gn and not bounded else np.abs(xn - x).max()
             switch = not newton and step > SWITCH_RATIO * last_step
             x, steps, last_step = xn, steps + 1, step
             last_full = step if alpha == 1.0 and not lam else np.inf  # for the rate rho
@@ -536,24 +576,27 @@ class StructuredGaussNewton:
                 evaluated = None
             if switch:
                 newton, evaluated = True, None
+            slot = 1 - slot  # the trial's buffer, or a new evaluation there
             f, g, dirs = evaluated if evaluated is not None else \
-                self._evaluate(x, lam, newton)
+                self._evaluate(x, lam, newton, slot)
         ok = status == "ok" and bool(np.isfinite(x).all()) and np.isfinite(f)
         return x, ok, status, steps, f, time.perf_counter() - t0
 
-    def _line_search(self, x, f, g, d, lam, newton):
+    def _line_search(self, x, f, g, d, lam, newton, slot, slope=None):
         """Armijo backtracking along the projection arc.
 
-        The full step is tried with a whole iteration evaluation (reused by
-        the next iteration when accepted), shorter ones with the cost only.
+        The full step is tried with a whole iteration evaluation into the
+        output buffer ``slot`` (reused by the next iteration when accepted),
+        shorter ones with the cost only. ``slope``: ``g @ d`` if known.
         Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
         """
         proj, bounded = self._project, self._bounded
-        slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
+        if slope is None:
+            slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
         if slope >= 0.0:
             return None  # not a descent direction
         xn = proj(x + d)
-        ev = self._evaluate(xn, lam, newton)
+        ev = self._evaluate(xn, lam, newton, slot)
         # Armijo test; the gradient of f is 2 g
         gd = float(g @ (xn - x)) if bounded else slope
         if ev[0] <= f + 2e-4 * gd:  # False for NaN
@@ -569,17 +612,20 @@ class StructuredGaussNewton:
             alpha *= 0.5
         return None
 
-    def _evaluate(self, x, lam, newton):
-        """Cost, gradient and direction(s) at ``x`` (the parameters already in place)."""
-        fun = self._function(("newton" if newton else "gn") + ("_lam" if lam else ""))
+    def _evaluate(self, x, lam, newton, slot):
+        """Cost, gradient and direction(s) at ``x`` (the parameters already in place),
+        written to output buffer ``slot`` (0 or 1) and returned as views of it."""
+        fun = self._function(("newton" if newton else "gn") + ("_lam" if lam else ""))[slot]
         self._xbuf[:] = x
         self._lbuf[0] = lam
         out = fun.evaluate()
-        return float(out[0][0]), out[1].copy(), tuple(o.copy() for o in out[2:])
+        return float(out[0][0]), out[1], tuple(out[2:])
 
-    def covariance(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """``(J^T J)^{-1}`` block of the last state at ``x`` (the posterior covariance)."""
+    def covariance(self, x: np.ndarray, p: np.ndarray, complete: bool = False) -> np.ndarray:
+        """``(J^T J)^{-1}`` block of the last state at ``x`` (the posterior covariance)
+        for the parameters ``p`` (``complete`` as in :meth:`solve`)."""
         nx = self.model.nx
         self._xbuf[:] = x
         self._pbuf[:] = p
-        return self._function("cov").evaluate()[0].reshape(nx, nx, order="F").copy()
+        fun = self._function("cov", bool(complete) and self._weights is not None)
+        return fun.evaluate()[0].reshape(nx, nx, order="F").copy()

@@ -152,6 +152,7 @@ class LeastSquaresNLP:
                                         self.np, diagonal_R=diagonal_R, full=full,
                                         weights=weights, **gn_opts)
         self._weights = weights
+        self._wy_complete = None  # (W_R, its weights tiled over the slots)
         self._complete = False  # the last parameters: every slot holds every output
         if solver == "gauss-newton":
             self.reset()
@@ -252,7 +253,9 @@ class LeastSquaresNLP:
             self._complete = WR is self._weights or (
                 self._weights is not None and np.array_equal(WR, self._weights))
             p[s["y"]] = Y.ravel()
-            p[s["wy"]] = np.tile(WR.ravel(order="F"), N)
+            if self._wy_complete is None or self._wy_complete[0] is not WR:
+                self._wy_complete = (WR, np.tile(WR.ravel(order="F"), N))
+            p[s["wy"]] = self._wy_complete[1]
             p[s["u"]] = U.ravel()
             p[s["up"]] = Uprev.ravel()
             p[s["omega"]] = 1.0
@@ -327,7 +330,7 @@ class LeastSquaresNLP:
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the
         solution ``X`` for the parameters of the last solve (None if singular)."""
-        P = self.gn.covariance(np.asarray(X, float).ravel(), self._p)
+        P = self.gn.covariance(np.asarray(X, float).ravel(), self._p, self._complete)
         return P if np.isfinite(P).all() else None
 
     def _solve_fatrop(self, X0, p):
