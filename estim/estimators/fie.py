@@ -49,9 +49,11 @@ class FitResult:
     x : (T, nx) array
         Smoothed trajectory :math:`\\hat x_0, \\dots, \\hat x_{T-1}`.
     w : (T-1, nx) array
-        Process-noise estimates :math:`\\hat w_k = \\hat x_{k+1} - F(\\hat x_k, u_k)`.
+        Process-noise estimates :math:`\\hat w_k = \\hat x_{k+1} - F(\\hat x_k, u_k)`;
+        computed on first access.
     v : (T, ny) array
-        Output residuals :math:`y_k - h(\\hat x_k)` (NaN where not measured).
+        Output residuals :math:`y_k - h(\\hat x_k)` (NaN where not measured);
+        computed on first access.
     cost : float
         Optimal cost (sum of weighted squares).
     iterations : int
@@ -63,27 +65,37 @@ class FitResult:
     P_last : (nx, nx) array or None
         Laplace covariance of the last state (the Kalman filter's covariance on
         a linear-Gaussian model with a prior); computed on first access.
-    _covariance : callable or None
-        Internal: computes ``P_last`` when it is first read.
+    _residuals, _covariance : callable or None
+        Internal: compute ``(w, v)`` and ``P_last`` when first read.
     """
 
     x: np.ndarray
-    w: np.ndarray
-    v: np.ndarray
     cost: float
     iterations: int
     status: str
     success: bool
     solve_time: float
+    _residuals: object = field(default=None, repr=False, compare=False)
     _covariance: object = field(default=None, repr=False, compare=False)
+
+    def _lazy(self, name: str):
+        value = getattr(self, name)
+        if callable(value):  # computed once, on first access
+            value = (value(),)
+            object.__setattr__(self, name, value)
+        return None if value is None else value[0]
+
+    @property
+    def w(self) -> np.ndarray:
+        return self._lazy("_residuals")[0]
+
+    @property
+    def v(self) -> np.ndarray:
+        return self._lazy("_residuals")[1]
 
     @property
     def P_last(self) -> np.ndarray | None:
-        if self._covariance is None:
-            return None
-        if callable(self._covariance):  # computed once, on first access
-            object.__setattr__(self, "_covariance", (self._covariance(),))
-        return self._covariance[0]
+        return self._lazy("_covariance")
 
 
 class FullInformation(Estimator):
@@ -250,19 +262,24 @@ class FullInformation(Estimator):
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
         m, Xfull = self.model, sol.X
-        X = Xfull[pad:]
+        X = Xfull[pad:].copy()
         T = len(X)
-        if T not in self._maps:
-            self._maps[T] = _residual_map(m, T)
-        w, v = self._maps[T](X.ravel(), U.ravel(), Uprev.ravel(), Y.ravel())
-        w, v = w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
-        # the covariance is evaluated later, maybe after other fits: a snapshot
+        # residuals and covariance are evaluated on first access, maybe after other
+        # fits or after the caller changed its arrays: snapshots
+        data = (X.ravel(), U.ravel().copy(), Uprev.ravel().copy(), Y.ravel().copy())
+
+        def residuals():
+            if T not in self._maps:
+                self._maps[T] = _residual_map(m, T)
+            w, v = self._maps[T](*data)
+            return w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
+
         p_snapshot, complete = nlp._p.copy(), nlp._complete
         cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
             if sol.success else None
-        return FitResult(x=X.copy(), w=w, v=v, cost=sol.cost, iterations=sol.iterations,
-                         status=sol.status, success=sol.success, solve_time=sol.solve_time,
-                         _covariance=cov)
+        return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
+                         success=sol.success, solve_time=sol.solve_time,
+                         _residuals=residuals, _covariance=cov)
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:

@@ -59,6 +59,9 @@ from estim.model import Model
 
 #: Gauss-Newton steps that shrink by less than this factor switch to Newton steps.
 SWITCH_RATIO = 0.8
+#: iteration function by (Newton, damped or with the ridge)
+_ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "newton",
+               (True, True): "newton_lam"}
 #: ``mode="auto"`` expands graphs up to this many slots (about 60 MB per 1000 slots
 #: for a three-state model), and maps beyond.
 AUTO_UNROLL_SLOTS = 4096
@@ -144,15 +147,17 @@ def _gram(A) -> ca.SX:
     return _sym_product(A, A)
 
 
-def _damp(D, lam=None) -> ca.SX:
+def _damp(D, lam) -> ca.SX:
     """Ridge of 1e-12 of the largest diagonal entry (leaves stationary points
-    unchanged, keeps singular blocks factorable), plus Marquardt damping
-    ``lam |diag D|`` when ``lam`` is given."""
+    unchanged, keeps singular blocks factorable) plus Marquardt damping
+    ``lam |diag D|``.
+
+    The undamped iterations go without (fewer operations); a solve switches
+    to this form, with ``lam = 0`` for the ridge alone, once a direction comes
+    out non-finite.
+    """
     dj = ca.fabs(ca.diag(D))
-    shift = 1e-12 * ca.fmax(ca.mmax(dj), 1e-300)
-    if lam is not None:
-        shift = shift + lam * dj
-    return D + ca.diag(shift)
+    return D + ca.diag(1e-12 * ca.fmax(ca.mmax(dj), 1e-300) + lam * dj)
 
 
 def _mask_row(D, E, g, free, free_next):
@@ -169,7 +174,7 @@ class _StageFunctions:
 
     ``meas``: arrival (weight ``a``) and measurement terms of one slot;
     ``trans``: the process term linking two slots (``*_newton``: with the
-    exact Hessian blocks as well, ``*_cost``: the cost alone); ``damp``/``damp_lam``:
+    exact Hessian blocks as well, ``*_cost``: the cost alone); ``damp``:
     ridge and Marquardt damping of a diagonal block; ``mask``: the active-set
     masking of one block row; ``fwd``/``last``/``bwd``: one step of the
     block elimination; ``inverse``: a symmetric block inverse.
@@ -226,8 +231,7 @@ class _StageFunctions:
         Dj, Ej = ca.SX.sym("D", nx, nx), ca.SX.sym("E", nx, nx)
         gj, lam = ca.SX.sym("g", nx), ca.SX.sym("lam")
         fj, fn = ca.SX.sym("free", nx), ca.SX.sym("free_next", nx)
-        self.damp = ca.Function("damp", [Dj], [_damp(Dj)])
-        self.damp_lam = ca.Function("damp_lam", [Dj, lam], [_damp(Dj, lam)])
+        self.damp = ca.Function("damp", [Dj, lam], [_damp(Dj, lam)])
         self.mask = ca.Function("mask", [Dj, Ej, gj, fj, fn], list(_mask_row(Dj, Ej, gj, fj, fn)))
         self.diag = ca.Function("diag", [Dj], [ca.diag(Dj)])
         # one elimination step: with S_{j-1} = L D L^T factored once,
@@ -353,6 +357,7 @@ class StructuredGaussNewton:
         # input buffers shared by every compiled function
         self._xbuf, self._pbuf, self._lbuf = np.zeros(N * model.nx), np.zeros(n_params), np.zeros(1)
         self._funs: dict[tuple[str, bool], object] = {}  # FastFunction or a pair
+        self._ridge = False  # set for good once a block was singular without it
         self._complete = False  # graphs of the current solve
 
     # ------------------------------------------------------------------ graphs
@@ -406,7 +411,7 @@ class StructuredGaussNewton:
         """Projected (Gauss-)Newton direction for the blocks ``Db``, ``E`` (``D``: the
         Gauss-Newton diagonal blocks, which scale the steps of fixed variables)."""
         st, nx = self._stages, self.model.nx
-        Dd = st.damp_lam.map(N)(Db, lam) if damped else st.damp.map(N)(Db)
+        Dd = st.damp.map(N)(Db, lam) if damped else Db
         if not self._bounded:
             return ca.vec(_scan_solve(st, Dd, E, -g, N, nx))
         Fm = ca.reshape(free, nx, N)
@@ -514,7 +519,7 @@ class StructuredGaussNewton:
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
         t0 = time.perf_counter()
-        proj, bounded = self._project, self._bounded
+        proj, bounded, xtol = self._project, self._bounded, self.xtol
         x = proj(np.array(X0, dtype=float).ravel())
         self._complete = bool(complete) and self._weights is not None
         self._pbuf[:] = p  # fixed for the whole solve: written once
@@ -525,6 +530,7 @@ class StructuredGaussNewton:
         if not np.isfinite(f):
             return x, False, "non-finite cost at the initial guess", 0, f, time.perf_counter() - t0
         status, steps = "max_iter", 0
+        xmax = np.abs(x).max()  # an upper bound of max|x|, made exact when it matters
         while steps < self.max_iter:
             # judged on the Gauss-Newton direction, a descent direction (J^T J is positive
             # semi-definite) where the Newton one may not be: converged when the rest
@@ -534,13 +540,20 @@ class StructuredGaussNewton:
             d_gn = dirs[-1]
             move = proj(x + d_gn) - x if bounded else d_gn
             decrease = -float(g @ move)
+            if decrease != decrease and not (lam or self._ridge):
+                # a singular block: from now on with the ridge (see _damp)
+                self._ridge = True
+                slot = 1 - slot
+                f, g, dirs = self._evaluate(x, lam, newton, slot)
+                continue
             size = np.abs(move).max()
             # contraction rate of unbounded iterations (with bounds, a tiny step can
             # precede a change of the active set and a large one)
             rho = size / last_full if last_full < np.inf and not bounded else np.inf
-            tol = self.xtol * (1.0 + np.abs(x).max())
-            if size <= tol or (rho < 1.0 and rho * size <= (1.0 - rho) * tol) or \
-                    0.0 <= decrease <= 1e-13 * abs(f):
+            rest = min(size, rho * size / (1.0 - rho) if rho < 1.0 else np.inf)
+            if rest <= xtol * (1.0 + xmax):
+                xmax = np.abs(x).max()
+            if rest <= xtol * (1.0 + xmax) or 0.0 <= decrease <= 1e-13 * abs(f):
                 status = "ok"
                 xn = x + move
                 self._xbuf[:] = xn
@@ -569,7 +582,7 @@ class StructuredGaussNewton:
             xn, alpha, evaluated = new
             step = alpha * size if d is d_gn and not bounded else np.abs(xn - x).max()
             switch = not newton and step > SWITCH_RATIO * last_step
-            x, steps, last_step = xn, steps + 1, step
+            x, steps, last_step, xmax = xn, steps + 1, step, xmax + step
             last_full = step if alpha == 1.0 and not lam else np.inf  # for the rate rho
             if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0
@@ -593,8 +606,8 @@ class StructuredGaussNewton:
         proj, bounded = self._project, self._bounded
         if slope is None:
             slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
-        if slope >= 0.0:
-            return None  # not a descent direction
+        if not slope < 0.0:
+            return None  # not a descent direction (or not finite)
         xn = proj(x + d)
         ev = self._evaluate(xn, lam, newton, slot)
         # Armijo test; the gradient of f is 2 g
@@ -615,7 +628,7 @@ class StructuredGaussNewton:
     def _evaluate(self, x, lam, newton, slot):
         """Cost, gradient and direction(s) at ``x`` (the parameters already in place),
         written to output buffer ``slot`` (0 or 1) and returned as views of it."""
-        fun = self._function(("newton" if newton else "gn") + ("_lam" if lam else ""))[slot]
+        fun = self._function(_ITERATIONS[newton, bool(lam) or self._ridge])[slot]
         self._xbuf[:] = x
         self._lbuf[0] = lam
         out = fun.evaluate()
