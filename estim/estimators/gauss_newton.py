@@ -65,6 +65,8 @@ _ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "ne
 #: ``mode="auto"`` expands graphs up to this many slots (about 60 MB per 1000 slots
 #: for a three-state model), and maps beyond.
 AUTO_UNROLL_SLOTS = 4096
+#: ``mode="mapped"`` expands chunks of this many slots.
+CHUNK_SLOTS = 64
 
 
 def _total(terms) -> ca.SX:
@@ -264,29 +266,102 @@ def _reverse_cols(M, N, width):
     return M[:, idx]
 
 
-def _scan_solve(st, D, E, z, N, nx):
-    """Block-tridiagonal solve: a forward ``mapaccum`` scan factoring the Schur
-    complements and a backward one applying the gains."""
+class _Slots:
+    """Maps and scans of per-slot functions over ``N`` slots.
+
+    ``chunk=None``: plain CasADi ``map``/``mapaccum`` (the whole graph is
+    expanded afterwards). Otherwise chunks of ``chunk`` slots are expanded
+    into SX functions that an MX graph calls in a loop: the graph and its
+    build time do not grow with ``N``, and the per-call overhead of the MX
+    virtual machine is shared by ``chunk`` slots.
+    """
+
+    def __init__(self, chunk: int | None):
+        self.chunk = chunk
+        self._cache: dict[tuple, ca.Function] = {}
+
+    @staticmethod
+    def _outs(res, f):
+        return list(res) if f.n_out() > 1 else [res]
+
+    @staticmethod
+    def _cols(f, i, a, N, lo, hi):
+        """Slots ``lo:hi`` of argument ``i`` (arguments of one slot's width are shared)."""
+        c = f.size2_in(i)
+        return a[:, lo * c:hi * c] if a.shape[1] == c * N else a
+
+    def _expanded(self, f, K, n_acc=None):
+        key = (id(f), K, n_acc)
+        if key not in self._cache:
+            g = f.map(K) if n_acc is None else f.mapaccum(f"{f.name()}_scan", K, n_acc)
+            self._cache[key] = g.expand()
+        return self._cache[key]
+
+    def _chunk_scan(self, f, K, n_acc):
+        """Scan of ``K`` slots returning the last states first (for a scan of chunks)."""
+        key = (id(f), K, n_acc, "chunk")
+        if key not in self._cache:
+            inner = self._expanded(f, K, n_acc)
+            ins = [ca.SX.sym(f"i{i}", inner.sparsity_in(i)) for i in range(inner.n_in())]
+            outs = self._outs(inner(*ins), inner)
+            lasts = [outs[i][:, -f.size2_out(i):] for i in range(n_acc)]
+            self._cache[key] = ca.Function(f"{f.name()}_chunk", ins, lasts + outs)
+        return self._cache[key]
+
+    def map(self, f, N, *args):
+        """Like ``f.map(N)(*args)``, always a list of outputs."""
+        K = self.chunk
+        if K is None or N <= K:
+            return self._outs((f.map(N) if K is None else self._expanded(f, N))(*args), f)
+        M, R = divmod(N, K)
+        outs = self._outs(self._expanded(f, K).map(M)(
+            *[self._cols(f, i, a, N, 0, M * K) for i, a in enumerate(args)]), f)
+        if R:
+            rest = self._outs(self._expanded(f, R)(
+                *[self._cols(f, i, a, N, M * K, N) for i, a in enumerate(args)]), f)
+            outs = [ca.horzcat(a, b) for a, b in zip(outs, rest, strict=True)]
+        return outs
+
+    def scan(self, f, N, n_acc, *args):
+        """Like ``f.mapaccum(N, n_acc)(*args)``, always a list of outputs."""
+        K = self.chunk
+        if K is None or N <= K:
+            g = f.mapaccum(f"{f.name()}_scan", N, n_acc) if K is None else \
+                self._expanded(f, N, n_acc)
+            return self._outs(g(*args), f)
+        M, R = divmod(N, K)
+        seq = [self._cols(f, i, a, N, 0, M * K) for i, a in enumerate(args)][n_acc:]
+        chunks = self._chunk_scan(f, K, n_acc).mapaccum(f"{f.name()}_chunks", M, n_acc)
+        # the chunks' last states (first outputs) are in the whole sequences too
+        out = self._outs(chunks(*args[:n_acc], *seq), chunks)[n_acc:]
+        if R:
+            init = [out[i][:, -f.size2_out(i):] for i in range(n_acc)]
+            seq = [self._cols(f, i, a, N, M * K, N) for i, a in enumerate(args)][n_acc:]
+            rest = self._outs(self._expanded(f, R, n_acc)(*init, *seq), f)
+            out = [ca.horzcat(a, b) for a, b in zip(out, rest, strict=True)]
+        return out
+
+
+def _scan_solve(st, slots, D, E, z, N, nx):
+    """Block-tridiagonal solve: a forward scan factoring the Schur complements and
+    a backward one applying what it kept."""
     if N == 1:
         return st.last(D, z)
     Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
-    S, zt, Vs, vs, L = st.fwd.mapaccum("fwd_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1),
-                                                          D, Ep, z)
+    S, zt, Vs, vs, L = slots.scan(st.fwd, N, 2, ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep, z)
     # what step j returns besides S_j, z~_j belongs to slot j - 1
     d_last = st.last(S[:, (N - 1) * nx:], zt[:, N - 1])
-    d_rev = st.bwd.mapaccum("bwd_scan", N - 1, 1)(
-        d_last, _reverse_cols(Vs[:, nx:], N - 1, nx), _reverse_cols(vs[:, 1:], N - 1, 1),
-        _reverse_cols(L[:, nx:], N - 1, nx))
+    d_rev = slots.scan(st.bwd, N - 1, 1, d_last, _reverse_cols(Vs[:, nx:], N - 1, nx),
+                       _reverse_cols(vs[:, 1:], N - 1, 1), _reverse_cols(L[:, nx:], N - 1, nx))[0]
     return ca.horzcat(_reverse_cols(d_rev, N - 1, 1), d_last)
 
 
-def _last_inverse(st, D, E, N, nx):
+def _last_inverse(st, slots, D, E, N, nx):
     """Inverse of the last Schur complement of ``J^T J`` (covariance of the last state)."""
     if N == 1:
         return st.inverse(D)
     Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
-    S = st.fwd.mapaccum("cov_scan", N, 2)(ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep,
-                                          ca.MX.zeros(nx, N))[0]
+    S = slots.scan(st.fwd, N, 2, ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep, ca.MX.zeros(nx, N))[0]
     return st.inverse(S[:, (N - 1) * nx:])
 
 
@@ -353,6 +428,7 @@ class StructuredGaussNewton:
         self.mode = ("unrolled" if N <= AUTO_UNROLL_SLOTS else "mapped") \
             if mode == "auto" else mode
         self._stages = _StageFunctions(model, WQ, diagonal_R)
+        self._slots = _Slots(None if self.mode == "unrolled" else CHUNK_SLOTS)
         self._slices, self._n_params = slices, n_params
         # input buffers shared by every compiled function
         self._xbuf, self._pbuf, self._lbuf = np.zeros(N * model.nx), np.zeros(n_params), np.zeros(1)
@@ -385,7 +461,7 @@ class StructuredGaussNewton:
         else:
             D, Dh, E, Eh, g, cost = self._blocks(X, q, N, newton)
             if key == "cov":
-                ins, outs = [xv, p], [_last_inverse(st, D, E, N, nx)]
+                ins, outs = [xv, p], [_last_inverse(st, self._slots, D, E, N, nx)]
             else:
                 ins = [xv, p] + ([lam] if damped else [])
                 gvec = ca.vec(g)
@@ -411,15 +487,16 @@ class StructuredGaussNewton:
         """Projected (Gauss-)Newton direction for the blocks ``Db``, ``E`` (``D``: the
         Gauss-Newton diagonal blocks, which scale the steps of fixed variables)."""
         st, nx = self._stages, self.model.nx
-        Dd = st.damp.map(N)(Db, lam) if damped else Db
+        slots = self._slots
+        Dd = slots.map(st.damp, N, Db, lam)[0] if damped else Db
         if not self._bounded:
-            return ca.vec(_scan_solve(st, Dd, E, -g, N, nx))
+            return ca.vec(_scan_solve(st, slots, Dd, E, -g, N, nx))
         Fm = ca.reshape(free, nx, N)
         Fnext = ca.horzcat(Fm[:, 1:], ca.MX.zeros(nx, 1))
-        Dm, Em, z = st.mask.map(N)(Dd, E, g, Fm, Fnext)
-        eliminated = ca.vec(_scan_solve(st, Dm, Em, z, N, nx))
+        Dm, Em, z = slots.map(st.mask, N, Dd, E, g, Fm, Fnext)
+        eliminated = ca.vec(_scan_solve(st, slots, Dm, Em, z, N, nx))
         # fixed variables take a gradient step scaled by the Gauss-Newton diagonal
-        diag = ca.vec(st.diag.map(N)(D))
+        diag = ca.vec(slots.map(st.diag, N, D)[0])
         return ca.if_else(1 - free, -gvec / (diag + 1e-300), eliminated)
 
     def _parts(self, p, N, complete):
@@ -452,20 +529,21 @@ class StructuredGaussNewton:
         st, nx = self._stages, self.model.nx
         Z, zc = ca.MX.zeros(nx, nx), ca.MX.zeros(nx, 1)
         if newton:
-            D, Dh, g, cost = st.meas_newton.map(N)(*self._meas_args(X, q))
+            D, Dh, g, cost = self._slots.map(st.meas_newton, N, *self._meas_args(X, q))
         else:
-            D, g, cost = st.meas.map(N)(*self._meas_args(X, q))
+            D, g, cost = self._slots.map(st.meas, N, *self._meas_args(X, q))
             Dh = None
         cost = ca.sum2(cost)
         if N == 1:
             return D, Dh, ca.MX.zeros(nx, nx), ca.MX.zeros(nx, nx), g, cost
         if newton:
-            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = st.trans_newton.map(N - 1)(
-                *self._trans_args(X, q, N))
+            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self._slots.map(
+                st.trans_newton, N - 1, *self._trans_args(X, q, N))
             Dh = Dh + ca.horzcat(Haa, Z) + ca.horzcat(Z, Hbb)
             Eh = ca.horzcat(Hab, Z)
         else:
-            Daa, Dbb, Eab, ga, gb, ct = st.trans.map(N - 1)(*self._trans_args(X, q, N))
+            Daa, Dbb, Eab, ga, gb, ct = self._slots.map(st.trans, N - 1,
+                                                        *self._trans_args(X, q, N))
             Eh = None
         D = D + ca.horzcat(Daa, Z) + ca.horzcat(Z, Dbb)
         g = g + ca.horzcat(ga, zc) + ca.horzcat(zc, gb)
@@ -473,9 +551,10 @@ class StructuredGaussNewton:
 
     def _cost_graph(self, X, q, N):
         st = self._stages
-        cost = ca.sum2(st.meas_cost.map(N)(*self._meas_args(X, q)))
+        cost = ca.sum2(self._slots.map(st.meas_cost, N, *self._meas_args(X, q))[0])
         if N > 1:
-            cost = cost + ca.sum2(st.trans_cost.map(N - 1)(*self._trans_args(X, q, N)))
+            cost = cost + ca.sum2(self._slots.map(st.trans_cost, N - 1,
+                                                  *self._trans_args(X, q, N))[0])
         return cost
 
     def _free(self, xv, gvec):
