@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import make_linear
@@ -92,12 +93,64 @@ def test_lorenz_gauss_newton_and_ipopt_reach_the_same_optimum():
 
 
 def test_mapped_and_unrolled_modes_agree():
-    log = _lorenz_record(80, seed=1)
+    """The chunked mapped graph (64-slot chunks plus a remainder) solves the same
+    problem: complete data, missing outputs, and active bounds."""
+    log = _lorenz_record(150, seed=1)
     m = estim.models.lorenz()
-    xs = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3),
-                                solver_options={"mode": mode}).fit(log.y).x
-          for mode in ("unrolled", "mapped")]
-    np.testing.assert_allclose(xs[0], xs[1], atol=1e-9)
+    Y = log.y.copy()
+    for data in (log.y, Y):
+        xs = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3),
+                                    solver_options={"mode": mode}).fit(data).x
+              for mode in ("unrolled", "mapped")]
+        np.testing.assert_allclose(xs[0], xs[1], atol=1e-9)
+        Y[[3, 70, 140]] = np.nan  # the second pass: missing outputs
+        Y[100, 1] = np.nan
+    sc = estim.scenarios.batch_reactor()
+    rlog = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    kw = dict(Q=0.002**2, R=0.25**2, x0=[0.1, 0.2, 0.6])
+    fits = [estim.FullInformation(sc.model, solver_options={"mode": mode}, **kw).fit(
+        rlog.y[300:430]) for mode in ("unrolled", "mapped")]
+    assert (fits[0].x <= 1e-12).any()  # a bound is active
+    np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-8)
+
+
+def test_singular_system_falls_back_to_the_ridge():
+    """No prior and a state that no output sees: J^T J is singular. The first
+    direction is not finite; the solver continues with the ridge and still finds
+    the optimum of the observable part (the one-state problem's)."""
+    A, Ad = np.array([[0.9, 0.0], [0.0, 1.0]]), ca.DM([[0.9, 0.0], [0.0, 1.0]])
+    two = estim.Model(states=2, outputs=1, dynamics=lambda x, u, p: Ad @ x,
+                      output=lambda x, u, p: x[0], name="hidden")
+    one = estim.Model(states=1, outputs=1, dynamics=lambda x, u, p: 0.9 * x,
+                      output=lambda x, u, p: x, name="seen")
+    rng = np.random.default_rng(3)
+    x, Y = np.array([1.0, 2.0]), []
+    for _ in range(30):
+        Y.append(x[:1] + 0.1 * rng.standard_normal(1))
+        x = A @ x + 0.05 * rng.standard_normal(2)
+    Y = np.array(Y)
+    fie = estim.FullInformation(two, Q=0.05**2, R=0.1**2)
+    res = fie.fit(Y)
+    ref = estim.FullInformation(one, Q=0.05**2, R=0.1**2).fit(Y)
+    assert res.success and fie._problem(30, full=True).gn._ridge
+    assert np.isfinite(res.x).all()
+    np.testing.assert_allclose(res.x[:, 0], ref.x[:, 0], atol=1e-8)
+    np.testing.assert_allclose(res.x[:, 1], 0.0, atol=1e-8)  # not moved from the guess
+    assert res.cost == pytest.approx(ref.cost, rel=1e-10)
+
+
+def test_residuals_are_snapshots():
+    """w and v are computed on first access, from the data of the fit."""
+    log = _lorenz_record(50)
+    m = estim.models.lorenz()
+    Y = log.y.copy()
+    res = estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3)).fit(Y)
+    Y[:] = 0.0  # the caller reuses its array before reading the residuals
+    F = np.array([np.asarray(m.F(x, [], m.p)).ravel() for x in res.x[:-1]])
+    H = np.array([np.asarray(m.H(x, [], m.p)).ravel() for x in res.x])
+    np.testing.assert_allclose(res.w, res.x[1:] - F, atol=1e-12)
+    np.testing.assert_allclose(res.v, log.y - H, atol=1e-12)
+    np.testing.assert_allclose(res.cost, 20 * np.sum(res.w**2) + np.sum(res.v**2), rtol=1e-12)
 
 
 def test_bounds_gauss_newton_matches_ipopt():

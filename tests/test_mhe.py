@@ -92,6 +92,18 @@ def test_horizon_covering_all_data_equals_batch_solve(solver):
             np.testing.assert_allclose(mhe.info.extra["window"], ref, atol=1e-6)
 
 
+def test_long_window_mapped_graph_equals_unrolled():
+    """A 70-slot window (a 64-slot chunk and a remainder in the mapped graph), through
+    the start-up windows with unused slots and into the full ones."""
+    sc = estim.scenarios.van_der_pol(n_steps=90)
+    logs = [estim.simulate(sc, estim.MHE(sc.model, horizon=70, arrival_cost="filtering",
+                                         solver="gauss-newton",
+                                         solver_options={"mode": mode}, **sc.tuning), seed=2)
+            for mode in ("unrolled", "mapped")]
+    assert all(lg.success.all() for lg in logs)
+    np.testing.assert_allclose(logs[0].x_hat, logs[1].x_hat, atol=1e-8)
+
+
 def test_solvers_agree_on_the_benchmark_problems():
     for name, N, ac in (("van_der_pol", 15, "filtering"), ("batch_reactor", 10, "none")):
         sc = estim.scenarios.get(name).replace(n_steps=60)
@@ -187,6 +199,9 @@ def test_bad_input():
     sc = estim.scenarios.van_der_pol()
     with pytest.raises(ValueError, match="horizon must be a positive integer"):
         estim.MHE(sc.model, horizon=0, **sc.tuning)
+    with pytest.raises(ValueError, match=r"\['mode'\] apply to solver='gauss-newton' only"):
+        estim.MHE(sc.model, horizon=5, solver="ipopt", solver_options={"mode": "mapped"},
+                  **sc.tuning)
     with pytest.raises(ValueError, match="arrival_cost must be one of"):
         estim.MHE(sc.model, horizon=5, arrival_cost="ekf", **sc.tuning)
     with pytest.raises(ValueError, match="solver must be one of"):

@@ -147,6 +147,10 @@ class LeastSquaresNLP:
         if solver == "gauss-newton" and set(options) - set(gn_opts):
             raise ValueError(f"solver_options for gauss-newton are {gn_keys}, got "
                              f"{sorted(options)}")
+        only_gn = sorted(set(options) & {"xtol", "newton", "mode"})
+        if solver != "gauss-newton" and only_gn:
+            raise ValueError(f"solver_options {only_gn} apply to solver='gauss-newton' only "
+                             f"(solver is {solver!r})")
         self.full = bool(full)
         self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
                                         self.np, diagonal_R=diagonal_R, full=full,
