@@ -192,10 +192,11 @@ class FullInformation(Estimator):
         T = Y.shape[0]
         if T < 1:
             raise ValueError("Y must hold at least one sample")
-        if np.isinf(Y).any():
-            raise ValueError("Y must not contain inf (NaN marks a missing output)")
-        if np.isnan(Y).all():
-            raise ValueError("Y has no measured value")
+        if not np.isfinite(Y).all():
+            if np.isinf(Y).any():
+                raise ValueError("Y must not contain inf (NaN marks a missing output)")
+            if np.isnan(Y).all():
+                raise ValueError("Y has no measured value")
         if U is None:
             U = np.zeros((T, m.nu))
         else:

@@ -308,8 +308,43 @@ class _Slots:
             self._cache[key] = ca.Function(f"{f.name()}_chunk", ins, lasts + outs)
         return self._cache[key]
 
+    def _baked(self, f, consts: dict):
+        """``f`` with the inputs in ``consts`` (index -> DM) fixed, as an SX function."""
+        key = (id(f), tuple((i, v.shape, np.asarray(v).tobytes()) for i, v in consts.items()))
+        if key not in self._cache:
+            ins = [ca.SX.sym(f"i{i}", f.sparsity_in(i)) for i in range(f.n_in())]
+            outs = self._outs(f(*[consts.get(i, x) for i, x in enumerate(ins)]), f)
+            self._cache[key] = ca.Function(f"{f.name()}_c", [x for i, x in enumerate(ins)
+                                                             if i not in consts], outs)
+        return self._cache[key]
+
     def map(self, f, N, *args):
-        """Like ``f.map(N)(*args)``, always a list of outputs."""
+        """Like ``f.map(N)(*args)``, always a list of outputs.
+
+        With chunks, constant arguments (DM) are folded into the expanded
+        functions, over runs of slots where they do not change.
+        """
+        K = self.chunk
+        consts = [i for i, a in enumerate(args) if isinstance(a, ca.DM)]
+        if K is not None and consts:
+            blocks = {}
+            for i in consts:
+                c, a = f.size2_in(i), np.asarray(args[i])
+                blocks[i] = [a[:, j * c:(j + 1) * c] for j in range(N)] if a.shape[1] == c * N \
+                    else [a] * N
+            cuts = [0] + [j for j in range(1, N)
+                          if any(not np.array_equal(b[j], b[j - 1]) for b in blocks.values())]
+        if K is not None and consts and len(cuts) <= 4:  # a few runs (full records: two)
+            pieces = []
+            for lo, hi in zip(cuts, cuts[1:] + [N], strict=True):
+                g = self._baked(f, {i: ca.DM(b[lo]) for i, b in blocks.items()})
+                sub = [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
+                       if i not in blocks]
+                pieces.append(self._map_plain(g, hi - lo, sub))
+            return [ca.horzcat(*col) for col in zip(*pieces, strict=True)]
+        return self._map_plain(f, N, args)
+
+    def _map_plain(self, f, N, args):
         K = self.chunk
         if K is None or N <= K:
             return self._outs((f.map(N) if K is None else self._expanded(f, N))(*args), f)
@@ -604,8 +639,8 @@ class StructuredGaussNewton:
         self._pbuf[:] = p  # fixed for the whole solve: written once
         lam, newton, last_step, last_full = 0.0, self.newton, np.inf, np.inf
         # two output buffers: the current point's, and the one a trial point writes
-        slot = 0
-        f, g, dirs = self._evaluate(x, lam, newton, slot)
+        slot, pair = 0, self._iteration(newton, lam)
+        f, g, dirs = self._evaluate(pair[slot], x, lam)
         if not np.isfinite(f):
             return x, False, "non-finite cost at the initial guess", 0, f, time.perf_counter() - t0
         status, steps = "max_iter", 0
@@ -622,8 +657,8 @@ class StructuredGaussNewton:
             if decrease != decrease and not (lam or self._ridge):
                 # a singular block: from now on with the ridge (see _damp)
                 self._ridge = True
-                slot = 1 - slot
-                f, g, dirs = self._evaluate(x, lam, newton, slot)
+                slot, pair = 1 - slot, self._iteration(newton, lam)
+                f, g, dirs = self._evaluate(pair[slot], x, lam)
                 continue
             size = np.abs(move).max()
             # contraction rate of unbounded iterations (with bounds, a tiny step can
@@ -643,7 +678,7 @@ class StructuredGaussNewton:
             new = None
             for d in dirs:
                 slope = -decrease if d is d_gn and not bounded else None
-                new = self._line_search(x, f, g, d, lam, newton, 1 - slot, slope)
+                new = self._line_search(x, f, g, d, pair[1 - slot], lam, slope)
                 if new is not None:
                     break
             if new is None:
@@ -654,8 +689,8 @@ class StructuredGaussNewton:
                     if lam > 1e10:
                         status = "line search failed"
                         break
-                slot = 1 - slot
-                f, g, dirs = self._evaluate(x, lam, newton, slot)
+                slot, pair = 1 - slot, self._iteration(newton, lam)
+                f, g, dirs = self._evaluate(pair[slot], x, lam)
                 last_full = np.inf
                 continue
             xn, alpha, evaluated = new
@@ -665,21 +700,21 @@ class StructuredGaussNewton:
             last_full = step if alpha == 1.0 and not lam else np.inf  # for the rate rho
             if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0
-                evaluated = None
+                evaluated, pair = None, self._iteration(newton, lam)
             if switch:
-                newton, evaluated = True, None
+                newton, evaluated, pair = True, None, self._iteration(True, lam)
             slot = 1 - slot  # the trial's buffer, or a new evaluation there
             f, g, dirs = evaluated if evaluated is not None else \
-                self._evaluate(x, lam, newton, slot)
+                self._evaluate(pair[slot], x, lam)
         ok = status == "ok" and bool(np.isfinite(x).all()) and np.isfinite(f)
         return x, ok, status, steps, f, time.perf_counter() - t0
 
-    def _line_search(self, x, f, g, d, lam, newton, slot, slope=None):
+    def _line_search(self, x, f, g, d, fun, lam, slope=None):
         """Armijo backtracking along the projection arc.
 
-        The full step is tried with a whole iteration evaluation into the
-        output buffer ``slot`` (reused by the next iteration when accepted),
-        shorter ones with the cost only. ``slope``: ``g @ d`` if known.
+        The full step is tried with a whole iteration evaluation by ``fun``
+        (reused by the next iteration when accepted), shorter ones with the
+        cost only. ``slope``: ``g @ d`` if known.
         Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
         """
         proj, bounded = self._project, self._bounded
@@ -687,8 +722,8 @@ class StructuredGaussNewton:
             slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
         if not slope < 0.0:
             return None  # not a descent direction (or not finite)
-        xn = proj(x + d)
-        ev = self._evaluate(xn, lam, newton, slot)
+        xn = proj(x + d) if bounded else x + d
+        ev = self._evaluate(fun, xn, lam)
         # Armijo test; the gradient of f is 2 g
         gd = float(g @ (xn - x)) if bounded else slope
         if ev[0] <= f + 2e-4 * gd:  # False for NaN
@@ -704,10 +739,13 @@ class StructuredGaussNewton:
             alpha *= 0.5
         return None
 
-    def _evaluate(self, x, lam, newton, slot):
-        """Cost, gradient and direction(s) at ``x`` (the parameters already in place),
-        written to output buffer ``slot`` (0 or 1) and returned as views of it."""
-        fun = self._function(_ITERATIONS[newton, bool(lam) or self._ridge])[slot]
+    def _iteration(self, newton, lam):
+        """The pair of iteration functions (two output buffers) for the current state."""
+        return self._function(_ITERATIONS[newton, bool(lam) or self._ridge])
+
+    def _evaluate(self, fun, x, lam):
+        """Cost, gradient and direction(s) at ``x`` by the iteration function ``fun``
+        (the parameters already in place), as views of its output buffers."""
         self._xbuf[:] = x
         self._lbuf[0] = lam
         out = fun.evaluate()
