@@ -116,8 +116,9 @@ class FullInformation(Estimator):
     The default solver is the structure-exploiting projected Gauss-Newton/
     Newton method of :mod:`estim.estimators.gauss_newton`: each iteration is
     a block-tridiagonal solve (a Riccati recursion on the linearised model),
-    :math:`O(T n_x^3)`; long records use mapped stage functions and scans so
-    the cost stays linear in :math:`T`. ``solver="ipopt"`` (or ``"fatrop"``,
+    :math:`O(T n_x^3)`, evaluated by one expanded SX graph (records beyond
+    4096 samples: expanded chunks called in a loop), so the cost is linear in
+    :math:`T`. ``solver="ipopt"`` (or ``"fatrop"``,
     ``"sqp"``) solves the same problem with CasADi's NLP solvers.
 
     Parameters

@@ -82,8 +82,9 @@ class MHE(Estimator):
         ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``. For
         ``"gauss-newton"``: ``max_iter``, ``xtol``, ``newton`` (exact-Hessian
         steps from the start), ``jit`` (compile to machine code; needs a C
-        compiler) and ``mode`` (``"unrolled"`` graph, ``"mapped"`` stages and
-        scans, or ``"auto"``: unrolled up to 128 slots).
+        compiler) and ``mode`` (``"unrolled"``: one expanded graph,
+        ``"mapped"``: expanded chunks of slots called in a loop, or
+        ``"auto"``: unrolled up to 4096 slots).
 
     Attributes
     ----------
