@@ -33,8 +33,9 @@ timings.)
   baseline at ``T = 1000`` (skipped if one solve takes over 10 s), to show
   how the time grows with ``T``. ``T = 10000`` runs on the mapped graph
   (``mode="auto"`` beyond 4096 samples).
-* (c) ``--jit``: gauss-newton with ``solver_options={"jit": True, "mode":
-  "mapped"}`` at ``T = 100`` (compiles C code for about 15 s).
+* (c) ``--jit``: gauss-newton with ``solver_options={"jit": True}`` at every
+  ``T`` (the mapped graph of 16-sample chunks compiled to C by the system
+  compiler, 1-3 s to build).
 
 Each timed call runs with the garbage collector off (as ``timeit`` does),
 after one untimed call that builds the solver. OpEn's figure for the seed's
@@ -225,8 +226,8 @@ def main(argv: list[str] | None = None) -> list[Row]:
     parser.add_argument("--repeats", type=int, default=50,
                         help="timed calls of gauss-newton at T = 100 (fewer for the slower rows)")
     parser.add_argument("--jit", action="store_true",
-                        help="add gauss-newton with jit=True, mode='mapped' at T = 100 "
-                             "(needs a C compiler; about 15 s to compile)")
+                        help="add gauss-newton with jit=True at every T "
+                             "(needs a C compiler; 1-3 s to compile)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
@@ -256,8 +257,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
     rows.append(mapped)
     jit_row = None
     if args.jit:
-        jit_row = run_estim(y100, "estim gauss-newton (jit mapped)", "gauss-newton",
-                            {"jit": True, "mode": "mapped"}, R)
+        jit_row = run_estim(y100, "estim gauss-newton (jit)", "gauss-newton", {"jit": True}, R)
         rows.append(jit_row)
     ipopt100 = run_estim(y100, "estim ipopt", "ipopt", None, max(3, R // 4))
     rows.append(ipopt100)
@@ -266,6 +266,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
 
     # (b) T = 1000 and 10000
     growth: dict[int, Row] = {100: gn100}
+    jit_growth: dict[int, Row] = {100: jit_row} if jit_row is not None else {}
     base1000 = None
     for T, reps in ((1000, max(3, R // 2)), (10000, max(3, R // 5))):
         xT, yT = record(T)
@@ -273,6 +274,10 @@ def main(argv: list[str] | None = None) -> list[Row]:
         row = run_estim(yT, "estim gauss-newton (auto)", "gauss-newton", None, reps)
         ref[T] = growth[T] = row
         rows.append(row)
+        if args.jit:
+            jit_growth[T] = run_estim(yT, "estim gauss-newton (jit)", "gauss-newton",
+                                      {"jit": True}, reps)
+            rows.append(jit_growth[T])
         if T == 1000:
             base1000 = run_baseline(yT, max(3, R // 4), limit=BASELINE_LIMIT_S)
             rows.append(base1000)
@@ -326,12 +331,15 @@ def main(argv: list[str] | None = None) -> list[Row]:
     if base1000 is not None:
         print(f"  at T = 1000: plain nlpsol Ipopt / gauss-newton: "
               f"{base1000.seconds / growth[1000].seconds:.1f}×")
-    print("Growth with T (gauss-newton auto):")
-    for a, b in ((100, 1000), (1000, 10000)):
-        ra, rb = growth[a], growth[b]
-        print(f"  T = {b} / T = {a}: {rb.seconds / ra.seconds:.1f}× the time for {b // a}× the "
-              f"samples ({ra.us_per_sample:.1f} -> {rb.us_per_sample:.1f} µs/sample, "
-              f"iterations {ra.iterations} -> {rb.iterations})")
+    for label, series in (("gauss-newton auto", growth), ("gauss-newton jit", jit_growth)):
+        if not series:
+            continue
+        print(f"Growth with T ({label}):")
+        for a, b in ((100, 1000), (1000, 10000)):
+            ra, rb = series[a], series[b]
+            print(f"  T = {b} / T = {a}: {rb.seconds / ra.seconds:.1f}× the time for {b // a}× "
+                  f"the samples ({ra.us_per_sample:.1f} -> {rb.us_per_sample:.1f} µs/sample, "
+                  f"iterations {ra.iterations} -> {rb.iterations})")
 
     # goals
     best = min([gn100, mapped] + ([jit_row] if jit_row is not None else []),

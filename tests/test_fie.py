@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -112,6 +114,18 @@ def test_mapped_and_unrolled_modes_agree():
         rlog.y[300:430]) for mode in ("unrolled", "mapped")]
     assert (fits[0].x <= 1e-12).any()  # a bound is active
     np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-8)
+
+
+@pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
+                    reason="jit needs a C compiler")
+def test_jit_compiled_graph_gives_the_same_fit():
+    log = _lorenz_record(40, seed=2)
+    m = estim.models.lorenz()
+    fits = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3), solver_options=opts).fit(
+        log.y) for opts in ({}, {"jit": True})]
+    assert fits[1].success
+    np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-9)
+    np.testing.assert_allclose(fits[0].P_last, fits[1].P_last, rtol=1e-9)
 
 
 def test_singular_system_falls_back_to_the_ridge():
