@@ -114,7 +114,7 @@ def _forward(L, B) -> ca.SX:
 
 
 def _backward(L, b) -> ca.SX:
-    """:math:`L^{-\top} b` for unit lower triangular ``L`` (nested list or SX) and a vector."""
+    r""":math:`L^{-\top} b` for unit lower triangular ``L`` (nested list or SX) and a vector."""
     n = len(L) if isinstance(L, list) else L.shape[0]
     x = [None] * n
     for i in range(n - 1, -1, -1):
@@ -124,7 +124,7 @@ def _backward(L, b) -> ca.SX:
 
 
 def _ldl_solve(L, inv_D, B) -> ca.SX:
-    """Solve :math:`L D L^\top X = B` column by column (``B`` an SX matrix)."""
+    r"""Solve :math:`L D L^\top X = B` column by column (``B`` an SX matrix)."""
     Z = ca.diag(ca.vertcat(*inv_D)) @ _forward(L, B)
     return ca.horzcat(*[_backward(L, Z[:, c]) for c in range(B.shape[1])])
 
