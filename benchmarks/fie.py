@@ -35,7 +35,7 @@ timings.)
   (``mode="auto"`` beyond 4096 samples).
 * (c) ``--jit``: gauss-newton with ``solver_options={"jit": True}`` at every
   ``T`` (the mapped graph of 16-sample chunks compiled to C by the system
-  compiler, 1-3 s to build).
+  compiler, 2-4 s to build).
 
 Each timed call runs with the garbage collector off (as ``timeit`` does),
 after one untimed call that builds the solver. OpEn's figure for the seed's
@@ -227,7 +227,7 @@ def main(argv: list[str] | None = None) -> list[Row]:
                         help="timed calls of gauss-newton at T = 100 (fewer for the slower rows)")
     parser.add_argument("--jit", action="store_true",
                         help="add gauss-newton with jit=True at every T "
-                             "(needs a C compiler; 1-3 s to compile)")
+                             "(needs a C compiler; 2-4 s to compile)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")

@@ -66,7 +66,7 @@ _ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "ne
 #: for a three-state model), and maps beyond.
 AUTO_UNROLL_SLOTS = 4096
 #: ``mode="mapped"`` expands chunks of this many slots (with ``jit``: fewer, compiled in
-#: about a second instead of ten, and as fast).
+#: about two seconds instead of ten, and as fast).
 CHUNK_SLOTS = 64
 JIT_CHUNK_SLOTS = 16
 
@@ -426,7 +426,7 @@ class StructuredGaussNewton:
     newton : bool
         Start with Newton steps (exact Hessian blocks) instead of Gauss-Newton.
     jit : bool
-        Compile the functions to C (needs a C compiler; about a second per
+        Compile the functions to C (needs a C compiler; about two seconds per
         function with the mapped graph, far longer for an unrolled one).
     mode : {"auto", "unrolled", "mapped"}
         One flat expanded graph, mapped calls of expanded chunks, or
@@ -512,7 +512,7 @@ class StructuredGaussNewton:
                               for Db, Eb in pairs]
                 outs = [cost, gvec] + directions
         opts = {"jit": True, "compiler": "shell",
-                "jit_options": {"flags": ["-O1"], "verbose": False}} \
+                "jit_options": {"flags": ["-O2"], "verbose": False}} \
             if self.jit and key != "cov" else {}
         name = f"gn_{key}" + ("_complete" if complete else "")
         if self.mode == "unrolled":
