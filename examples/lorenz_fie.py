@@ -34,7 +34,7 @@ load and with the package version):
 solver              ms / fit    iterations  cost        RMSE
 ==================  ==========  ==========  ==========  =======
 gauss-newton        0.30        6           2.7738921   0.0191
-ipopt               9.4         17          2.7738921   0.0191
+ipopt               7.9         17          2.7738921   0.0191
 OpEn (seed, Rust)   2.73 *      65 *        —           —
 ==================  ==========  ==========  ==========  =======
 
@@ -57,10 +57,10 @@ machine and its own noise draw: a peer figure, not measured here.
   0.07): the dynamics tie the 100 samples together. Without :math:`y_{99}`
   (the seed's problem) the cost is 2.7503973 and only the last few states
   move (by at most 0.015, at :math:`t = 99`).
-* estim's Ipopt path is about 1.4 times slower than a plain ``nlpsol`` of
-  the same problem (about 6.5 ms, ``benchmarks/fie.py``) with the same 17
-  iterations: its NLP is MHE's window, which carries the arrival weights and
-  the per-slot measurement weights as parameters.
+* estim's Ipopt path is about 1.2 times slower than a plain ``nlpsol`` of
+  the same problem (about 6.6 ms, ``benchmarks/fie.py``) with the same 17
+  iterations: its NLP is MHE's window, which carries the per-slot measurement
+  weights as parameters (zero rows mark missing outputs).
 
 The figure (``--out``, default ``lorenz_fie.png``) shows the true and the
 estimated trajectory in 3-D and the three outputs against time (measured,

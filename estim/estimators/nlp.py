@@ -161,6 +161,9 @@ class LeastSquaresNLP:
         if solver == "gauss-newton":
             self.reset()
             return
+        if self.full:  # every slot active, arrival on the first: constants, not parameters
+            a = ca.DM([1.0] + [0.0] * (N - 1))
+            part["omega"] = ca.DM.ones(max(N - 1, 0))
         if solver == "fatrop":
             self._build_fatrop(p, Y, U, Up, part, a, xbar, W0, WQd, pm, options)
             return
