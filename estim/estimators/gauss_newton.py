@@ -30,12 +30,14 @@ variables, outward gradient on the active ones.
 
 Everything in one iteration (residuals, Jacobian blocks, active set,
 elimination) is one compiled CasADi Function, the cost for the line search
-another. They are written with the per-slot pieces mapped over the slots and
-the elimination as two scans (``mapaccum``), then expanded into one flat SX
-graph (``mode="unrolled"``: building takes milliseconds per hundred slots,
-and the work per slot does not depend on ``N``) or kept as mapped calls
-(``mode="mapped"``: less memory for very long records, about twice the time
-per slot). For a linear model one iteration is exact, and
+another. An iteration is two scans (``mapaccum``) over the slots: a forward
+one whose step does all the work of one slot (its residuals and blocks, the
+process term to the next slot, masking, damping and one elimination step)
+and a backward one for the direction. The graph is either expanded into one
+flat SX graph (``mode="unrolled"``: building takes milliseconds per hundred
+slots, the work per slot does not depend on ``N``) or calls expanded chunks
+of slots in a loop (``mode="mapped"``: memory and build time bounded for very
+long records). For a linear model one iteration is exact, and
 :math:`S_{N-1}^{-1}` is then the covariance of the last state.
 
 References
@@ -164,24 +166,14 @@ def _damp(D, lam) -> ca.SX:
     return D + ca.diag(1e-12 * ca.fmax(ca.mmax(dj), 1e-300) + lam * dj)
 
 
-def _mask_row(D, E, g, free, free_next):
-    """Masked block row: rows/columns of fixed variables become the identity.
-
-    Elementwise: ``Dm = (f f^T) * D + diag(1 - f)``, ``Em = (f f_next^T) * E``,
-    ``z = -f * g``.
-    """
-    return (free @ free.T) * D + ca.diag(1 - free), (free @ free_next.T) * E, -free * g
-
-
 class _StageFunctions:
     """Per-slot pieces of the Gauss-Newton/Newton system as SX Functions.
 
     ``meas``: arrival (weight ``a``) and measurement terms of one slot;
     ``trans``: the process term linking two slots (``*_newton``: with the
-    exact Hessian blocks as well, ``*_cost``: the cost alone); ``damp``:
-    ridge and Marquardt damping of a diagonal block; ``mask``: the active-set
-    masking of one block row; ``fwd``/``last``/``bwd``: one step of the
-    block elimination; ``inverse``: a symmetric block inverse.
+    exact Hessian blocks as well, ``*_cost``: the cost alone);
+    ``fwd``/``last``/``bwd``: one step of the block elimination; ``inverse``:
+    a symmetric block inverse; :meth:`fused`: one slot of the forward pass.
     """
 
     def __init__(self, model: Model, WQ: np.ndarray, diagonal_R: bool = False):
@@ -231,13 +223,7 @@ class _StageFunctions:
         self.trans_newton = ca.Function("trans_newton", targs, gn_blocks + [
             Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + rest)
         self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
-        # damping and masking of one block row
-        Dj, Ej = ca.SX.sym("D", nx, nx), ca.SX.sym("E", nx, nx)
-        gj, lam = ca.SX.sym("g", nx), ca.SX.sym("lam")
-        fj, fn = ca.SX.sym("free", nx), ca.SX.sym("free_next", nx)
-        self.damp = ca.Function("damp", [Dj, lam], [_damp(Dj, lam)])
-        self.mask = ca.Function("mask", [Dj, Ej, gj, fj, fn], list(_mask_row(Dj, Ej, gj, fj, fn)))
-        self.diag = ca.Function("diag", [Dj], [ca.diag(Dj)])
+        Dj = ca.SX.sym("D", nx, nx)
         # one elimination step: with S_{j-1} = L D L^T factored once,
         # V = L^{-1} [E_{j-1}, z~_{j-1}] and Vs = D^{-1} V give
         # E^T S^{-1} E = V_E^T Vs_E and E^T S^{-1} z~ = V_E^T Vs_z; the backward pass
@@ -260,6 +246,81 @@ class _StageFunctions:
         self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [_backward(Lj, vj - Vj @ dn)])
         inv = _sym_solve(Dj, ca.SX.eye(nx))
         self.inverse = ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
+        self.nx, self.nu, self.ny = nx, nu, ny
+        self._fused: dict[tuple, ca.Function] = {}
+
+    def fused(self, newton: bool, damped: bool, bounds=None) -> ca.Function:
+        r"""One slot of the forward pass, all in one SX function.
+
+        The slot's arrival and measurement terms, the process term to the next
+        slot (times ``link``, 0 for the last slot), the blocks
+        :math:`D_j = D^m_j + D^{aa}_j + D^{bb}_{j-1}` and gradient, the
+        active-set mask (``bounds = (lo, hi)`` per state), Marquardt damping,
+        and one elimination step, for the Gauss-Newton blocks (and the exact
+        Hessian ones with ``newton``). What the next slot needs is carried:
+        per chain ``S_j, z~_j`` and the process term's ``D^{bb}_j, E_j``, then
+        its gradient ``g^b_j`` and (with bounds) the free mask. Outputs: the
+        carries, then per chain the elimination's ``D^{-1} V_E, D^{-1} V_z, L``,
+        then the gradient, the cost and (with bounds) the free mask and
+        :math:`\mathrm{diag}\,D_j`.
+        """
+        key = (newton, damped, None if bounds is None else
+               tuple(np.concatenate(bounds).tolist()))
+        if key in self._fused:
+            return self._fused[key]
+        nx, nu, ny = self.nx, self.nu, self.ny
+        sym = ca.SX.sym
+        chains = 2 if newton else 1
+        carry = []
+        for c in range(chains):
+            carry += [sym(f"S{c}", nx, nx), sym(f"z{c}", nx), sym(f"Dbb{c}", nx, nx),
+                      sym(f"E{c}", nx, nx)]
+        gb_prev = sym("gb", nx)
+        carry.append(gb_prev)
+        if bounds is not None:
+            f_prev = sym("free_prev", nx)
+            carry.append(f_prev)
+        x, xn, y, wy = sym("x", nx), sym("x_next", nx), sym("y", ny), sym("wy", ny * ny)
+        up, a, u, om = sym("up", nu), sym("a"), sym("u", nu), sym("omega")
+        link, xbar, w0, a0 = sym("link"), sym("xbar", nx), sym("w0", nx * nx), sym("A0", nx * nx)
+        lam = sym("lam")
+        margs = [x, y, wy, up, a, xbar, w0, a0]
+        if newton:
+            Dm, Dmh, gm, cm = self.meas_newton(*margs)
+            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self.trans_newton(x, xn, u, om)
+            blocks = [(Dm, Daa, Dbb, Eab), (Dmh, Haa, Hbb, Hab)]
+        else:
+            Dm, gm, cm = self.meas(*margs)
+            Daa, Dbb, Eab, ga, gb, ct = self.trans(x, xn, u, om)
+            blocks = [(Dm, Daa, Dbb, Eab)]
+        g = gm + link * ga + gb_prev
+        cost = cm + link * ct
+        out_carry, per_chain = [], []
+        D_gn = blocks[0][0] + link * blocks[0][1] + carry[2]
+        if bounds is not None:
+            lo, hi = ca.DM(bounds[0]), ca.DM(bounds[1])
+            free = 1 - ca.logic_or(ca.logic_and(x <= lo, g > 0), ca.logic_and(x >= hi, g < 0))
+        for c, (Dmc, Daac, Dbbc, Eabc) in enumerate(blocks):
+            S_prev, z_prev, Dbb_prev, E_prev = carry[4 * c:4 * c + 4]
+            D = Dmc + link * Daac + Dbb_prev
+            if damped:
+                D = _damp(D, lam)
+            z, Ep = -g, E_prev
+            if bounds is not None:
+                D, Ep, z = (free @ free.T) * D + ca.diag(1 - free), (f_prev @ free.T) * E_prev, \
+                    -free * g
+            S, zt, Vs, vs, L = self.fwd(S_prev, z_prev, D, Ep, z)
+            out_carry += [S, zt, link * Dbbc, link * Eabc]
+            per_chain += [Vs, vs, L]
+        out_carry.append(link * gb)
+        extra = []
+        if bounds is not None:
+            out_carry.append(free)
+            extra = [free, ca.diag(D_gn)]
+        ins = carry + [x, xn, y, wy, up, a, u, om, link, xbar, w0, a0] + ([lam] if damped else [])
+        fun = ca.Function("slot", ins, out_carry + per_chain + [g, cost] + extra)
+        self._fused[key] = fun
+        return fun
 
 
 def _reverse_cols(M, N, width):
@@ -299,15 +360,17 @@ class _Slots:
             self._cache[key] = g.expand()
         return self._cache[key]
 
-    def _chunk_scan(self, f, K, n_acc):
-        """Scan of ``K`` slots returning the last states first (for a scan of chunks)."""
-        key = (id(f), K, n_acc, "chunk")
+    def _chunk_scan(self, f, K, n_acc, last_only):
+        """Scan of ``K`` slots returning the last states first (for a scan of chunks),
+        then the state sequences (unless ``last_only``) and the other outputs."""
+        key = (id(f), K, n_acc, "chunk", last_only)
         if key not in self._cache:
             inner = self._expanded(f, K, n_acc)
             ins = [ca.SX.sym(f"i{i}", inner.sparsity_in(i)) for i in range(inner.n_in())]
             outs = self._outs(inner(*ins), inner)
             lasts = [outs[i][:, -f.size2_out(i):] for i in range(n_acc)]
-            self._cache[key] = ca.Function(f"{f.name()}_chunk", ins, lasts + outs)
+            self._cache[key] = ca.Function(f"{f.name()}_chunk", ins,
+                                           lasts + (outs[n_acc:] if last_only else outs))
         return self._cache[key]
 
     def _baked(self, f, consts: dict):
@@ -320,31 +383,60 @@ class _Slots:
                                                              if i not in consts], outs)
         return self._cache[key]
 
+    def _segments(self, f, N, args):
+        """Runs of slots over which the constant (DM) arguments do not change, as
+        ``[(lo, hi, {index: value})]``; None when nothing is to be folded (no chunks, no
+        constants, or more than a few runs)."""
+        consts = [i for i, a in enumerate(args) if isinstance(a, ca.DM)]
+        if self.chunk is None or not consts:
+            return None
+        blocks = {}
+        for i in consts:
+            c, a = f.size2_in(i), np.asarray(args[i])
+            blocks[i] = [a[:, j * c:(j + 1) * c] for j in range(N)] if a.shape[1] == c * N \
+                else [a] * N
+        cuts = [0] + [j for j in range(1, N)
+                      if any(not np.array_equal(b[j], b[j - 1]) for b in blocks.values())]
+        if len(cuts) > 4:  # full records: two or three runs
+            return None
+        return [(lo, hi, {i: ca.DM(b[lo]) for i, b in blocks.items()})
+                for lo, hi in zip(cuts, cuts[1:] + [N], strict=True)]
+
     def map(self, f, N, *args):
         """Like ``f.map(N)(*args)``, always a list of outputs.
 
         With chunks, constant arguments (DM) are folded into the expanded
         functions, over runs of slots where they do not change.
         """
-        K = self.chunk
-        consts = [i for i, a in enumerate(args) if isinstance(a, ca.DM)]
-        if K is not None and consts:
-            blocks = {}
-            for i in consts:
-                c, a = f.size2_in(i), np.asarray(args[i])
-                blocks[i] = [a[:, j * c:(j + 1) * c] for j in range(N)] if a.shape[1] == c * N \
-                    else [a] * N
-            cuts = [0] + [j for j in range(1, N)
-                          if any(not np.array_equal(b[j], b[j - 1]) for b in blocks.values())]
-        if K is not None and consts and len(cuts) <= 4:  # a few runs (full records: two)
-            pieces = []
-            for lo, hi in zip(cuts, cuts[1:] + [N], strict=True):
-                g = self._baked(f, {i: ca.DM(b[lo]) for i, b in blocks.items()})
-                sub = [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
-                       if i not in blocks]
-                pieces.append(self._map_plain(g, hi - lo, sub))
-            return [ca.horzcat(*col) for col in zip(*pieces, strict=True)]
-        return self._map_plain(f, N, args)
+        segments = self._segments(f, N, args)
+        if segments is None:
+            return self._map_plain(f, N, args)
+        pieces = [self._map_plain(self._baked(f, c), hi - lo,
+                                  [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
+                                   if i not in c])
+                  for lo, hi, c in segments]
+        return [ca.horzcat(*col) for col in zip(*pieces, strict=True)]
+
+    def scan(self, f, N, n_acc, *args, last_only=False):
+        """Like ``f.mapaccum(N, n_acc)(*args)``, always a list of outputs (constants
+        folded as in :meth:`map`; the initial states must not be DM). With
+        ``last_only`` the state outputs are the last states only (chunks then
+        do not write every intermediate state)."""
+        segments = self._segments(f, N, args)
+        if segments is None:
+            return self._scan_plain(f, N, n_acc, args, last_only)
+        state, out = list(args[:n_acc]), None
+        for lo, hi, c in segments:
+            seq = [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
+                   if i not in c and i >= n_acc]
+            res = self._scan_plain(self._baked(f, c), hi - lo, n_acc, state + seq, last_only)
+            state = [res[i][:, -f.size2_out(i):] for i in range(n_acc)]
+            if out is None:
+                out = res
+            else:
+                out = [b if last_only and i < n_acc else ca.horzcat(a, b)
+                       for i, (a, b) in enumerate(zip(out, res, strict=True))]
+        return out
 
     def _map_plain(self, f, N, args):
         K = self.chunk
@@ -359,47 +451,34 @@ class _Slots:
             outs = [ca.horzcat(a, b) for a, b in zip(outs, rest, strict=True)]
         return outs
 
-    def scan(self, f, N, n_acc, *args):
-        """Like ``f.mapaccum(N, n_acc)(*args)``, always a list of outputs."""
+    def _scan_plain(self, f, N, n_acc, args, last_only=False):
         K = self.chunk
+
+        def lasts(outs):
+            return [o[:, -f.size2_out(i):] if i < n_acc else o for i, o in enumerate(outs)]
+
         if K is None or N <= K:
             g = f.mapaccum(f"{f.name()}_scan", N, n_acc) if K is None else \
                 self._expanded(f, N, n_acc)
-            return self._outs(g(*args), f)
+            out = self._outs(g(*args), f)
+            return lasts(out) if last_only else out
         M, R = divmod(N, K)
         seq = [self._cols(f, i, a, N, 0, M * K) for i, a in enumerate(args)][n_acc:]
-        chunks = self._chunk_scan(f, K, n_acc).mapaccum(f"{f.name()}_chunks", M, n_acc)
-        # the chunks' last states (first outputs) are in the whole sequences too
-        out = self._outs(chunks(*args[:n_acc], *seq), chunks)[n_acc:]
+        chunks = self._chunk_scan(f, K, n_acc, last_only).mapaccum(f"{f.name()}_chunks", M,
+                                                                   n_acc)
+        out = self._outs(chunks(*args[:n_acc], *seq), chunks)
+        # the chunks' last states come first; with every state, they are in the sequences
+        out = lasts(out) if last_only else out[n_acc:]
         if R:
             init = [out[i][:, -f.size2_out(i):] for i in range(n_acc)]
             seq = [self._cols(f, i, a, N, M * K, N) for i, a in enumerate(args)][n_acc:]
             rest = self._outs(self._expanded(f, R, n_acc)(*init, *seq), f)
-            out = [ca.horzcat(a, b) for a, b in zip(out, rest, strict=True)]
+            if last_only:
+                out = [b[:, -f.size2_out(i):] if i < n_acc else ca.horzcat(a, b)
+                       for i, (a, b) in enumerate(zip(out, rest, strict=True))]
+            else:
+                out = [ca.horzcat(a, b) for a, b in zip(out, rest, strict=True)]
         return out
-
-
-def _scan_solve(st, slots, D, E, z, N, nx):
-    """Block-tridiagonal solve: a forward scan factoring the Schur complements and
-    a backward one applying what it kept."""
-    if N == 1:
-        return st.last(D, z)
-    Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
-    S, zt, Vs, vs, L = slots.scan(st.fwd, N, 2, ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep, z)
-    # what step j returns besides S_j, z~_j belongs to slot j - 1
-    d_last = st.last(S[:, (N - 1) * nx:], zt[:, N - 1])
-    d_rev = slots.scan(st.bwd, N - 1, 1, d_last, _reverse_cols(Vs[:, nx:], N - 1, nx),
-                       _reverse_cols(vs[:, 1:], N - 1, 1), _reverse_cols(L[:, nx:], N - 1, nx))[0]
-    return ca.horzcat(_reverse_cols(d_rev, N - 1, 1), d_last)
-
-
-def _last_inverse(st, slots, D, E, N, nx):
-    """Inverse of the last Schur complement of ``J^T J`` (covariance of the last state)."""
-    if N == 1:
-        return st.inverse(D)
-    Ep = ca.horzcat(ca.MX.zeros(nx, nx), E[:, :(N - 1) * nx])
-    S = slots.scan(st.fwd, N, 2, ca.MX.eye(nx), ca.MX.zeros(nx, 1), D, Ep, ca.MX.zeros(nx, N))[0]
-    return st.inverse(S[:, (N - 1) * nx:])
 
 
 class StructuredGaussNewton:
@@ -499,18 +578,18 @@ class StructuredGaussNewton:
         damped, newton = key.endswith("_lam"), key.startswith("newton")
         if key == "cost":
             ins, outs = [xv, p], [self._cost_graph(X, q, N)]
+        elif key == "cov":
+            S_last = self._forward(X, q, N, lam, False, False, None)[0][0][0]
+            ins, outs = [xv, p], [st.inverse(S_last)]
         else:
-            D, Dh, E, Eh, g, cost = self._blocks(X, q, N, newton)
-            if key == "cov":
-                ins, outs = [xv, p], [_last_inverse(st, self._slots, D, E, N, nx)]
-            else:
-                ins = [xv, p] + ([lam] if damped else [])
-                gvec = ca.vec(g)
-                free = self._free(xv, gvec)
-                pairs = ((Dh, Eh), (D, E)) if newton else ((D, E),)
-                directions = [self._solve_graph(Db, Eb, D, g, gvec, free, lam, damped, N)
-                              for Db, Eb in pairs]
-                outs = [cost, gvec] + directions
+            ins = [xv, p] + ([lam] if damped else [])
+            bounds = (self.lower[:nx], self.upper[:nx]) if self._bounded else None
+            directions, g, cost, free, diag = self._forward(X, q, N, lam, newton, damped,
+                                                            bounds, solve=True)
+            if bounds is not None:  # fixed variables: a step scaled by the GN diagonal
+                scaled = -g / (diag + 1e-300)
+                directions = [ca.if_else(1 - free, scaled, d) for d in directions]
+            outs = [cost, g] + directions[::-1]  # Newton's first, Gauss-Newton's last
         opts = {"jit": True, "compiler": "shell",
                 "jit_options": {"flags": ["-O2"], "verbose": False}} \
             if self.jit and key != "cov" else {}
@@ -524,21 +603,53 @@ class StructuredGaussNewton:
             return FastFunction(fun, bufs)
         return FastFunction(fun, bufs), FastFunction(fun, bufs)  # two output buffers
 
-    def _solve_graph(self, Db, E, D, g, gvec, free, lam, damped, N):
-        """Projected (Gauss-)Newton direction for the blocks ``Db``, ``E`` (``D``: the
-        Gauss-Newton diagonal blocks, which scale the steps of fixed variables)."""
-        st, nx = self._stages, self.model.nx
-        slots = self._slots
-        Dd = slots.map(st.damp, N, Db, lam)[0] if damped else Db
-        if not self._bounded:
-            return ca.vec(_scan_solve(st, slots, Dd, E, -g, N, nx))
-        Fm = ca.reshape(free, nx, N)
-        Fnext = ca.horzcat(Fm[:, 1:], ca.MX.zeros(nx, 1))
-        Dm, Em, z = slots.map(st.mask, N, Dd, E, g, Fm, Fnext)
-        eliminated = ca.vec(_scan_solve(st, slots, Dm, Em, z, N, nx))
-        # fixed variables take a gradient step scaled by the Gauss-Newton diagonal
-        diag = ca.vec(slots.map(st.diag, N, D)[0])
-        return ca.if_else(1 - free, -gvec / (diag + 1e-300), eliminated)
+    def _forward(self, X, q, N, lam, newton, damped, bounds, solve=False):
+        """The fused forward scan over the slots (see :meth:`_StageFunctions.fused`).
+
+        Returns ``(chains, g, cost, free, diag)``: per chain (Gauss-Newton, then
+        Newton's) the last Schur complement and reduced right-hand side, or with
+        ``solve`` the direction ``vec(d)`` from the backward scan; the gradient
+        ``vec(g)``, the total cost, and with bounds ``vec(free)`` and the
+        Gauss-Newton diagonal.
+        """
+        st, nx, slots = self._stages, self.model.nx, self._slots
+        step = st.fused(newton, damped, bounds)
+        chains = 2 if newton else 1
+        init = []
+        for _ in range(chains):
+            init += [ca.MX.eye(nx), ca.MX.zeros(nx, 1), ca.MX.zeros(nx, nx), ca.MX.zeros(nx, nx)]
+        init.append(ca.MX.zeros(nx, 1))
+        if bounds is not None:
+            init.append(ca.MX.ones(nx, 1))
+        n_carry = len(init)
+        om = q["omega"]
+        om = ca.horzcat(om, ca.DM.zeros(1, 1) if isinstance(om, ca.DM) else ca.MX.zeros(1, 1))
+        link = ca.DM([[1.0] * (N - 1) + [0.0]])  # the last slot has no process term
+        x_next = ca.horzcat(X[:, 1:], X[:, N - 1:])
+        args = init + [X, x_next, q["Y"], q["WY"], q["Up"], q["a"], q["U"], om, link, q["xbar"],
+                       q["W0"], q["A0"]] + ([lam] if damped else [])
+        outs = slots.scan(step, N, n_carry, *args, last_only=True)
+        carries, rest = outs[:n_carry], outs[n_carry:]
+        g, cost = rest[3 * chains], ca.sum2(rest[3 * chains + 1])
+        free, diag = (ca.vec(rest[3 * chains + 2]), ca.vec(rest[3 * chains + 3])) \
+            if bounds is not None else (None, None)
+        results = []
+        for c in range(chains):
+            S_last, z_last = carries[4 * c], carries[4 * c + 1]
+            if not solve:
+                results.append((S_last, z_last))
+                continue
+            Vs, vs, L = rest[3 * c:3 * c + 3]
+            d_last = st.last(S_last, z_last)
+            if N == 1:
+                results.append(ca.vec(d_last))
+                continue
+            # what step j returns for the backward pass belongs to slot j - 1
+            d_rev = slots.scan(st.bwd, N - 1, 1, d_last, _reverse_cols(Vs[:, nx:], N - 1, nx),
+                               _reverse_cols(vs[:, 1:], N - 1, 1),
+                               _reverse_cols(L[:, nx:], N - 1, nx))[0]
+            results.append(ca.vec(ca.horzcat(_reverse_cols(d_rev, N - 1, 1), d_last)))
+        return results, ca.vec(g), cost, free, diag
 
     def _parts(self, p, N, complete):
         m = self.model
@@ -564,32 +675,6 @@ class StructuredGaussNewton:
     def _trans_args(self, X, q, N):
         return (X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1], q["omega"])
 
-    def _blocks(self, X, q, N, newton):
-        """Diagonal/off-diagonal blocks (Gauss-Newton and, for ``newton``, exact),
-        gradient blocks and cost, all ``(nx, N * nx)`` / ``(nx, N)``."""
-        st, nx = self._stages, self.model.nx
-        Z, zc = ca.MX.zeros(nx, nx), ca.MX.zeros(nx, 1)
-        if newton:
-            D, Dh, g, cost = self._slots.map(st.meas_newton, N, *self._meas_args(X, q))
-        else:
-            D, g, cost = self._slots.map(st.meas, N, *self._meas_args(X, q))
-            Dh = None
-        cost = ca.sum2(cost)
-        if N == 1:
-            return D, Dh, ca.MX.zeros(nx, nx), ca.MX.zeros(nx, nx), g, cost
-        if newton:
-            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self._slots.map(
-                st.trans_newton, N - 1, *self._trans_args(X, q, N))
-            Dh = Dh + ca.horzcat(Haa, Z) + ca.horzcat(Z, Hbb)
-            Eh = ca.horzcat(Hab, Z)
-        else:
-            Daa, Dbb, Eab, ga, gb, ct = self._slots.map(st.trans, N - 1,
-                                                        *self._trans_args(X, q, N))
-            Eh = None
-        D = D + ca.horzcat(Daa, Z) + ca.horzcat(Z, Dbb)
-        g = g + ca.horzcat(ga, zc) + ca.horzcat(zc, gb)
-        return D, Dh, ca.horzcat(Eab, Z), Eh, g, cost + ca.sum2(ct)
-
     def _cost_graph(self, X, q, N):
         st = self._stages
         cost = ca.sum2(self._slots.map(st.meas_cost, N, *self._meas_args(X, q))[0])
@@ -597,14 +682,6 @@ class StructuredGaussNewton:
             cost = cost + ca.sum2(self._slots.map(st.trans_cost, N - 1,
                                                   *self._trans_args(X, q, N))[0])
         return cost
-
-    def _free(self, xv, gvec):
-        """1 for free variables, 0 at a bound with the gradient (of f/2) pushing outward."""
-        if not self._bounded:
-            return ca.DM.ones(xv.shape[0])
-        lo, hi = ca.DM(self.lower), ca.DM(self.upper)
-        fixed = ca.logic_or(ca.logic_and(xv <= lo, gvec > 0), ca.logic_and(xv >= hi, gvec < 0))
-        return 1 - fixed
 
     # ------------------------------------------------------------------ solve
     def solve(self, X0: np.ndarray, p: np.ndarray, complete: bool = False):
