@@ -295,14 +295,14 @@ class _StageFunctions:
             blocks = [(Dm, Daa, Dbb, Eab)]
         g = gm + link * ga + gb_prev
         cost = cm + link * ct
-        out_carry, per_chain = [], []
-        D_gn = blocks[0][0] + link * blocks[0][1] + carry[2]
+        out_carry, per_chain, D_gn = [], [], None
         if bounds is not None:
             lo, hi = ca.DM(bounds[0]), ca.DM(bounds[1])
             free = 1 - ca.logic_or(ca.logic_and(x <= lo, g > 0), ca.logic_and(x >= hi, g < 0))
         for c, (Dmc, Daac, Dbbc, Eabc) in enumerate(blocks):
             S_prev, z_prev, Dbb_prev, E_prev = carry[4 * c:4 * c + 4]
             D = Dmc + link * Daac + Dbb_prev
+            D_gn = D if D_gn is None else D_gn  # scales the steps of fixed variables
             if damped:
                 D = _damp(D, lam)
             z, Ep = -g, E_prev
@@ -492,7 +492,7 @@ class StructuredGaussNewton:
     WQ : (nx, nx) array
         Process-noise weight factor.
     lower, upper : (N * nx,) arrays
-        Bounds of ``vec(X)`` (slot-major).
+        Bounds of ``vec(X)`` (slot-major), the same state bounds in every slot.
     slices : dict
         Parameter layout of :class:`~estim.estimators.nlp.LeastSquaresNLP`.
     n_params : int
@@ -537,6 +537,10 @@ class StructuredGaussNewton:
         self.model, self.N = model, N
         self.lower, self.upper = lower, upper
         bounded = bool(np.isfinite(lower).any() or np.isfinite(upper).any())
+        nx = model.nx
+        if not (np.array_equal(lower, np.tile(lower[:nx], N)) and
+                np.array_equal(upper, np.tile(upper[:nx], N))):
+            raise ValueError("lower and upper must repeat the same state bounds in every slot")
         self._bounded = bounded
         self._project = (lambda z: np.clip(z, lower, upper)) if bounded else (lambda z: z)
         self.max_iter, self.xtol = int(max_iter), float(xtol)
