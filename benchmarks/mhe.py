@@ -185,27 +185,39 @@ def _stats(solver) -> tuple[int, str]:
     return int(st.get("iter_count", 0)), status
 
 
-def replay_build_solve(p: Problem, rec: Record, Qinv, Rinv) -> Replay:
-    """One ``nlpsol`` per step: build the window NLP with the data as constants, solve cold."""
+def _replay(p: Problem, rec: Record, solve_window) -> Replay:
+    """Estimates and per-step times over the steps ``k >= N``, from zeros (no warm
+    start). ``solve_window(Y, U, Uprev, lbx, ubx) -> (solution, nlpsol)`` is what is
+    timed."""
     m, N = p.scenario.model, p.horizon
     T, nx = len(rec.y), m.nx
     lbx, ubx = np.tile(p.lower, N), np.tile(p.upper, N)
-    x0 = np.zeros(nx * N)
     x_hat = np.full((T, nx), np.nan)
     times, iters = np.empty(T - N), np.empty(T - N)
     statuses: Counter = Counter()
     for i, k in enumerate(range(N, T)):
         Y, U, Uprev = _window_data(rec, k, N)
         t0 = time.perf_counter()
-        X = ca.SX.sym("X", nx, N)
-        J = window_nlp(m, X, ca.DM(Y), ca.DM(U), ca.DM(Uprev), Qinv, Rinv)
-        solver = ca.nlpsol("mhe_window", "ipopt", {"x": ca.vec(X), "f": J}, BASELINE_OPTIONS)
-        sol = solver(x0=x0, lbx=lbx, ubx=ubx)
+        sol, solver = solve_window(Y, U, Uprev, lbx, ubx)
         times[i] = time.perf_counter() - t0
         iters[i], status = _stats(solver)
         statuses[status] += 1
         x_hat[k] = np.asarray(sol["x"]).reshape(N, nx)[-1]
     return Replay(x_hat, times, iters, statuses)
+
+
+def replay_build_solve(p: Problem, rec: Record, Qinv, Rinv) -> Replay:
+    """One ``nlpsol`` per step: build the window NLP with the data as constants, solve cold."""
+    m, N = p.scenario.model, p.horizon
+    x0 = np.zeros(m.nx * N)
+
+    def solve_window(Y, U, Uprev, lbx, ubx):
+        X = ca.SX.sym("X", m.nx, N)
+        J = window_nlp(m, X, ca.DM(Y), ca.DM(U), ca.DM(Uprev), Qinv, Rinv)
+        solver = ca.nlpsol("mhe_window", "ipopt", {"x": ca.vec(X), "f": J}, BASELINE_OPTIONS)
+        return solver(x0=x0, lbx=lbx, ubx=ubx), solver
+
+    return _replay(p, rec, solve_window)
 
 
 def build_parametric(p: Problem, Qinv, Rinv):
@@ -220,23 +232,13 @@ def build_parametric(p: Problem, Qinv, Rinv):
 
 def replay_parametric(p: Problem, rec: Record, solver) -> Replay:
     """The prebuilt NLP solved at every step from zeros (no warm start)."""
-    m, N = p.scenario.model, p.horizon
-    T, nx = len(rec.y), m.nx
-    lbx, ubx = np.tile(p.lower, N), np.tile(p.upper, N)
-    x0 = np.zeros(nx * N)
-    x_hat = np.full((T, nx), np.nan)
-    times, iters = np.empty(T - N), np.empty(T - N)
-    statuses: Counter = Counter()
-    for i, k in enumerate(range(N, T)):
-        Y, U, Uprev = _window_data(rec, k, N)
-        t0 = time.perf_counter()
+    x0 = np.zeros(p.scenario.model.nx * p.horizon)
+
+    def solve_window(Y, U, Uprev, lbx, ubx):
         par = np.concatenate([Y.ravel(order="F"), U.ravel(order="F"), Uprev.ravel(order="F")])
-        sol = solver(x0=x0, p=par, lbx=lbx, ubx=ubx)
-        times[i] = time.perf_counter() - t0
-        iters[i], status = _stats(solver)
-        statuses[status] += 1
-        x_hat[k] = np.asarray(sol["x"]).reshape(N, nx)[-1]
-    return Replay(x_hat, times, iters, statuses)
+        return solver(x0=x0, p=par, lbx=lbx, ubx=ubx), solver
+
+    return _replay(p, rec, solve_window)
 
 
 # -------------------------------------------------------------------------------- timing

@@ -73,6 +73,13 @@ CHUNK_SLOTS = 64
 JIT_CHUNK_SLOTS = 16
 
 
+def full_record_constants(N: int) -> tuple[ca.DM, ca.DM]:
+    """Window bookkeeping of a problem whose ``N`` slots all hold data: the arrival
+    weights ``a`` (on the first slot) and the process-term switches ``omega`` (all
+    on), as ``(1, N)`` and ``(1, N - 1)`` constants."""
+    return ca.DM([[1.0] + [0.0] * (N - 1)]), ca.DM.ones(1, max(N - 1, 0))
+
+
 def _total(terms) -> ca.SX:
     """Sum of SX terms, ``SX(0)`` when there are none (adding to zero folds away)."""
     out = ca.SX(0)
@@ -666,8 +673,8 @@ class StructuredGaussNewton:
         q = {"Y": ca.reshape(part["y"], ny, N), "WY": WY,
              "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
              "xbar": part["xbar"], "W0": part["w0"], "A0": ca.vec(W0.T @ W0)}
-        if self.full:  # every slot active, arrival on the first: constants that fold away
-            q["a"], q["omega"] = ca.DM([[1.0] + [0.0] * (N - 1)]), ca.DM.ones(1, N - 1)
+        if self.full:  # constants that fold away
+            q["a"], q["omega"] = full_record_constants(N)
         else:
             q["a"] = ca.reshape(part["a"], 1, N)
             q["omega"] = ca.reshape(part["omega"], 1, N - 1)

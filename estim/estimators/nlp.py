@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from estim.estimators.gauss_newton import StructuredGaussNewton
+from estim.estimators.gauss_newton import StructuredGaussNewton, full_record_constants
 from estim.model import Model
 
 SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
@@ -162,8 +162,7 @@ class LeastSquaresNLP:
             self.reset()
             return
         if self.full:  # every slot active, arrival on the first: constants, not parameters
-            a = ca.DM([1.0] + [0.0] * (N - 1))
-            part["omega"] = ca.DM.ones(max(N - 1, 0))
+            a, part["omega"] = full_record_constants(N)
         if solver == "fatrop":
             self._build_fatrop(p, Y, U, Up, part, a, xbar, W0, WQd, pm, options)
             return
