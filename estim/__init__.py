@@ -23,11 +23,12 @@ from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
 from estim.scenarios import Record, Scenario
-from estim.simulate import replay, simulate
+from estim.simulate import EstimationWarning, replay, simulate
 
 __all__ = [
-    "EKF", "MHE", "UKF", "Comparison", "Estimator", "FitResult", "FullInformation", "Log",
-    "Model", "RMSE", "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
+    "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
+    "FullInformation", "Log", "Model", "RMSE", "Record", "Scenario", "ShootingObserver",
+    "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability", "replay",
     "rmse", "scenarios", "simulate",
 ]

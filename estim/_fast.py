@@ -10,8 +10,31 @@ reads in place.
 
 from __future__ import annotations
 
+import atexit
+import shutil
+import tempfile
+import threading
+
 import casadi as ca
 import numpy as np
+
+_JIT_DIRECTORY: list[str] = []
+_JIT_LOCK = threading.Lock()
+
+
+def jit_options(flags: tuple[str, ...] = ("-O2",)) -> dict:
+    """Function options that compile with the system C compiler (CasADi's ``shell``
+    importer) in a private temporary directory of this process (mode 0700, removed at
+    exit), never the current directory; file names carry a random suffix, so threads
+    and processes never share a file."""
+    with _JIT_LOCK:
+        if not _JIT_DIRECTORY:
+            path = tempfile.mkdtemp(prefix="estim-jit-")
+            atexit.register(shutil.rmtree, path, ignore_errors=True)
+            _JIT_DIRECTORY.append(path)
+    return {"jit": True, "compiler": "shell", "jit_temp_suffix": True,
+            "jit_options": {"flags": list(flags), "verbose": False,
+                            "directory": _JIT_DIRECTORY[0] + "/"}}
 
 
 class FastFunction:

@@ -7,7 +7,11 @@ expected.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import difflib
+import functools
+import inspect
+import operator
+from collections.abc import Callable, Mapping, Sequence
 from numbers import Real
 
 import numpy as np
@@ -17,12 +21,9 @@ def as_vector(value, n: int, name: str, *, allow_nan: bool = False) -> np.ndarra
     """Return ``value`` as a float ``(n,)`` array or raise naming ``name``.
 
     Scalars are accepted only when ``n == 1``; ``(n, 1)`` and ``(1, n)``
-    arrays are flattened.
+    arrays are flattened. Booleans, strings and complex numbers are refused.
     """
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be numeric, got {type(value).__name__}") from exc
+    arr = _numeric_array(value, name)
     if arr.ndim == 2 and 1 in arr.shape:
         arr = arr.reshape(-1)
     if arr.ndim == 0 and n == 1:
@@ -51,10 +52,7 @@ def as_covariance(value, n: int, name: str, *, definite: bool = True) -> np.ndar
     """
     if value is None:
         raise ValueError(f"{name} is required (a scalar, a vector of variances or a matrix)")
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise TypeError(f"{name} must be numeric, got {type(value).__name__}") from exc
+    arr = _numeric_array(value, name)
     if arr.ndim == 0:
         mat = float(arr) * np.eye(n)
     elif arr.ndim == 1 and arr.shape == (n,):
@@ -99,7 +97,9 @@ def as_bounds(value, names: Sequence[str], name: str, default: float) -> np.ndar
             if val is not None:
                 out[list(names).index(key)] = _bound_value(val, name)
         return out
-    arr = np.asarray(value, dtype=float)
+    if isinstance(value, str):
+        raise TypeError(f"{name} must be a number, a sequence or a dict, got {_show(value)}")
+    arr = _numeric_array(value, name)
     if arr.ndim == 0:
         out[:] = _bound_value(arr, name)
         return out
@@ -111,8 +111,9 @@ def as_bounds(value, names: Sequence[str], name: str, default: float) -> np.ndar
 
 
 def _bound_value(val, name: str) -> float:
-    if not isinstance(val, Real | np.floating | np.integer | np.ndarray):
-        raise TypeError(f"{name} entries must be numbers, got {type(val).__name__}")
+    if isinstance(val, bool | np.bool_) or not isinstance(
+            val, Real | np.floating | np.integer | np.ndarray):
+        raise TypeError(f"{name} entries must be numbers, got {_show(val)}")
     v = float(val)
     if np.isnan(v):
         raise ValueError(f"{name} must not contain NaN")
@@ -123,13 +124,21 @@ def as_names(value, name: str, prefix: str) -> list[str]:
     """State/output/input names from a sequence of strings or a count."""
     if value is None:
         return []
+    if isinstance(value, bool | np.bool_):
+        raise TypeError(f"{name} must be a count or a list of names, got {value!r}")
     if isinstance(value, int | np.integer):
         if value < 0:
             raise ValueError(f"{name} must be a non-negative count or a list of names")
         return [f"{prefix}{i + 1}" for i in range(int(value))]
     if isinstance(value, str):
         return [value]
-    names = list(value)
+    if isinstance(value, Mapping | float | np.floating):
+        raise TypeError(f"{name} must be a count or a list of names, got {_show(value)}")
+    try:
+        names = list(value)
+    except TypeError:
+        raise TypeError(f"{name} must be a count or a list of names, got {_show(value)}"
+                        ) from None
     for item in names:
         if not isinstance(item, str):
             raise TypeError(f"{name} must be a list of strings, got item {item!r}")
@@ -138,10 +147,271 @@ def as_names(value, name: str, prefix: str) -> list[str]:
     return names
 
 
-def check_options(options: Mapping, allowed: Sequence[str], owner: str) -> None:
-    """Raise ``TypeError`` for an unknown keyword option."""
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        raise TypeError(
-            f"{owner} got unknown option(s) {unknown}; known options are {sorted(allowed)}"
-        )
+# ------------------------------------------------------------------ scalars
+def _show(value, limit: int = 60) -> str:
+    """A short ``repr`` for error messages."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _holds_bool(value) -> bool:
+    """True for a boolean, a boolean array, or a (nested) list/tuple holding one."""
+    if isinstance(value, bool | np.bool_):
+        return True
+    if isinstance(value, np.ndarray):
+        return value.dtype == bool
+    if isinstance(value, list | tuple):
+        return any(_holds_bool(v) for v in value)
+    return False
+
+
+def _numeric_array(value, name: str) -> np.ndarray:
+    """``value`` as a float array (as ``np.asarray(value, dtype=float)``); None,
+    booleans, strings, complex numbers and ragged nestings are refused."""
+    if value is None:
+        raise TypeError(f"{name} must be numeric, got None")
+    if _holds_bool(value):
+        raise TypeError(f"{name} must be numeric, got booleans: {_show(value)}")
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as exc:  # ragged nesting
+        raise ValueError(f"{name} must be a rectangular numeric array, got {_show(value)}"
+                         ) from exc
+    kind = raw.dtype.kind
+    if kind == "c":
+        raise TypeError(f"{name} must be real, got complex numbers: {_show(value)}")
+    if kind == "O" and any(v is None or isinstance(v, str | bool | np.bool_)
+                           for v in raw.flat):
+        kind = "U"
+    if kind not in "iufO":
+        raise TypeError(f"{name} must be numeric, got {type(value).__name__} {_show(value)}")
+    try:
+        return np.asarray(raw, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be numeric, got {type(value).__name__} "
+                        f"{_show(value)}") from exc
+
+
+def as_bool(value, name: str, *, allow_none: bool = False) -> bool | None:
+    """``value`` if it is a bool (Python or numpy), else ``TypeError`` naming ``name``.
+
+    Strings, numbers and None (unless ``allow_none``) are refused: ``bool("no")``
+    is True, so guessing would turn a switch on that was meant off.
+    """
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    expected = "True, False or None" if allow_none else "True or False"
+    raise TypeError(f"{name} must be {expected}, got {_show(value)}")
+
+
+def _int_phrase(minimum: int | None) -> str:
+    if minimum is None:
+        return "an integer"
+    if minimum == 1:
+        return "a positive integer"
+    if minimum == 0:
+        return "a non-negative integer"
+    return f"an integer >= {minimum}"
+
+
+def as_int(value, name: str, *, minimum: int | None = None, allow_none: bool = False,
+           expected: str | None = None) -> int | None:
+    """``value`` as an ``int``; Python and numpy integers only (not bools, not floats).
+
+    Parameters
+    ----------
+    value : object
+        The argument.
+    name : str
+        Argument name used in error messages.
+    minimum : int, optional
+        Smallest accepted value (``ValueError`` below it).
+    allow_none : bool
+        Return None for None.
+    expected : str, optional
+        What the message says is expected (default from ``minimum``, e.g.
+        "a positive integer").
+    """
+    if value is None and allow_none:
+        return None
+    phrase = expected or _int_phrase(minimum) + (" or None" if allow_none else "")
+    if isinstance(value, bool | np.bool_):
+        raise TypeError(f"{name} must be {phrase}, got {value!r}")
+    try:
+        out = operator.index(value)
+    except TypeError:
+        raise TypeError(f"{name} must be {phrase}, got {_show(value)}") from None
+    if minimum is not None and out < minimum:
+        raise ValueError(f"{name} must be {phrase}, got {_show(value)}")
+    return out
+
+
+def _float_phrase(minimum, maximum, positive, finite) -> str:
+    if positive:
+        text = "a positive number"
+    elif minimum == 0:
+        text = "a non-negative number"
+    elif minimum is not None:
+        text = f"a number >= {minimum:g}"
+    else:
+        text = "a finite number" if finite else "a number"
+    if maximum is not None:
+        text += f" <= {maximum:g}"
+    return text
+
+
+def as_float(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
+             positive: bool = False, finite: bool = True, allow_none: bool = False,
+             expected: str | None = None) -> float | None:
+    """``value`` as a ``float``; Python and numpy integers and floats (not bools, not strings).
+
+    Parameters
+    ----------
+    value : object
+        The argument.
+    name : str
+        Argument name used in error messages.
+    minimum, maximum : float, optional
+        Accepted range, bounds included (``ValueError`` outside).
+    positive : bool
+        Require ``value > 0``.
+    finite : bool
+        Refuse inf (NaN is always refused).
+    allow_none : bool
+        Return None for None.
+    expected : str, optional
+        What the message says is expected (default from the other arguments).
+    """
+    if value is None and allow_none:
+        return None
+    phrase = expected or _float_phrase(minimum, maximum, positive, finite) + (
+        " or None" if allow_none else "")
+    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+        value = value[()]
+    if isinstance(value, bool | np.bool_) or not isinstance(value, Real):
+        raise TypeError(f"{name} must be {phrase}, got {_show(value)}")
+    out = float(value)
+    if np.isnan(out) or (finite and np.isinf(out)) or (positive and out <= 0) \
+            or (minimum is not None and out < minimum) \
+            or (maximum is not None and out > maximum):
+        raise ValueError(f"{name} must be {phrase}, got {_show(value)}")
+    return out
+
+
+def as_seed(value, name: str = "seed") -> int | None:
+    """A random seed: None or a non-negative integer (not a bool)."""
+    return as_int(value, name, minimum=0, allow_none=True,
+                  expected="None or a non-negative integer")
+
+
+def as_choice(value, choices: Sequence[str], name: str) -> str:
+    """``value`` if it is one of the strings ``choices`` (``TypeError`` for a non-string,
+    ``ValueError`` with a suggestion for an unknown one)."""
+    if not isinstance(value, str):
+        raise TypeError(f"{name} must be one of {tuple(choices)}, got {_show(value)}")
+    if value not in choices:
+        close = difflib.get_close_matches(value, list(choices), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}{hint}")
+    return value
+
+
+# ----------------------------------------------------------------- keywords
+_BY_KEYWORD = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+_BY_POSITION = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+
+
+def _quoted(names) -> str:
+    return ", ".join(repr(n) for n in names)
+
+
+def unknown_keywords_message(owner: str, unknown: Sequence[str], known: Sequence[str],
+                             missing: Sequence[str] = ()) -> str:
+    """``"<owner> got unknown option 'x'; did you mean 'y'? Known options: ..."``.
+
+    A suggestion is looked for among the required names not given first, then
+    among all known names.
+    """
+    hints = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, list(missing), n=1, cutoff=0.6) or \
+            difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+        if close:
+            note = " (required, not given)" if close[0] in missing else ""
+            hints.append(f"{close[0]!r}{note}" if len(unknown) == 1 else
+                         f"{close[0]!r} for {key!r}{note}")
+    plural = "s" if len(unknown) > 1 else ""
+    text = f"{owner} got unknown option{plural} {_quoted(unknown)}"
+    text += ("; did you mean " + ", ".join(hints) + "?") if hints else "."
+    return text + f" Known options: {', '.join(known)}"
+
+
+class _Signature:
+    """What :func:`check_keywords` needs to know about a callable's parameters."""
+
+    def __init__(self, func: Callable):
+        params = list(inspect.signature(func).parameters.values())
+        self.method = bool(params) and params[0].name in ("self", "cls")
+        self.positional = [p.name for p in params if p.kind in _BY_POSITION]
+        self.known = [p.name for p in params if p.kind in _BY_KEYWORD
+                      and p.name not in ("self", "cls")]
+        self.required = [p.name for p in params if p.default is p.empty
+                         and p.kind in _BY_POSITION + _BY_KEYWORD
+                         and p.name not in ("self", "cls")]
+        self.var_positional = any(p.kind is p.VAR_POSITIONAL for p in params)
+        self.var_keyword = any(p.kind is p.VAR_KEYWORD for p in params)
+
+    def check(self, owner: str, args: tuple, kwargs: Mapping) -> None:
+        covered = self.positional[:len(args)]
+        missing = [n for n in self.required if n not in kwargs and n not in covered]
+        if not self.var_keyword:
+            unknown = [k for k in kwargs if k not in self.known]
+            if unknown:
+                raise TypeError(unknown_keywords_message(owner, unknown, self.known, missing))
+        twice = [n for n in covered if n in kwargs and n not in ("self", "cls")]
+        if twice:
+            raise TypeError(f"{owner} got {_quoted(twice)} both by position and by keyword")
+        if not self.var_positional and len(args) > len(self.positional):
+            shift = 1 if self.method else 0
+            names = [n for n in self.positional if n not in ("self", "cls")]
+            raise TypeError(
+                f"{owner} takes {len(self.positional) - shift} positional argument(s) "
+                f"({_quoted(names) or 'none'}) but got {len(args) - shift}; give the others "
+                f"by keyword (options: {', '.join(self.known)})")
+        if missing:
+            word = "options" if len(missing) > 1 else "option"
+            raise TypeError(f"{owner} is missing the required {word} {_quoted(missing)}")
+
+
+def check_keywords(func: Callable | None = None, *, owner: str | None = None):
+    """Decorator: check keyword names against ``func``'s signature before calling it.
+
+    Unknown keywords raise ``TypeError("<owner> got unknown option 'clipp'; did
+    you mean 'clip'? Known options: ...")``, then missing required ones
+    ``TypeError`` naming them, before ``func`` does any work. ``owner`` is the
+    name in the messages (default: the class of ``self`` for methods named
+    ``__init__``, else the function's qualified name). The wrapper keeps
+    ``func``'s name, docstring and signature (``functools.wraps``).
+    """
+    if func is None:
+        return lambda f: check_keywords(f, owner=owner)
+    if getattr(func, "_checks_keywords", False):
+        return func
+    sig = _Signature(func)
+    is_init = func.__name__ == "__init__"
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        who = owner or (type(args[0]).__name__ if is_init and args else func.__qualname__)
+        sig.check(who, args, kwargs)
+        return func(*args, **kwargs)
+
+    wrapper._checks_keywords = True
+    return wrapper
+
+
+def check_call(func: Callable, kwargs: Mapping, owner: str) -> None:
+    """Check keyword arguments meant for ``func`` (e.g. forwarded ``**kwargs``)."""
+    _Signature(getattr(func, "__wrapped__", func)).check(owner, (), kwargs)

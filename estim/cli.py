@@ -9,10 +9,14 @@ first seed.
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import inspect
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from estim import scenarios
+from estim._validate import unknown_keywords_message
 from estim.compare import compare
 from estim.estimators import ESTIMATORS
 
@@ -20,41 +24,91 @@ DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf",
                       "mhe-25=mhe:horizon=25,arrival_cost=none,upper=10.0,solver=gauss-newton")
 
 
+_TRUE = ("true", "yes", "on", "1")
+_FALSE = ("false", "no", "off", "0")
+
+
+def _option_kinds(cls, key: str) -> set[str]:
+    """The type names in the annotation of ``cls``'s constructor parameter ``key``
+    (``"dict | None"`` gives ``{"dict", "None"}``; unannotated gives an empty set)."""
+    annotation = inspect.signature(cls).parameters[key].annotation
+    if annotation is inspect.Parameter.empty:
+        return set()
+    if not isinstance(annotation, str):
+        annotation = getattr(annotation, "__name__", str(annotation))
+    return {part.strip() for part in annotation.split("|")}
+
+
+def _option_value(cls, name: str, key: str, text: str):
+    """The command-line text of option ``key`` converted by its annotated type."""
+    import ast
+
+    kinds = _option_kinds(cls, key)
+    low = text.lower()
+    if "None" in kinds and low == "none":
+        return None
+    if "bool" in kinds:
+        if low in _TRUE or low in _FALSE:
+            return low in _TRUE
+        raise ValueError(f"{name} option {key} must be a boolean (true/false, yes/no, on/off, "
+                         f"1/0), got {text!r}")
+    for kind, convert, what in (("int", int, "an integer"), ("float", float, "a number")):
+        if kind in kinds:
+            try:
+                return convert(text)
+            except ValueError:
+                raise ValueError(f"{name} option {key} must be {what}, got {text!r}") from None
+    try:
+        value = ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text
+    if "str" in kinds and not isinstance(value, str):
+        return text
+    return value
+
+
 def parse_estimator(spec: str):
     """``"[label=]name:key=value,key=value"`` to ``(label, class, kwargs)``.
 
-    Values are read as Python literals where possible (numbers, True/False,
-    lists), else kept as strings; ``true``/``false`` are booleans. The label
-    (default: the whole spec) names the row of the table.
+    Each value is converted by the type of the estimator's parameter: booleans
+    from ``true/false``, ``yes/no``, ``on/off`` or ``1/0`` (any case), integers,
+    numbers and strings as such, ``none`` for an optional parameter, anything
+    else (covariances, bounds) as a Python literal where possible. An unknown
+    option name or a value of the wrong type is a ``ValueError`` or
+    ``TypeError`` naming the option. The label (default: the whole spec) names
+    the row of the table.
     """
-    import ast
-
+    if not isinstance(spec, str):
+        raise TypeError(f"spec must be a string, got {type(spec).__name__}")
     head, _, rest = spec.partition(":")
     label = spec
     if "=" in head:
         label, head = (p.strip() for p in head.split("=", 1))
+        if not label:
+            raise ValueError(f"estimator spec {spec!r} has an empty label")
     name = head.strip().lower()
     if name not in ESTIMATORS:
         raise ValueError(f"unknown estimator {name!r}; known: {sorted(ESTIMATORS)}")
+    cls = ESTIMATORS[name]
+    known = [k for k, p in inspect.signature(cls).parameters.items()
+             if k != "model" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     kwargs = {}
     for item in filter(None, (p.strip() for p in rest.split(","))):
         key, eq, val = item.partition("=")
+        key = key.strip()
         if not eq:
             raise ValueError(f"estimator option {item!r} must be key=value")
-        low = val.strip().lower()
-        if low in ("true", "false"):
-            kwargs[key.strip()] = low == "true"
-            continue
-        try:
-            kwargs[key.strip()] = ast.literal_eval(val.strip())
-        except (ValueError, SyntaxError):
-            kwargs[key.strip()] = val.strip()
-    return label, ESTIMATORS[name], kwargs
+        if key not in known:
+            raise TypeError(unknown_keywords_message(cls.__name__, [key], known))
+        if key in kwargs:
+            raise ValueError(f"{name} option {key} is given twice in {spec!r}")
+        kwargs[key] = _option_value(cls, name, key, val.strip())
+    return label, cls, kwargs
 
 
 def _factory(cls, kwargs):
     def make(model, tuning):
-        return cls(model, **tuning, **kwargs)
+        return cls(model, **{**tuning, **kwargs})
 
     return make
 
@@ -74,13 +128,24 @@ def _cmd_list(args) -> int:
 
 def _cmd_run(args) -> int:
     sc = scenarios.get(args.scenario)
-    if args.steps:
+    if args.steps is not None:
         sc = sc.replace(n_steps=args.steps)
+    if args.plot:
+        if importlib.util.find_spec("matplotlib") is None:
+            raise ImportError('--plot needs matplotlib: pip install "estim[plot]" '
+                              "(or --plot '' for no plots)")
+        folder = Path(args.plot).parent
+        if not folder.is_dir():
+            raise ValueError(f"--plot: the folder {str(folder)!r} does not exist")
     specs = args.estimator or list(DEFAULT_ESTIMATORS)
     factories = {}
     for spec in specs:
         label, cls, kwargs = parse_estimator(spec)
+        if label in factories:
+            raise ValueError(f"estimator label {label!r} is given twice; labels must be "
+                             f"unique (-e label=name:...)")
         factories[label] = _factory(cls, kwargs)
+        factories[label](sc.model, sc.tuning)  # a bad option fails here, before any run
     result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot),
                      n_jobs=args.jobs)
     print(result.table())
@@ -122,6 +187,23 @@ def _cmd_observe(args) -> int:
     return 0
 
 
+def _int_arg(minimum: int | None, nonzero: bool = False):
+    """An argparse ``type``: an integer, at least ``minimum``, non-zero if asked."""
+    def integer(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
+        if minimum is not None and value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {value}")
+        if nonzero and value == 0:
+            raise argparse.ArgumentTypeError("must be a non-zero integer (-1: all cores), "
+                                             "got 0")
+        return value
+
+    return integer
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="estim", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command")
@@ -132,14 +214,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--estimator", "-e", action="append",
                      help="[label=]name[:key=value,...], repeatable (default: ekf, ekf:clip=true, "
                           "ukf, mhe-25)")
-    run.add_argument("--seeds", type=int, default=5, help="number of seeds (default 5)")
-    run.add_argument("--steps", type=int, default=None, help="override the scenario length")
+    run.add_argument("--seeds", type=_int_arg(1), default=5, help="number of seeds (default 5)")
+    run.add_argument("--steps", type=_int_arg(1), default=None,
+                     help="override the scenario length")
     run.add_argument("--plot", default="estim_run.png",
                      help="PNG for truth vs estimates of seed 0 ('' for none)")
-    run.add_argument("--jobs", type=int, default=1, help="parallel jobs (joblib; -1: all cores)")
+    run.add_argument("--jobs", type=_int_arg(None, nonzero=True), default=1,
+                     help="parallel jobs (joblib; -1: all cores)")
     obs = sub.add_parser("observe", help="observability analysis of a scenario's model")
     obs.add_argument("target", help="a scenario name or one of " + ", ".join(OBSERVE_MODELS))
-    obs.add_argument("--order", type=int, default=None)
+    obs.add_argument("--order", type=_int_arg(0), default=None)
     obs.add_argument("--inputs", default="varying", choices=["varying", "constant"])
     obs.add_argument("--method", default="numeric", choices=["numeric", "symbolic"])
     args = parser.parse_args(argv)
@@ -147,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(["run", *(argv or [])])
     try:
         return {"list": _cmd_list, "run": _cmd_run, "observe": _cmd_observe}[args.command](args)
-    except (ValueError, TypeError) as exc:
+    except (ValueError, TypeError, ImportError) as exc:
         print(f"estim: error: {exc}", file=sys.stderr)
         return 2
 

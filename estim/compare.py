@@ -16,6 +16,8 @@ The numbers do not depend on how the runs were distributed.
 from __future__ import annotations
 
 import copy
+import html
+import importlib.util
 import os
 import sys
 from collections.abc import Callable, Iterable, Mapping
@@ -23,12 +25,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estim._validate import as_bool, as_int, check_keywords
 from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.metrics import nees, rmse
 from estim.model import Model
 from estim.scenarios import Scenario
-from estim.simulate import simulate
+from estim.simulate import FAILED_FRACTION, simulate
 
 Factory = Callable[[Model, dict], Estimator]
 
@@ -42,7 +45,11 @@ class ComparisonRow:
     time-averaged NEES divided by ``nx`` (1 for a consistent filter), mean over
     seeds; ``consistent``: within two standard errors (over seeds) of 1
     (None without covariance). ``step_median``/``step_p90``: seconds per step.
-    ``failures``: steps whose status was not ``"ok"``.
+    ``failures``: steps that failed (``success`` False: the estimator re-anchored);
+    ``flagged``: successful steps whose status was not ``"ok"`` (``"inexact"``,
+    ``"suspect"``); ``steps``: steps of the completed runs. ``runs``: runs that
+    completed; ``errors``: ``{seed: "ExceptionType: message"}`` of the runs that
+    raised (the statistics are over the completed runs).
     """
 
     name: str
@@ -55,6 +62,23 @@ class ComparisonRow:
     step_p90: float
     failures: int
     runs: int
+    flagged: int = 0
+    steps: int = 0
+    errors: dict[int, str] = field(default_factory=dict)
+
+    def notes(self) -> list[str]:
+        """What went wrong in these runs, a line each (empty when nothing did)."""
+        out = []
+        if self.errors:
+            total = self.runs + len(self.errors)
+            seed, message = next(iter(self.errors.items()))
+            out.append(f"{self.name}: {len(self.errors)} of {total} runs raised and are left "
+                       f"out (seed {seed}: {message})")
+        if self.steps and self.failures > FAILED_FRACTION * self.steps:
+            out.append(f"{self.name}: {self.failures} of {self.steps} steps failed "
+                       f"({100 * self.failures / self.steps:.0f} %): the estimates there are "
+                       f"re-anchored, see the logs' status")
+        return out
 
 
 @dataclass
@@ -68,9 +92,10 @@ class Comparison:
     seeds : list of int
     rows : list of ComparisonRow
     rmse : dict of str -> (n_seeds,) array
-        RMSE of every run, per estimator, in seed order.
+        RMSE of every run, per estimator, in seed order (NaN for a run that raised).
     logs : dict of str -> list of Log
-        Every run's log (with ``keep_logs=True``).
+        Every run's log (with ``keep_logs=True``); a run that raised has the log of
+        the steps it completed, or None.
     """
 
     scenario: str
@@ -83,13 +108,16 @@ class Comparison:
         """Plain-text table."""
         w = max([22] + [len(r.name) + 2 for r in self.rows])
         head = (f"{'estimator':<{w}}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>7}"
-                f"{'step med':>11}{'step p90':>11}{'failed':>8}")
+                f"{'step med':>11}{'step p90':>11}{'failed':>8}{'flagged':>9}")
         lines = [f"{self.scenario}: {len(self.seeds)} seed(s)", head, "-" * len(head)]
         for r in self.rows:
             cons = "-" if r.consistent is None else ("yes" if r.consistent else "no")
             lines.append(f"{r.name:<{w}}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
                          f"{r.nees_mean:>9.3g}{cons:>7}{_fmt_time(r.step_median):>11}"
-                         f"{_fmt_time(r.step_p90):>11}{r.failures:>8}")
+                         f"{_fmt_time(r.step_p90):>11}{r.failures:>8}{r.flagged:>9}")
+        notes = [n for r in self.rows for n in r.notes()]
+        if notes:
+            lines += ["", "Notes:"] + [f"  {n}" for n in notes]
         return "\n".join(lines)
 
     def to_pandas(self):
@@ -107,14 +135,16 @@ class Comparison:
     def _repr_html_(self) -> str:
         head = "".join(f"<th>{h}</th>" for h in ("estimator", "RMSE mean", "± std", "NEES/n",
                                                  "consistent", "step median", "step p90",
-                                                 "failed"))
+                                                 "failed", "flagged"))
         body = "".join(
-            f"<tr><td>{r.name}</td><td>{r.rmse_mean:.4g}</td><td>{r.rmse_std:.2g}</td>"
-            f"<td>{r.nees_mean:.3g}</td><td>{r.consistent}</td>"
+            f"<tr><td>{html.escape(r.name)}</td><td>{r.rmse_mean:.4g}</td>"
+            f"<td>{r.rmse_std:.2g}</td><td>{r.nees_mean:.3g}</td><td>{r.consistent}</td>"
             f"<td>{_fmt_time(r.step_median)}</td><td>{_fmt_time(r.step_p90)}</td>"
-            f"<td>{r.failures}</td></tr>" for r in self.rows)
+            f"<td>{r.failures}</td><td>{r.flagged}</td></tr>" for r in self.rows)
+        notes = "".join(f"<li>{html.escape(n)}</li>" for r in self.rows for n in r.notes())
         return (f"<p><b>{self.scenario}</b>: {len(self.seeds)} seed(s)</p>"
-                f"<table><tr>{head}</tr>{body}</table>")
+                f"<table><tr>{head}</tr>{body}</table>"
+                + (f"<p><b>Notes</b></p><ul>{notes}</ul>" if notes else ""))
 
 
 def _fmt_time(seconds: float) -> str:
@@ -136,23 +166,66 @@ def _make(spec, scenario: Scenario) -> Estimator:
     return spec(scenario.model, dict(scenario.tuning))
 
 
+def _error(exc: BaseException) -> str:
+    """``"ExceptionType: first line of the message"`` (picklable, for the table)."""
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0] if lines else ''}"[:300]
+
+
 def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_logs: bool):
-    """Run one estimator over some seeds; summaries (and logs) per seed."""
-    est = _make(spec, scenario)
+    """Run one estimator over some seeds; summaries (and logs) per seed. A run that
+    raises is recorded with its error and does not stop the others."""
+    try:
+        est = _make(spec, scenario)
+    except Exception as exc:  # noqa: BLE001 - every seed of this estimator fails alike
+        return [{"seed": s, "error": _error(exc), "log": None} for s in seeds]
     out = []
     for s in seeds:
-        log = simulate(scenario, est, seed=s)
-        r = rmse(log, burn_in=burn_in)
-        has_p = bool(np.isfinite(log.P).any())
+        try:
+            log = simulate(scenario, est, seed=s, warn=False)
+            r = rmse(log, burn_in=burn_in)
+            has_p = bool(np.isfinite(log.P).any())
+            ne = float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx \
+                if has_p else np.nan
+        except Exception as exc:  # noqa: BLE001 - recorded, the other runs go on
+            out.append({"seed": s, "error": _error(exc),
+                        "log": getattr(exc, "log", None) if keep_logs else None})
+            continue
         out.append({
-            "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()),
-            "nees": float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx
-            if has_p else np.nan,
-            "times": log.solve_time.copy(),
-            "failures": int(np.count_nonzero(log.status != "ok")),
-            "log": log if keep_logs else None,
+            "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
+            "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
+            "steps": len(log), "log": log if keep_logs else None,
         })
     return out
+
+
+def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
+    """Summary of one estimator's runs (in seed order); failed runs only counted."""
+    done = [r for r in runs if "error" not in r]
+    errors = {r["seed"]: r["error"] for r in runs if "error" in r}
+    nan = float("nan")
+    if not done:
+        return ComparisonRow(name=name, rmse_mean=nan, rmse_std=nan,
+                             rmse_per_state=dict.fromkeys(names, nan), nees_mean=nan,
+                             consistent=None, step_median=nan, step_p90=nan, failures=0,
+                             runs=0, errors=errors)
+    errs = np.array([r["rmse"] for r in done])
+    ne = np.array([r["nees"] for r in done])
+    consistent = None
+    if np.isfinite(ne).all():
+        se = np.std(ne, ddof=1) / np.sqrt(len(ne)) if len(ne) > 1 else np.inf
+        consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
+    t = np.concatenate([r["times"] for r in done])
+    return ComparisonRow(
+        name=name, rmse_mean=float(errs.mean()),
+        rmse_std=float(errs.std(ddof=1)) if len(errs) > 1 else 0.0,
+        rmse_per_state=dict(zip(names, np.mean([r["per_state"] for r in done], axis=0)
+                                .tolist(), strict=True)),
+        nees_mean=float(np.mean(ne)) if np.isfinite(ne).all() else nan,
+        consistent=consistent, step_median=float(np.median(t)),
+        step_p90=float(np.percentile(t, 90)), failures=sum(r["failures"] for r in done),
+        runs=len(done), flagged=sum(r["flagged"] for r in done),
+        steps=sum(r["steps"] for r in done), errors=errors)
 
 
 def _chunks(seeds: list[int], n: int) -> list[list[int]]:
@@ -160,6 +233,7 @@ def _chunks(seeds: list[int], n: int) -> list[list[int]]:
     return [list(c) for c in np.array_split(np.asarray(seeds), n) if len(c)]
 
 
+@check_keywords
 def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estimator],
             seeds: Iterable[int] = range(5), *, n_jobs: int = 1, backend: str = "loky",
             keep_logs: bool = False, burn_in: int = 0, progress: bool | None = None
@@ -196,16 +270,8 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
     """
     if not isinstance(scenario, Scenario):
         raise TypeError(f"scenario must be an estim.Scenario, got {type(scenario).__name__}")
-    if not estimators:
-        raise ValueError("estimators must name at least one estimator")
-    for name, spec in estimators.items():
-        if not (callable(spec) or isinstance(spec, Estimator)):
-            raise TypeError(f"estimators[{name!r}] must be a class, a factory or an estimator")
-    seeds = [int(s) for s in seeds]
-    if not seeds:
-        raise ValueError("seeds must contain at least one seed")
-    if not isinstance(n_jobs, int | np.integer) or n_jobs == 0:
-        raise ValueError(f"n_jobs must be a non-zero integer, got {n_jobs!r}")
+    seeds, n_jobs, burn_in, keep_logs, progress = _check_compare(
+        scenario, estimators, seeds, n_jobs, backend, keep_logs, burn_in, progress)
     workers = (os.cpu_count() or 1) if n_jobs < 0 else int(n_jobs)
     tasks = [(name, chunk) for name in estimators
              for chunk in (_chunks(seeds, 2 * workers) if workers > 1 else [seeds])]
@@ -240,25 +306,11 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         per_name[name].extend(res)
     rows, all_rmse, logs = [], {}, {}
     names = scenario.model.state_names
+    order = {s: i for i, s in enumerate(seeds)}
     for name, runs in per_name.items():
-        runs.sort(key=lambda r: seeds.index(r["seed"]))
-        errs = np.array([r["rmse"] for r in runs])
-        ne = np.array([r["nees"] for r in runs])
-        consistent = None
-        if np.isfinite(ne).all():
-            se = np.std(ne, ddof=1) / np.sqrt(len(ne)) if len(ne) > 1 else np.inf
-            consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
-        t = np.concatenate([r["times"] for r in runs])
-        rows.append(ComparisonRow(
-            name=name, rmse_mean=float(errs.mean()),
-            rmse_std=float(errs.std(ddof=1)) if len(errs) > 1 else 0.0,
-            rmse_per_state=dict(zip(names, np.mean([r["per_state"] for r in runs], axis=0)
-                                    .tolist(), strict=True)),
-            nees_mean=float(np.mean(ne)) if np.isfinite(ne).all() else float("nan"),
-            consistent=consistent, step_median=float(np.median(t)),
-            step_p90=float(np.percentile(t, 90)), failures=sum(r["failures"] for r in runs),
-            runs=len(runs)))
-        all_rmse[name] = errs
+        runs.sort(key=lambda r: order[r["seed"]])
+        rows.append(_row(name, runs, names))
+        all_rmse[name] = np.array([r.get("rmse", np.nan) for r in runs])
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seeds, rows, all_rmse, logs)
@@ -280,3 +332,55 @@ def _bar(total: int, show: bool):
     except ImportError:  # pragma: no cover - optional extra
         return _NoBar()
     return tqdm(total=total, unit="run", leave=False)
+
+
+def _check_compare(scenario: Scenario, estimators, seeds, n_jobs, backend, keep_logs, burn_in,
+                   progress):
+    """Check the arguments of :func:`compare` before any run."""
+    if not isinstance(estimators, Mapping):
+        raise TypeError(f"estimators must be a dict {{label: class, factory or estimator}}, "
+                        f"got {type(estimators).__name__}")
+    if not estimators:
+        raise ValueError("estimators must name at least one estimator")
+    for name, spec in estimators.items():
+        if not isinstance(name, str):
+            raise TypeError(f"estimators labels must be strings, got {name!r}")
+        if not (callable(spec) or isinstance(spec, Estimator)):
+            raise TypeError(f"estimators[{name!r}] must be a class, a factory or an estimator")
+        if isinstance(spec, type) and not issubclass(spec, Estimator):
+            raise TypeError(f"estimators[{name!r}] must be an estimator class, a factory or "
+                            f"an estimator, got the class {spec.__name__}")
+        if isinstance(spec, Estimator) and (spec.model.nx, spec.model.ny, spec.model.nu) != (
+                scenario.model.nx, scenario.model.ny, scenario.model.nu):
+            raise ValueError(f"estimators[{name!r}] was built for a model of other dimensions "
+                             f"than the scenario's")
+    if isinstance(seeds, str | bytes) or not hasattr(seeds, "__iter__"):
+        raise TypeError(f"seeds must be an iterable of seeds (e.g. range(5)), "
+                        f"got {type(seeds).__name__}")
+    seeds = [as_int(s, f"seeds[{i}]", minimum=0) for i, s in enumerate(seeds)]
+    if not seeds:
+        raise ValueError("seeds must contain at least one seed")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"seeds must not repeat a seed, got {seeds}")
+    n_jobs = as_int(n_jobs, "n_jobs", expected="a non-zero integer (-1: all cores)")
+    if n_jobs == 0:
+        raise ValueError("n_jobs must be a non-zero integer (-1: all cores), got 0")
+    if not isinstance(backend, str):
+        raise TypeError(f"backend must be a string (a joblib backend or 'dask'), "
+                        f"got {type(backend).__name__}")
+    keep_logs = as_bool(keep_logs, "keep_logs")
+    progress = as_bool(progress, "progress", allow_none=True)
+    burn_in = as_int(burn_in, "burn_in", minimum=0)
+    if burn_in >= scenario.n_steps:
+        raise ValueError(f"burn_in ({burn_in}) must be shorter than the scenario "
+                         f"({scenario.n_steps} steps)")
+    if n_jobs != 1:
+        if backend == "dask":
+            if importlib.util.find_spec("dask") is None or \
+                    importlib.util.find_spec("dask.distributed") is None:
+                raise ImportError('backend="dask" needs dask.distributed: '
+                                  'pip install "estim[dask]"')
+        elif importlib.util.find_spec("joblib") is None:
+            raise ImportError(f"n_jobs={n_jobs} runs in parallel through joblib: "
+                              f'pip install "estim[parallel]"')
+    return seeds, n_jobs, burn_in, keep_logs, progress

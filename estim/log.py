@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import html
 from collections.abc import Sequence
 
 import numpy as np
 
+from estim._validate import as_bool, as_float, as_names, check_keywords
+
 #: Fields :func:`estim.simulate` fills, with their per-sample shape names.
 FIELDS = ("t", "x", "y", "u", "x_hat", "P", "solve_time", "status", "iterations", "success",
-          "nis", "cost")
+          "nis", "cost", "diagnostics")
+#: Series of Python objects (one dict a step), left out of the array exports.
+OBJECT_FIELDS = ("diagnostics",)
 
 
 class Log:
@@ -19,7 +24,13 @@ class Log:
     after sample k), ``x_hat (T, nx)``, ``P (T, nx, nx)`` (NaN where the
     estimator has no covariance), ``solve_time (T,)`` in seconds,
     ``status (T,)`` strings, ``iterations (T,)``, ``success (T,)``,
-    ``nis (T,)`` and ``cost (T,)``.
+    ``nis (T,)``, ``cost (T,)`` and ``diagnostics (T,)``, each step's
+    ``info.extra`` dict (see :meth:`diagnostic`).
+
+    A status other than ``"ok"`` says what happened at that step (see
+    :mod:`estim.estimators.base`): :attr:`failures` counts the steps that
+    failed, :attr:`flagged` the ``"inexact"`` and ``"suspect"`` ones, and the
+    repr shows both.
 
     A ``Log`` is also the course-style logger: ``log("x", value)`` appends a
     sample to the named series, and ``log.x`` returns it stacked as an array
@@ -40,14 +51,21 @@ class Log:
         Name of the model (for reprs and titles).
     """
 
+    @check_keywords(owner="Log")
     def __init__(self, state_names: Sequence[str] | None = None,
                  output_names: Sequence[str] | None = None,
                  input_names: Sequence[str] | None = None, dt: float | None = None,
                  estimator: str = "", output_state: dict | None = None, model_name: str = ""):
-        self.state_names = list(state_names or [])
-        self.output_names = list(output_names or [])
-        self.input_names = list(input_names or [])
-        self.dt = dt
+        self.state_names = as_names(state_names, "state_names", "x")
+        self.output_names = as_names(output_names, "output_names", "y")
+        self.input_names = as_names(input_names, "input_names", "u")
+        self.dt = as_float(dt, "dt", positive=True, allow_none=True)
+        for name, value in (("estimator", estimator), ("model_name", model_name)):
+            if not isinstance(value, str):
+                raise TypeError(f"{name} must be a string, got {type(value).__name__}")
+        if output_state is not None and not isinstance(output_state, dict):
+            raise TypeError(f"output_state must be a dict {{output index: state index}}, "
+                            f"got {type(output_state).__name__}")
         self.estimator = estimator
         self.model_name = model_name
         self.output_state = dict(output_state or {})
@@ -66,6 +84,8 @@ class Log:
 
     def set(self, key: str, array: np.ndarray) -> None:
         """Store a whole time-major array under ``key``."""
+        if not isinstance(key, str) or not key.isidentifier():
+            raise ValueError(f"key must be an identifier string, got {key!r}")
         self._series.pop(key, None)
         self._arrays[key] = np.asarray(array)
 
@@ -114,7 +134,7 @@ class Log:
         T = len(self)
         for key in self.keys():
             arr = getattr(self, key)
-            if len(arr) != T:  # a series logged at another rate
+            if len(arr) != T or key in OBJECT_FIELDS:  # another rate, or objects
                 continue
             if arr.ndim == 1:
                 cols[key] = arr
@@ -135,7 +155,7 @@ class Log:
                 "u": ("time", "input"), "P": ("time", "state", "state_")}
         data = {}
         for key in self.keys():
-            if key == "t":
+            if key == "t" or key in OBJECT_FIELDS:
                 continue
             arr = getattr(self, key)
             data[key] = (dims.get(key, ("time",) + tuple(f"{key}_{i}" for i in
@@ -149,6 +169,51 @@ class Log:
         if self.input_names:
             coords["input"] = self.input_names
         return xr.Dataset(data, coords=coords)
+
+    # ------------------------------------------------------------ failures
+    @property
+    def failures(self) -> int:
+        """Steps whose ``success`` is False (the estimator fell back and re-anchored)."""
+        return int(np.count_nonzero(~self.success)) if "success" in self else 0
+
+    @property
+    def flagged(self) -> int:
+        """Successful steps whose status is not ``"ok"`` (``"inexact"``, ``"suspect"``)."""
+        if "status" not in self or "success" not in self:
+            return 0
+        return int(np.count_nonzero(self.success & (self.status != "ok")))
+
+    def problems(self) -> str:
+        """One line on the failed and flagged steps ("" when every step was ok)."""
+        parts = []
+        if self.failures:
+            first = int(np.flatnonzero(~self.success)[0])
+            parts.append(f"{self.failures} of {len(self)} steps failed (first at step {first}: "
+                         f"{self.status[first]})")
+        if self.flagged:
+            kinds = sorted({str(s).split(":")[0] for s in self.status[self.success]} - {"ok"})
+            parts.append(f"{self.flagged} flagged ({', '.join(kinds)})")
+        return "; ".join(parts)
+
+    def diagnostic(self, key: str) -> np.ndarray:
+        """The estimator's per-step diagnostic ``info.extra[key]`` stacked time-major (NaN
+        where a step did not report it), e.g. ``log.diagnostic("condition")`` of a
+        :class:`~estim.ShootingObserver`.
+
+        Raises ``KeyError`` when no step reported ``key``.
+        """
+        extra = self.diagnostics if "diagnostics" in self else []
+        values = [e.get(key) if isinstance(e, dict) else None for e in extra]
+        present = [np.asarray(v, dtype=float) for v in values if v is not None]
+        if not present:
+            known = sorted({k for e in extra if isinstance(e, dict) for k in e})
+            raise KeyError(f"no step reported {key!r}; the steps reported {known}")
+        shape = present[0].shape
+        out = np.full((len(values),) + shape, np.nan)
+        for k, v in enumerate(values):
+            if v is not None and np.shape(v) == shape:
+                out[k] = v
+        return out
 
     def _labels(self, key: str, n: int) -> list[str]:
         names = {"x": self.state_names, "x_hat": self.state_names, "y": self.output_names,
@@ -174,6 +239,13 @@ class Log:
         """
         from estim.plotting import plot_log
 
+        sigma = as_bool(sigma, "sigma")
+        if isinstance(states, str):
+            states = [states]
+        unknown = [s for s in states or [] if s not in self.state_names]
+        if unknown and self.state_names:
+            raise ValueError(f"states {unknown} are not in the log; states are "
+                             f"{self.state_names}")
         return plot_log(self, path=path, states=states, sigma=sigma)
 
     def _repr_html_(self) -> str:
@@ -185,6 +257,8 @@ class Log:
             from estim.metrics import rmse
 
             extra = f"<p>RMSE {rmse(self)!r}</p>"
+        if self.problems():
+            extra += f"<p><b>Warning</b>: {html.escape(self.problems())}</p>"
         return (f"<p><b>{title}</b>: T = {len(self)}</p>{extra}"
                 f"<table><tr><th>series</th><th>shape</th></tr>{rows}</table>")
 
@@ -193,4 +267,5 @@ class Log:
                            if getattr(self, k).ndim > 1 or k == "t")
         who = f" {self.estimator}" if self.estimator else ""
         on = f" on {self.model_name}" if self.model_name else ""
-        return f"<Log{who}{on}: T={len(self)}; {fields}>"
+        problems = f"; {self.problems()}" if self.problems() else ""
+        return f"<Log{who}{on}: T={len(self)}; {fields}{problems}>"

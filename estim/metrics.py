@@ -7,6 +7,9 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
+from estim._validate import as_bool, as_float, as_int
+from estim.log import Log
+
 
 class RMSE(float):
     """Root-mean-square error: a float (over all selected states) with ``per_state``.
@@ -42,9 +45,24 @@ class RMSE(float):
         return (RMSE, (float(self), self.per_state))
 
 
-def _select(log, burn_in: int, states: Sequence[str] | None):
-    if not isinstance(burn_in, int | np.integer) or burn_in < 0:
-        raise ValueError(f"burn_in must be a non-negative integer, got {burn_in!r}")
+def _select(log, burn_in: int, states: Sequence[str] | None,
+            needs: Sequence[str] = ("x", "x_hat")):
+    if not isinstance(log, Log):
+        raise TypeError(f"log must be an estim.Log, got {type(log).__name__}")
+    absent = [key for key in needs if key not in log]
+    if absent:
+        raise ValueError(f"log has no {', '.join(map(repr, absent))} series "
+                         f"(it has {log.keys()})")
+    burn_in = as_int(burn_in, "burn_in", minimum=0)
+    if isinstance(states, str):
+        states = [states]
+    if states is not None:
+        if not hasattr(states, "__iter__"):
+            raise TypeError(f"states must be a list of state names, got {type(states).__name__}")
+        states = list(states)
+        for s in states:
+            if not isinstance(s, str):
+                raise TypeError(f"states must be a list of state names, got item {s!r}")
     if burn_in >= len(log):
         raise ValueError(f"burn_in ({burn_in}) must be shorter than the log ({len(log)} samples)")
     names = log.state_names or [f"x{i + 1}" for i in range(log.x.shape[1])]
@@ -85,7 +103,7 @@ def rmse(log, burn_in: int = 0, states: Sequence[str] | None = None) -> RMSE:
         States to include (default all).
     """
     idx, names = _select(log, burn_in, states)
-    err = errors(log, burn_in)[:, idx]
+    err = errors(log, int(burn_in))[:, idx]
     per = {names[j]: float(np.sqrt(np.mean(err[:, i] ** 2))) for i, j in enumerate(idx)}
     return RMSE(float(np.sqrt(np.mean(err**2))), per)
 
@@ -103,7 +121,7 @@ def nees(log, burn_in: int = 0) -> np.ndarray:
     burn_in : int
         Samples to skip at the start.
     """
-    _select(log, burn_in, None)
+    _select(log, burn_in, None, ("x", "x_hat", "P"))
     err = log.x_hat[burn_in:] - log.x[burn_in:]
     P = log.P[burn_in:]
     out = np.full(len(err), np.nan)
@@ -124,7 +142,7 @@ def nis(log, burn_in: int = 0) -> np.ndarray:
     burn_in : int
         Samples to skip at the start.
     """
-    _select(log, burn_in, None)
+    _select(log, burn_in, None, ("nis",))
     return np.asarray(log.nis[burn_in:], dtype=float)
 
 
@@ -144,6 +162,10 @@ def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     confidence : float
         Probability mass inside the interval.
     """
+    dof, n = as_int(dof, "dof", minimum=1), as_int(n, "n", minimum=1)
+    confidence = as_float(confidence, "confidence", expected="a probability in (0, 1)")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be a probability in (0, 1), got {confidence!r}")
     alpha = 1.0 - confidence
     lo = stats.chi2.ppf(alpha / 2, dof * n) / n
     hi = stats.chi2.ppf(1 - alpha / 2, dof * n) / n
@@ -165,6 +187,8 @@ def convergence_time(log, tol: float, states: Sequence[str] | None = None,
         Bound the error relative to ``|x|`` instead of absolutely.
     """
     idx, _ = _select(log, 0, states)
+    tol = as_float(tol, "tol", minimum=0.0)
+    relative = as_bool(relative, "relative")
     err = np.abs(log.x_hat[:, idx] - log.x[:, idx])
     if relative:
         err = err / np.maximum(np.abs(log.x[:, idx]), 1e-300)

@@ -16,13 +16,22 @@ CasADi Functions and their algorithmic-differentiation Jacobians.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import as_bounds, as_names, as_vector
+from estim._validate import (
+    as_bounds,
+    as_choice,
+    as_float,
+    as_int,
+    as_names,
+    as_vector,
+    check_keywords,
+)
 
 Equation = Callable[[ca.SX, ca.SX, Mapping[str, ca.SX]], object]
 
@@ -48,6 +57,27 @@ def _as_column(expr, size: int, argname: str) -> ca.SX:
         raise ValueError(f"{argname} must return {size} entries (a ({size}, 1) column), "
                          f"got shape {expr.shape}")
     return ca.SX(expr) if isinstance(expr, ca.DM) else expr
+
+
+def _check_constants(expr, names: Sequence[str], argname: str) -> None:
+    """Refuse entries of an equation that are a constant NaN or inf.
+
+    Such an entry is what ``math.sqrt(x[0])`` and friends produce: the math
+    module converts the symbol to a float (NaN) instead of building an
+    expression. Only constant entries are checked; an expression that is NaN
+    in parts of the state space is legitimate.
+    """
+    if not isinstance(expr, ca.SX):
+        return
+    for i, label in enumerate(names):
+        entry = expr[i]
+        if entry.is_constant():
+            value = float(ca.evalf(entry))
+            if not np.isfinite(value):
+                raise ValueError(
+                    f"{argname} entry {i} ({label}) is the constant {value}: use casadi "
+                    f"functions (ca.sqrt, ca.exp, ...) or numpy ufuncs on symbols, not the "
+                    f"math module")
 
 
 def rk4_step(f: Callable, x, u, p, h: float, substeps: int = 1):
@@ -137,6 +167,7 @@ class Model:
     array([ 0.9951, -0.0973])
     """
 
+    @check_keywords(owner="Model")
     def __init__(
         self,
         states: Sequence[str] | int,
@@ -166,22 +197,22 @@ class Model:
                 raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
         if output is None:
             raise ValueError("output= is required: a callable h(x, u, p)")
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-        if not isinstance(substeps, int | np.integer) or substeps < 1:
-            raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        as_choice(integrator, INTEGRATORS, "integrator")
+        substeps = as_int(substeps, "substeps", minimum=1)
         if dt is None:
             if ode is not None:
                 raise ValueError("dt is required for a continuous model (ode=)")
             dt = 1.0
-        if not isinstance(dt, int | float | np.floating) or not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt must be a positive number, got {dt!r}")
+        dt = as_float(dt, "dt", positive=True)
+        if params is not None and not isinstance(params, Mapping):
+            raise TypeError(f"params must be a dict {{name: value}}, got {type(params).__name__}")
         params = dict(params or {})
         for key, val in params.items():
             if not isinstance(key, str):
                 raise TypeError(f"params keys must be strings, got {key!r}")
-            if not isinstance(val, int | float | np.floating | np.integer) or not np.isfinite(val):
-                raise ValueError(f"params[{key!r}] must be a finite number, got {val!r}")
+            params[key] = as_float(val, f"params[{key!r}]")
+        if not isinstance(name, str):
+            raise TypeError(f"name must be a string, got {type(name).__name__}")
         clash = set(params) & set(self.state_names)
         if clash:
             raise ValueError(f"params and states share names {sorted(clash)}")
@@ -210,9 +241,11 @@ class Model:
         pdict = dict(zip(self.param_names, psym, strict=True))
 
         y = _as_column(self._output(x, u, pdict), ny, "output")
+        _check_constants(y, self.output_names, "output")
         self.H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
         if self._ode is not None:
             xdot = _as_column(self._ode(x, u, pdict), nx, "ode")
+            _check_constants(xdot, self.state_names, "ode")
             self.f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
             if self.integrator == "cvodes":
                 self.F = self._cvodes(x, u, p, xdot)
@@ -229,12 +262,12 @@ class Model:
         else:
             self.f_c = None
             xn = _as_column(self._dynamics(x, u, pdict), nx, "dynamics")
+            _check_constants(xn, self.state_names, "dynamics")
             self.F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
             self.F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)],
                                    ["x", "u", "p"], ["A"])
         self.H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
-        self._fast_F = FastFunction(self.F)
-        self._fast_H = FastFunction(self.H)
+        self._local = threading.local()
 
     def _cvodes(self, x, u, p, xdot) -> ca.Function:
         dae = {"x": x, "p": ca.vertcat(u, p), "ode": xdot}
@@ -279,15 +312,28 @@ class Model:
         u = np.zeros(self.nu) if u is None else as_vector(u, self.nu, "u")
         return x, u
 
+    def _fast(self, key: str) -> FastFunction:
+        """This thread's buffered evaluator of ``F`` or ``H`` (``key``): a buffer holds
+        its arguments and results between filling and reading, so threads never share
+        one."""
+        fun = getattr(self._local, key, None)
+        if fun is None:
+            fun = FastFunction(getattr(self, key))
+            setattr(self._local, key, fun)
+        return fun
+
     def f(self, x, u=None) -> np.ndarray:
-        """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input)."""
+        """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input).
+
+        Safe to call from several threads at once.
+        """
         x, u = self._xu(x, u)
-        return self._fast_F(x, u, self.p)[0].copy()
+        return self._fast("F")(x, u, self.p)[0].copy()
 
     def h(self, x, u=None) -> np.ndarray:
-        """Output ``h(x, u; p)`` as a (ny,) array."""
+        """Output ``h(x, u; p)`` as a (ny,) array (safe from several threads)."""
         x, u = self._xu(x, u)
-        return self._fast_H(x, u, self.p)[0].copy()
+        return self._fast("H")(x, u, self.p)[0].copy()
 
     def jacobians(self, x, u=None) -> tuple[np.ndarray, np.ndarray]:
         """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays."""
@@ -311,13 +357,8 @@ class Model:
         for key, val in values.items():
             if key not in self.param_names:
                 raise ValueError(f"unknown parameter {key!r}; parameters are {self.param_names}")
-            if not np.isfinite(val):
-                raise ValueError(f"parameter {key!r} must be finite, got {val!r}")
-            p[self.param_names.index(key)] = float(val)
-        new = self._copy(p=p)
-        new._fast_F = FastFunction(self.F)
-        new._fast_H = FastFunction(self.H)
-        return new
+            p[self.param_names.index(key)] = as_float(val, f"parameter {key!r}")
+        return self._copy(p=p, _local=threading.local())
 
     def augment(self, *names: str, lower=None, upper=None) -> Model:
         r"""Append parameters to the state with constant dynamics.
@@ -402,7 +443,7 @@ class Model:
 
     def __getstate__(self):
         state = dict(self.__dict__)
-        for key in ("F", "H", "F_x", "H_x", "f_c", "_fast_F", "_fast_H"):
+        for key in ("F", "H", "F_x", "H_x", "f_c", "_local"):
             state.pop(key, None)
         return state
 

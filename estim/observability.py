@@ -50,7 +50,16 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from estim._validate import as_covariance, as_vector
+from estim._validate import (
+    _numeric_array,
+    as_choice,
+    as_covariance,
+    as_float,
+    as_int,
+    as_seed,
+    as_vector,
+    check_keywords,
+)
 from estim.model import Model
 
 ARRANGEMENTS = ("permutation", "combination", "drift2ndOrder")
@@ -335,6 +344,7 @@ def _classify(names, N: np.ndarray, tol: float = 1e-6):
     return observable, groups, unobservable
 
 
+@check_keywords
 def analyze(model: Model, order: int | None = None, inputs: str = "varying",
             method: str = "numeric", at=None, seed: int = 0, n_points: int = 3,
             arrangement: str | None = None, max_order: int | None = None,
@@ -383,24 +393,35 @@ def analyze(model: Model, order: int | None = None, inputs: str = "varying",
         raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
     label = None
     if isinstance(inputs, dict):
+        for key, value in inputs.items():
+            as_float(value, f"inputs[{key!r}]")
         model, label = _fix_inputs(model, inputs), "fixed " + ", ".join(
             f"{k}={v:g}" for k, v in inputs.items())
         inputs = "varying"
-    if inputs not in ("varying", "constant"):
-        raise ValueError(f"inputs must be 'varying' or 'constant', got {inputs!r}")
-    if method not in ("numeric", "symbolic"):
-        raise ValueError(f"method must be 'numeric' or 'symbolic', got {method!r}")
-    if arrangement is not None and arrangement not in ARRANGEMENTS:
-        raise ValueError(f"arrangement must be one of {ARRANGEMENTS}, got {arrangement!r}")
+    as_choice(inputs, ("varying", "constant"), "inputs")
+    as_choice(method, ("numeric", "symbolic"), "method")
+    if arrangement is not None:
+        as_choice(arrangement, ARRANGEMENTS, "arrangement")
     if arrangement is not None and not model.continuous:
         raise ValueError("arrangements of Lie derivatives need a continuous model")
-    if order is not None and (not isinstance(order, int | np.integer) or order < 0):
-        raise ValueError(f"order must be a non-negative integer, got {order!r}")
-    if not isinstance(n_points, int | np.integer) or n_points < 1:
-        raise ValueError(f"n_points must be a positive integer, got {n_points!r}")
+    order = as_int(order, "order", minimum=0, allow_none=True)
+    n_points = as_int(n_points, "n_points", minimum=1)
+    seed = as_seed(seed)
+    max_order = as_int(max_order, "max_order", minimum=0, allow_none=True)
+    input_samples = as_int(input_samples, "input_samples", minimum=1, allow_none=True)
+    rtol = as_float(rtol, "rtol", positive=True, expected="a number in (0, 1)")
+    if rtol >= 1:
+        raise ValueError(f"rtol must be a number in (0, 1), got {rtol!r}")
+    if at is not None:
+        at_arr = _numeric_array(at, "at")
+        if at_arr.ndim not in (1, 2) or at_arr.shape[-1] != model.nx:
+            raise ValueError(f"at must have shape ({model.nx},) or (k, {model.nx}), "
+                             f"got {at_arr.shape}")
+        if not np.isfinite(at_arr).all():
+            raise ValueError("at must be finite")
     n = model.nx
     rng = np.random.default_rng(seed)
-    input_samples = 2 * n if input_samples is None else int(input_samples)
+    input_samples = 2 * n if input_samples is None else input_samples
     max_order = max_order if max_order is not None else n + 2
     orders = [order] if order is not None else range(0, max_order + 1)
     history: list[int] = []
@@ -556,6 +577,7 @@ class WindowReport:
     crb_std: np.ndarray | None
 
 
+@check_keywords
 def window(model: Model, x0, n_steps: int, inputs=None, R=None, every: int = 1,
            rtol: float = 1e-9) -> WindowReport:
     """Identifiability of the initial state from ``n_steps`` samples along a trajectory.
@@ -575,13 +597,25 @@ def window(model: Model, x0, n_steps: int, inputs=None, R=None, every: int = 1,
         information and the Cramer-Rao bound.
     every : int
         Keep every ``every``-th sample (a downsampled buffer).
+    rtol : float
+        Singular values below ``rtol`` times the largest count as zero.
     """
+    if not isinstance(model, Model):
+        raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
     x0 = as_vector(x0, model.nx, "x0")
-    if not isinstance(n_steps, int | np.integer) or n_steps < 0:
-        raise ValueError(f"n_steps must be a non-negative integer, got {n_steps!r}")
-    U = np.zeros((n_steps, model.nu)) if inputs is None else np.asarray(inputs, float)
+    n_steps = as_int(n_steps, "n_steps", minimum=0)
+    every = as_int(every, "every", minimum=1)
+    rtol = as_float(rtol, "rtol", positive=True, expected="a number in (0, 1)")
+    if rtol >= 1:
+        raise ValueError(f"rtol must be a number in (0, 1), got {rtol!r}")
+    U = np.zeros((n_steps, model.nu)) if inputs is None else _numeric_array(inputs, "inputs")
+    if U.ndim == 1 and model.nu == 1 and len(U) == n_steps:
+        U = U[:, None]
     if U.shape != (n_steps, model.nu):
         raise ValueError(f"inputs must have shape ({n_steps}, {model.nu}), got {U.shape}")
+    if not np.isfinite(U).all():
+        raise ValueError("inputs must be finite")
+    Rm = None if R is None else as_covariance(R, model.ny, "R")
     x = ca.SX.sym("x", model.nx)
     p = ca.DM(model.p)
     xs, ys = x, []
@@ -594,8 +628,7 @@ def window(model: Model, x0, n_steps: int, inputs=None, R=None, every: int = 1,
             u_prev = ca.DM(U[k])
     S = np.asarray(ca.Function("S", [x], [ca.jacobian(ca.vertcat(*ys), x)])(x0))
     fisher = crb = None
-    if R is not None:
-        Rm = as_covariance(R, model.ny, "R")
+    if Rm is not None:
         W = np.linalg.cholesky(np.linalg.inv(Rm)).T
         S = (np.kron(np.eye(len(ys)), W)) @ S
         fisher = S.T @ S

@@ -8,14 +8,50 @@ estimator takes, so ``estim.EKF(sc.model, **sc.tuning)`` is the whole set-up.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from estim import models
-from estim._validate import as_covariance, as_vector
+from estim._validate import (
+    _numeric_array,
+    as_bool,
+    as_choice,
+    as_covariance,
+    as_float,
+    as_int,
+    as_vector,
+    check_call,
+)
 from estim.model import Model
+
+
+def check_plant_changes(changes, model: Model, name: str = "plant_changes") -> list:
+    """``[(time, {param: value}), ...]`` checked against ``model``; returns a list of
+    ``(float, dict)`` pairs."""
+    if changes is None:
+        return []
+    if isinstance(changes, Mapping | str) or not hasattr(changes, "__iter__"):
+        raise TypeError(f"{name} must be a list of (time, {{param: value}}) pairs, "
+                        f"got {type(changes).__name__}")
+    out = []
+    for i, entry in enumerate(changes):
+        if not isinstance(entry, tuple | list) or len(entry) != 2:
+            raise TypeError(f"{name}[{i}] must be a (time, {{param: value}}) pair, "
+                            f"got {entry!r}")
+        t, values = entry
+        t = as_float(t, f"{name}[{i}] time")
+        if not isinstance(values, Mapping):
+            raise TypeError(f"{name}[{i}] must map parameter names to values, "
+                            f"got {type(values).__name__}")
+        unknown = [k for k in values if k not in model.param_names]
+        if unknown:
+            raise ValueError(f"{name}[{i}] names unknown parameters {unknown}; the model's "
+                             f"parameters are {model.param_names}")
+        values = {k: as_float(v, f"{name}[{i}][{k!r}]") for k, v in values.items()}
+        out.append((t, values))
+    return out
 
 
 @dataclass
@@ -67,14 +103,38 @@ class Scenario:
     description: str = ""
 
     def __post_init__(self):
+        if not isinstance(self.name, str):
+            raise TypeError(f"name must be a string, got {type(self.name).__name__}")
+        if not isinstance(self.model, Model):
+            raise TypeError(f"model must be an estim.Model, got {type(self.model).__name__}")
         m = self.model
         self.x0 = as_vector(self.x0, m.nx, "x0")
         self.Q = as_covariance(self.Q, m.nx, "Q", definite=False)
         self.R = as_covariance(self.R, m.ny, "R", definite=True)
-        if self.feedback not in ("estimate", "truth"):
-            raise ValueError(f"feedback must be 'estimate' or 'truth', got {self.feedback!r}")
-        if not isinstance(self.n_steps, int | np.integer) or self.n_steps < 1:
-            raise ValueError(f"n_steps must be a positive integer, got {self.n_steps!r}")
+        as_choice(self.feedback, ("estimate", "truth"), "feedback")
+        self.n_steps = as_int(self.n_steps, "n_steps", minimum=1)
+        self.clip = as_bool(self.clip, "clip")
+        if not isinstance(self.tuning, Mapping):
+            raise TypeError(f"tuning must be a dict of estimator arguments, "
+                            f"got {type(self.tuning).__name__}")
+        for key in self.tuning:
+            if not isinstance(key, str):
+                raise TypeError(f"tuning keys must be argument names, got {key!r}")
+        if self.controller is not None and not callable(self.controller):
+            raise TypeError(f"controller must be callable (t, x) -> u, "
+                            f"got {type(self.controller).__name__}")
+        if self.inputs is not None and self.controller is not None:
+            raise ValueError("give inputs= or controller=, not both")
+        if self.inputs is not None and not callable(self.inputs):
+            U = _numeric_array(self.inputs, "inputs")
+            if U.ndim == 1 and m.nu == 1:
+                U = U[:, None]
+            if U.shape != (self.n_steps, m.nu):
+                raise ValueError(f"inputs must have shape ({self.n_steps}, {m.nu}) = "
+                                 f"(n_steps, nu), got {U.shape}")
+            if not np.isfinite(U).all():
+                raise ValueError("inputs must be finite")
+        self.plant_changes = check_plant_changes(self.plant_changes, m)
 
     def replace(self, **changes) -> Scenario:
         """A copy with some fields changed (e.g. ``n_steps``)."""
@@ -161,6 +221,9 @@ def satellite(excitation: bool = True, fault: bool = True, n_steps: int = 400,
     (chosen): ``Q = diag(1e-10 (q), 1e-8 (omega), 1e-12 (theta))``, guess
     ``omega = 0`` with ``P0 = diag(1e-4, 1e-3, 1e-8)`` blocks.
     """
+    excitation, fault = as_bool(excitation, "excitation"), as_bool(fault, "fault")
+    fault_time = as_float(fault_time, "fault_time")
+    fault_factor = as_float(fault_factor, "fault_factor", positive=True)
     m = models.satellite()
     x0 = np.array([1.0, 0.0, 0.0, 0.0, 0.02, -0.015, 0.01, 0.0])
     changes = []
@@ -226,6 +289,7 @@ def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int 
     from estim.estimators.ekf import EKF
     from estim.simulate import simulate
 
+    guess = as_vector(guess, 3, "guess")
     sc = satellite(excitation=excitation, fault=fault, n_steps=n_steps)
     log = simulate(sc, EKF(sc.model, **sc.tuning), seed=seed)
     nadir = np.array([models.nadir_in_body(x) for x in log.x])
@@ -254,8 +318,22 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
 
 
 def get(name: str, **kwargs) -> Scenario:
-    """Build a scenario by name, e.g. ``estim.scenarios.get("batch_reactor")``."""
-    try:
-        return SCENARIOS[name](**kwargs)
-    except KeyError:
-        raise ValueError(f"unknown scenario {name!r}; known: {sorted(SCENARIOS)}") from None
+    """Build a scenario by name, e.g. ``estim.scenarios.get("batch_reactor")``.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SCENARIOS`.
+    **kwargs
+        Arguments of that scenario's function (e.g. ``n_steps``).
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"name must be a scenario name (str), got {type(name).__name__}")
+    if name not in SCENARIOS:
+        import difflib
+
+        close = difflib.get_close_matches(name, list(SCENARIOS), n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ValueError(f"unknown scenario {name!r}{hint}; known: {sorted(SCENARIOS)}")
+    check_call(SCENARIOS[name], kwargs, f"scenario {name!r}")
+    return SCENARIOS[name](**kwargs)

@@ -16,14 +16,37 @@ same seed gives the same noise whatever the estimator does.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import as_covariance, as_vector
+from estim._validate import (
+    _numeric_array,
+    _show,
+    as_bool,
+    as_covariance,
+    as_float,
+    as_int,
+    as_seed,
+    as_vector,
+    check_keywords,
+)
 from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.model import Model
-from estim.scenarios import Scenario
+from estim.scenarios import Scenario, check_plant_changes
+
+#: :func:`simulate` and :func:`replay` warn when more than this fraction of the steps failed.
+FAILED_FRACTION = 0.02
+
+
+class EstimationWarning(UserWarning):
+    """Many steps of a run failed (the estimates are mostly predictions or re-anchors).
+
+    Silence it with ``warnings.simplefilter("ignore", estim.EstimationWarning)``, or pass
+    ``warn=False`` to :func:`simulate` / :func:`replay`.
+    """
 
 
 def _sqrt_psd(M: np.ndarray) -> np.ndarray:
@@ -48,6 +71,8 @@ class _Recorder:
         self.nis = np.full(T, np.nan)
         self.cost = np.full(T, np.nan)
         self.status = np.empty(T, dtype=object)
+        self.extra = np.empty(T, dtype=object)
+        self.done = 0  # steps recorded completely
 
     def record(self, k: int, x_hat: np.ndarray, info) -> None:
         self.x_hat[k] = x_hat
@@ -59,17 +84,40 @@ class _Recorder:
         self.nis[k] = info.nis
         self.cost[k] = info.cost
         self.status[k] = info.status
+        self.extra[k] = info.extra
 
     def log(self, model: Model, estimator: Estimator, t, x, y, u) -> Log:
+        """The Log of the steps recorded so far (all of them after a complete run)."""
+        n = self.done
         log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
                   estimator=getattr(estimator, "name", type(estimator).__name__),
                   output_state=output_state_map(model), model_name=model.name)
         for key, arr in (("t", t), ("x", x), ("y", y), ("u", u), ("x_hat", self.x_hat),
                          ("P", self.P), ("solve_time", self.solve_time),
                          ("status", self.status.astype(str)), ("iterations", self.iterations),
-                         ("success", self.success), ("nis", self.nis), ("cost", self.cost)):
-            log.set(key, arr)
+                         ("success", self.success), ("nis", self.nis), ("cost", self.cost),
+                         ("diagnostics", self.extra)):
+            log.set(key, arr[:n])
         return log
+
+    def keep(self, exc: BaseException, model: Model, estimator: Estimator, t, x, y, u) -> None:
+        """Attach the log of the completed steps to ``exc`` (as ``exc.log``)."""
+        try:
+            exc.log = self.log(model, estimator, t, x, y, u)
+        except Exception:  # noqa: BLE001 - never mask the original error
+            return
+        note = f"estim: the log of the {self.done} steps completed before this is exc.log"
+        if hasattr(exc, "add_note"):
+            exc.add_note(note)
+
+    def warn(self, estimator: Estimator, log: Log) -> None:
+        """An :class:`EstimationWarning` when more than :data:`FAILED_FRACTION` of the
+        steps failed."""
+        if log.failures > FAILED_FRACTION * len(log):
+            name = getattr(estimator, "name", type(estimator).__name__)
+            warnings.warn(f"{name} on {log.model_name or 'the model'}: {log.problems()}; "
+                          f"see log.status", EstimationWarning,
+                          stacklevel=4)  # this method, simulate, its argument check, caller
 
 
 def output_state_map(model: Model) -> dict[int, int]:
@@ -90,10 +138,11 @@ def output_state_map(model: Model) -> dict[int, int]:
     return out
 
 
+@check_keywords
 def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 0, *,
              x0=None, n_steps: int | None = None, Q=None, R=None, inputs=None,
              controller=None, feedback: str | None = None, clip: bool | None = None,
-             missing=None, plant_changes=None) -> Log:
+             missing=None, plant_changes=None, warn: bool = True) -> Log:
     """Run ``estimator`` in closed loop on a scenario (or a bare model) and log everything.
 
     Parameters
@@ -126,11 +175,22 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
         Outputs not measured: a probability per output and sample, or a mask.
     plant_changes : list of (time, {param: value}), optional
         Plant parameter changes from the given time on.
+    warn : bool
+        Emit an :class:`EstimationWarning` when more than :data:`FAILED_FRACTION`
+        (2 %) of the steps failed.
 
     Returns
     -------
     Log
         Time-major arrays; see :class:`~estim.Log`.
+
+    Raises
+    ------
+    FloatingPointError
+        The plant's state or output became non-finite (a plant that blows up).
+        Like any exception raised during the run (by the estimator, the
+        controller, or a ``KeyboardInterrupt``), it carries the log of the steps
+        completed before it as ``exc.log``.
     """
     if not isinstance(estimator, Estimator):
         raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
@@ -156,8 +216,9 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     if estimator.model.nx != model.nx or estimator.model.ny != model.ny \
             or estimator.model.nu != model.nu:
         raise ValueError("estimator was built for a model of other dimensions than the plant")
-    if not isinstance(n_steps, int | np.integer) or n_steps < 1:
-        raise ValueError(f"n_steps must be a positive integer, got {n_steps!r}")
+    n_steps, seed, clip, plant_changes = _check_simulate(
+        model, n_steps, seed, clip, inputs, controller, missing, plant_changes)
+    warn = as_bool(warn, "warn")
     if inputs is not None and controller is not None:
         raise ValueError("give inputs= or controller=, not both")
     feedback = feedback or "estimate"
@@ -187,34 +248,48 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     u_prev = np.zeros(nu) if U is None else U[0].copy()
     p = model.p
     next_change = 0
-    for k in range(T):
-        t = ts[k]
-        while next_change < len(changes) and t >= changes[next_change][0] - 1e-12:
-            p = params[next_change]
-            next_change += 1
-        y = H(x, u_prev, p)[0] + V[k]
-        if miss is not None:
-            y[miss[k]] = np.nan
-        X[k], Y[k] = x, y
-        xh = estimator.step(y.copy(), u_prev)
-        rec.record(k, xh, estimator.info)
-        if U is not None:
-            u = U[k]
-        elif controller is not None:
-            u = as_vector(controller(t, x if feedback == "truth" else xh), nu, "controller output")
-        else:
-            u = u_prev
-        Uk[k] = u
-        x = F(x, u, p)[0] + W[k]
-        if clip:
-            x = np.minimum(np.maximum(x, model.lower), model.upper)
-        if not np.isfinite(x).all():
-            raise FloatingPointError(f"the plant state became non-finite at step {k} (t={t:g})")
-        u_prev = u.copy()
-    return rec.log(model, estimator, ts, X, Y, Uk)
+    try:
+        for k in range(T):
+            t = ts[k]
+            while next_change < len(changes) and t >= changes[next_change][0] - 1e-12:
+                p = params[next_change]
+                next_change += 1
+            y = H(x, u_prev, p)[0] + V[k]
+            if np.isinf(y).any():
+                raise FloatingPointError(f"the plant output became infinite at step {k} "
+                                         f"(t={t:g}): y = {y}")
+            if miss is not None:
+                y[miss[k]] = np.nan
+            X[k], Y[k] = x, y
+            xh = estimator.step(y.copy(), u_prev)
+            rec.record(k, xh, estimator.info)
+            if U is not None:
+                u = U[k]
+            elif controller is not None:
+                u = as_vector(controller(t, x if feedback == "truth" else xh), nu,
+                              "controller output")
+            else:
+                u = u_prev
+            Uk[k] = u
+            rec.done = k + 1
+            x = F(x, u, p)[0] + W[k]
+            if clip:
+                x = np.minimum(np.maximum(x, model.lower), model.upper)
+            if not np.isfinite(x).all():
+                raise FloatingPointError(f"the plant state became non-finite after step {k} "
+                                         f"(t={t:g})")
+            u_prev = u.copy()
+    except BaseException as exc:  # the steps done so far go with the exception
+        rec.keep(exc, model, estimator, ts, X, Y, Uk)
+        raise
+    log = rec.log(model, estimator, ts, X, Y, Uk)
+    if warn:
+        rec.warn(estimator, log)
+    return log
 
 
-def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
+@check_keywords
+def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True) -> Log:
     """Run an estimator over recorded data (e.g. measurements from an experiment).
 
     Parameters
@@ -230,20 +305,25 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
         The true states, where known (for :func:`~estim.rmse` and plots).
     t : (T,) array, optional
         Sample times (default ``k * model.dt``).
+    warn : bool
+        Emit an :class:`EstimationWarning` when more than 2 % of the steps failed.
 
     Returns
     -------
     Log
         As from :func:`simulate`; ``x`` is NaN where not given.
+
+    Notes
+    -----
+    Every array is checked before the first step: ``y`` may hold NaN (a missing
+    output) but not ±inf, which is refused with the row it is in. An exception
+    raised during the run carries the log of the completed steps as ``exc.log``.
     """
     if not isinstance(estimator, Estimator):
         raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
     model = estimator.model
-    Y = np.asarray(y, dtype=float)
-    if Y.ndim == 1 and model.ny == 1:
-        Y = Y[:, None]
-    if Y.ndim != 2 or Y.shape[1] != model.ny:
-        raise ValueError(f"y must have shape (T, {model.ny}), got {Y.shape}")
+    Y = _check_replay(model, y, u, x, t)
+    warn = as_bool(warn, "warn")
     T = Y.shape[0]
     U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model.nu, model.dt)
     X = np.full((T, model.nx), np.nan) if x is None else np.asarray(x, dtype=float)
@@ -254,10 +334,18 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None) -> Log:
         raise ValueError(f"t must have shape ({T},), got {ts.shape}")
     rec = _Recorder(T, model.nx)
     estimator.reset()
-    for k in range(T):
-        x_hat = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
-        rec.record(k, x_hat, estimator.info)
-    return rec.log(model, estimator, ts, X, Y, U)
+    try:
+        for k in range(T):
+            x_hat = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
+            rec.record(k, x_hat, estimator.info)
+            rec.done = k + 1
+    except BaseException as exc:  # the steps done so far go with the exception
+        rec.keep(exc, model, estimator, ts, X, Y, U)
+        raise
+    log = rec.log(model, estimator, ts, X, Y, U)
+    if warn:
+        rec.warn(estimator, log)
+    return log
 
 
 def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:
@@ -290,3 +378,69 @@ def _missing(missing, T: int, ny: int, seed) -> np.ndarray | None:
         raise ValueError(f"missing must be a probability or a ({T}, {ny}) bool mask, "
                          f"got shape {mask.shape}")
     return mask
+
+
+def _check_simulate(model: Model, n_steps, seed, clip, inputs, controller, missing,
+                    plant_changes):
+    """The arguments of :func:`simulate` that are not checked where they are used."""
+    n_steps = as_int(n_steps, "n_steps", minimum=1)
+    seed = as_seed(seed)
+    clip = as_bool(clip, "clip", allow_none=True)
+    if controller is not None and not callable(controller):
+        raise TypeError(f"controller must be callable (t, x) -> u, "
+                        f"got {type(controller).__name__}")
+    if inputs is not None and not callable(inputs):
+        _numeric_array(inputs, "inputs")
+    if missing is not None:
+        if isinstance(missing, bool | np.bool_) or np.ndim(missing) == 0:
+            as_float(missing, "missing", expected="a probability in [0, 1) or a bool mask")
+        else:
+            mask = np.asarray(missing)
+            if mask.dtype != bool and not (mask.dtype.kind in "iu"
+                                           and np.isin(mask, (0, 1)).all()):
+                raise TypeError(f"missing must be a probability or a (T, ny) bool mask, "
+                                f"got an array of {mask.dtype}")
+    return n_steps, seed, clip, check_plant_changes(plant_changes, model)
+
+
+def _check_replay(model: Model, y, u, x, t) -> np.ndarray:
+    """Check every array of :func:`replay` before the first step; return ``y`` as (T, ny)."""
+    Y = _numeric_array(y, "y")
+    if Y.ndim == 1 and model.ny == 1:
+        Y = Y[:, None]
+    if Y.ndim != 2 or Y.shape[1] != model.ny:
+        raise ValueError(f"y must have shape (T, {model.ny}), got {Y.shape}")
+    T = Y.shape[0]
+    if T < 1:
+        raise ValueError("y must hold at least one sample")
+    rows = np.flatnonzero(np.isinf(Y).any(axis=1))
+    if len(rows):
+        raise ValueError(f"y must not contain inf: row {rows[0]} is {Y[rows[0]]} "
+                         f"(use NaN for a missing output)")
+    if u is not None and not callable(u):
+        U = _numeric_array(u, "u")
+        if U.ndim == 1 and model.nu == 1:
+            U = U[:, None]
+        if U.shape != (T, model.nu):
+            raise ValueError(f"u must have shape ({T}, {model.nu}) = (T, nu), got {U.shape}")
+        bad = np.flatnonzero(~np.isfinite(U).all(axis=1))
+        if len(bad):
+            raise ValueError(f"u must be finite: row {bad[0]} is {U[bad[0]]}")
+    if x is not None:
+        X = _numeric_array(x, "x")
+        if X.shape != (T, model.nx):
+            raise ValueError(f"x must have shape ({T}, {model.nx}), got {X.shape}")
+        if np.isinf(X).any():
+            raise ValueError("x must not contain inf (use NaN where the state is unknown)")
+    if t is not None:
+        ts = _numeric_array(t, "t")
+        if ts.shape != (T,):
+            raise ValueError(f"t must have shape ({T},), got {ts.shape}")
+        if not np.isfinite(ts).all():
+            raise ValueError(f"t must be finite, got {_show(ts)}")
+        steps = np.flatnonzero(np.diff(ts) <= 0)
+        if len(steps):
+            k = steps[0]
+            raise ValueError(f"t must be strictly increasing: t[{k}] = {ts[k]:g}, "
+                             f"t[{k + 1}] = {ts[k + 1]:g}")
+    return Y

@@ -5,8 +5,9 @@ in ``estim.__all__`` has a docstring of its own, and every parameter of every
 public callable (a function, or a class's constructor) is listed in the
 numpydoc ``Parameters`` section of its docstring. For a dataclass the
 constructor's parameters are its fields, so an ``Attributes`` section counts
-too. ``**kwargs``-style catch-alls are exempt: the estimators take
-``**options`` only to reject unknown keywords with a clear error.
+too. ``**kwargs``-style catch-alls would be exempt; the public callables have
+none: unknown keywords are refused against the real signature
+(:func:`estim._validate.check_keywords`), which ``inspect.signature`` still shows.
 """
 
 from __future__ import annotations

@@ -118,7 +118,10 @@ def test_mapped_and_unrolled_modes_agree():
 
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="jit needs a C compiler")
-def test_jit_compiled_graph_gives_the_same_fit():
+def test_jit_compiled_graph_gives_the_same_fit(tmp_path, monkeypatch):
+    """Same fit compiled; the compiler's files go to a private directory, not the
+    current one."""
+    monkeypatch.chdir(tmp_path)
     log = _lorenz_record(40, seed=2)
     m = estim.models.lorenz()
     fits = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3), solver_options=opts).fit(
@@ -126,6 +129,7 @@ def test_jit_compiled_graph_gives_the_same_fit():
     assert fits[1].success
     np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-9)
     np.testing.assert_allclose(fits[0].P_last, fits[1].P_last, rtol=1e-9)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_singular_system_falls_back_to_the_ridge():

@@ -22,9 +22,9 @@ def _window_args(obs, sc, seed=0, k=720):
     obs.reset()
     for y in log.y[:k + 1]:
         obs.step(y)
-    Y, Yd, U = obs._window_data()
+    Y, Yd, U, WY = obs._window_data()
     nx = sc.model.nx
-    return log, (U, Y, np.zeros_like(Yd), 0.0, np.zeros(nx), np.zeros(nx * nx))
+    return log, (U, Y, np.zeros_like(Yd), 0.0, np.zeros(nx), np.zeros(nx * nx), WY)
 
 
 def test_sensitivity_equation_gradient_equals_ad_gradient():
@@ -35,7 +35,7 @@ def test_sensitivity_equation_gradient_equals_ad_gradient():
     for _ in range(5):
         x = log.x[540] * (1 + 1e-2 * rng.standard_normal(4))
         g_ad = obs._J(x, *args)[1].copy()
-        g_sens = obs._grad_sens(x, args[0], args[1])[0].copy()
+        g_sens = obs._grad_sens(x, args[0], args[1], args[-1])[0].copy()
         np.testing.assert_allclose(g_sens, g_ad, rtol=1e-8, atol=1e-8 * np.abs(g_ad).max())
 
 
@@ -95,9 +95,11 @@ def test_failed_optimisation_keeps_the_estimate(monkeypatch):
     sc, obs = _runaway_observer(derivative_weight=0.0)
     monkeypatch.setattr(obs, "_minimise",
                         lambda start, args: (start * np.nan, np.nan, 0, False, "broken"))
-    log = estim.simulate(sc, obs, seed=0, n_steps=400)
+    with pytest.warns(estim.EstimationWarning, match=r"11 of 400 steps failed"):
+        log = estim.simulate(sc, obs, seed=0, n_steps=400)
     assert np.isfinite(log.x_hat).all()
     assert any(s == "failed: broken" for s in log.status)
+    assert log.failures == 11 and "failed: broken" in repr(log)
     # with every optimisation failing, the estimate is the open-loop propagation of x0
     x = np.array(sc.tuning["x0"])
     for _ in range(399):

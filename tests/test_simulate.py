@@ -141,8 +141,9 @@ def test_plant_changes_apply_from_their_time():
 
 
 def test_failed_update_is_recorded_and_survived(linear):
-    """A diverged covariance makes the update non-finite: the step keeps the last
-    good estimate, reports the failure as status, and a reset recovers."""
+    """A diverged covariance makes the prediction non-finite: the step re-anchors on the
+    last trusted estimate (its covariance not finite: P0) and updates it with the
+    measurement, reports the failure as status, and a reset recovers."""
     sys = linear
     est = estim.EKF(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
     ref = estim.simulate(sys.model, est, x0=sys.x0, n_steps=8, Q=sys.Q, R=sys.R, seed=0)
@@ -152,7 +153,10 @@ def test_failed_update_is_recorded_and_survived(linear):
     est.P[:] = np.nan
     x = est.step(ref.y[3], ref.u[2])
     assert not est.info.success and est.info.status.startswith("failed")
-    np.testing.assert_array_equal(x, xs[-1])
+    C, P0 = sys.C, sys.P0
+    K = P0 @ C.T @ np.linalg.inv(C @ P0 @ C.T + sys.R)
+    np.testing.assert_allclose(x, xs[-1] + K @ (ref.y[3] - C @ xs[-1]), atol=1e-12)
+    assert np.isfinite(est.P).all()
     est.reset()
     np.testing.assert_array_equal(est.step(ref.y[0]), ref.x_hat[0])
     assert est.info.success

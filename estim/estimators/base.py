@@ -14,16 +14,42 @@ step is in ``est.info`` (a frozen :class:`StepInfo`).
 Subclasses implement :meth:`Estimator._step` (the mathematics) and, where they
 hold more state, :meth:`Estimator._reset`; the base class owns argument
 checking, timing and bookkeeping.
+
+Failures and recovery
+---------------------
+``info.status`` is ``"ok"``, or starts with one of
+
+``"failed: "``
+    the step could not use this measurement as intended (a non-finite
+    prediction or update, a solver that failed or returned a point worse than
+    its start); ``info.success`` is False. The estimator never keeps a
+    non-finite value: it *re-anchors* on its last finite estimate, projected
+    on the bounds, with the covariance inflated by ``P0`` (the arrival
+    covariance for MHE, a new prior for full-information estimation), and
+    applies the measurement to that, so that the following steps proceed
+    normally.
+``"inexact: "``
+    a solver stopped early (e.g. ``max_iter``) at a finite point no worse than
+    its warm start; that point is the estimate (``success`` is True).
+``"suspect: "``
+    the step succeeded, but the normalised innovation squared (filters) or the
+    weighted cost (MHE, full information) lies beyond the :data:`SUSPECT_TAIL`
+    tail of its chi-square distribution: an outlier, a fault, or an estimate
+    that lost track (``success`` is True).
+
+A returned estimate is always finite.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cache
 
 import numpy as np
+from scipy.special import chdtri
 
-from estim._validate import as_bounds, as_covariance, as_vector
+from estim._validate import as_bounds, as_covariance, as_vector, check_keywords
 from estim.model import Model
 
 
@@ -77,6 +103,27 @@ class StepInfo:
 _DEFAULTS = {f: getattr(StepInfo, f) for f in ("status", "success", "iterations", "solve_time",
                                                "P", "cost", "innovation", "nis")}
 
+#: A step whose normalised innovation squared (filters) or weighted least-squares cost
+#: (MHE, full information) lies beyond this tail probability of its chi-square
+#: distribution is reported ``"suspect"``. At 1e-9 a consistent estimator raises a false
+#: alarm about once in a billion steps; a 100-sigma outlier or a diverged estimate is far
+#: beyond it.
+SUSPECT_TAIL = 1e-9
+
+
+@cache
+def chi2_limit(dof: int) -> float:
+    """The :data:`SUSPECT_TAIL` quantile of the chi-square distribution with ``dof``
+    degrees of freedom (inf without any)."""
+    return float(chdtri(dof, SUSPECT_TAIL)) if dof > 0 else float("inf")
+
+
+def consistency_status(statistic: float, dof: int, what: str = "NIS") -> str:
+    """``"ok"``, or ``"suspect: ..."`` when ``statistic`` is beyond :func:`chi2_limit`."""
+    if statistic > chi2_limit(dof):
+        return f"suspect: {what} {statistic:.3g} beyond the {SUSPECT_TAIL:g} tail of chi2({dof})"
+    return "ok"
+
 
 class Estimator:
     """Base class: tuning, argument checks and the ``step``/``reset`` protocol.
@@ -100,6 +147,13 @@ class Estimator:
     _requires_P0 = True
     #: Subclasses that detect inf in ``y`` inside their compiled step set this.
     _checks_inf_itself = False
+
+    def __init_subclass__(cls, **kwargs):
+        """Every estimator's constructor checks its keyword names before it runs: an
+        unknown option (with a suggestion) or a missing required one is a ``TypeError``."""
+        super().__init_subclass__(**kwargs)
+        if "__init__" in cls.__dict__:
+            cls.__init__ = check_keywords(cls.__dict__["__init__"])
 
     def __init__(self, model: Model, *, Q, R, x0, P0=None):
         if not isinstance(model, Model):
@@ -155,6 +209,18 @@ class Estimator:
         """Reset method-specific state (called by :meth:`reset`)."""
 
     # -------------------------------------------------------------- helpers
+    def _anchor(self, x: np.ndarray, P: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Where a failed step re-anchors: ``x`` (finite) projected on the estimator's
+        bounds, and the covariance ``P + P0`` (``P0`` where ``P`` is missing or not
+        finite; None without either)."""
+        lower = getattr(self, "lower", self.model.lower)
+        upper = getattr(self, "upper", self.model.upper)
+        x = np.minimum(np.maximum(x, lower), upper)
+        if P is None or not np.isfinite(P).all():
+            return x, None if self.P0 is None else self.P0.copy()
+        return x, P if self.P0 is None else P + self.P0
+
     def _bounds(self, lower, upper) -> tuple[np.ndarray, np.ndarray]:
         """State bounds given to an estimator (scalar, sequence or dict), default the model's."""
         m = self.model

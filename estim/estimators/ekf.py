@@ -6,8 +6,8 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import check_options
-from estim.estimators.base import Estimator, StepInfo
+from estim._validate import as_bool
+from estim.estimators.base import Estimator, StepInfo, chi2_limit, consistency_status
 from estim.model import Model
 
 
@@ -67,10 +67,9 @@ class EKF(Estimator):
     _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q, R, x0, P0, clip: bool = False, lower=None,
-                 upper=None, **options):
-        check_options(options, (), "EKF")
+                 upper=None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        self.clip = bool(clip)
+        self.clip = as_bool(clip, "clip")
         self.lower, self.upper = self._bounds(lower, upper)
         nx = model.nx
         # the filter state [x; vec(P)] lives where both compiled functions read it
@@ -115,10 +114,19 @@ class EKF(Estimator):
         nis = ca.dot(e, ca.solve(S, e))
         s_new = ca.vertcat(xh, ca.vec(Ph))
         s_prior = ca.vertcat(xb, ca.vec(Pb))
-        ok = ca.fabs(ca.sum1(s_new) + nis) < ca.inf
-        ok_prior = ca.fabs(ca.sum1(s_prior)) < ca.inf
+        # finite, and a covariance with a positive diagonal (lost in overflowing updates)
+        ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
+        ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
+        ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
+        measured = ca.sum1(mask) if ny else ca.SX(0)
+        # beyond the chi-square tail for the number of outputs measured (see SUSPECT_TAIL)
+        limits = ca.DM([chi2_limit(k) for k in range(1, ny + 1)])
+        limit = ca.dot(limits, ca.vertcat(*[measured == k for k in range(1, ny + 1)])) \
+            if ny else ca.SX(0)
+        suspect = ca.logic_and(measured > 0, nis > limit)
         name = "ekf_predict_update" if predict else "ekf_update"
-        return ca.Function(name, [s, u, y], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf),
+        return ca.Function(name, [s, u, y], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
+                                                                  measured, ok_mean, suspect),
                                              s_prior],
                            ["s", "u", "y"], ["s_new", "innovation", "flags", "s_prior"])
 
@@ -137,6 +145,11 @@ class EKF(Estimator):
         nx = self.model.nx
         self._s[:nx] = self.x0
         self._s[nx:] = self.P0.ravel(order="F")
+        # the anchor of a failed step: the filter state after the last step reported "ok"
+        # (the prior to begin with), which is in _s while every step is ok and saved in
+        # _s_trusted when a step is not
+        self._s_trusted = self._s.copy()
+        self._trusted = True  # _s holds the anchor
 
     def _step(self, y, u, first):
         self._y[:] = y
@@ -145,17 +158,41 @@ class EKF(Estimator):
         fun = self._update if first else self._predict_update
         s_new, e, flags, s_prior = fun.evaluate()
         if flags[3]:
-            raise ValueError(f"y must not contain inf, got {y}")
+            raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
+        if not flags[1]:
+            return self._recover(flags, s_prior)
         nx = self.model.nx
-        if flags[1]:
-            self._s[:] = s_new
-            return self._s[:nx].copy(), StepInfo._fast(
-                P=self._s[nx:].reshape(nx, nx, order="F").copy(), innovation=e.copy(),
-                nis=float(flags[0]))
-        # the update produced NaN/inf: keep the prediction where it is usable
-        if flags[2]:
+        suspect = flags[6]
+        if suspect and self._trusted:
+            self._s_trusted[:] = self._s
+        self._trusted = not suspect
+        self._s[:] = s_new
+        info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
+                              innovation=e.copy(), nis=float(flags[0]))
+        if suspect:
+            info.__dict__["status"] = consistency_status(float(flags[0]), int(flags[4]))
+        return self._s[:nx].copy(), info
+
+    def _recover(self, flags, s_prior):
+        """A non-finite update: keep the prediction of a trusted estimate, or re-anchor
+        on the last trusted estimate with ``P + P0`` and update with this measurement."""
+        if self._trusted:
+            self._s_trusted[:] = self._s
+        if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
             self._s[:] = s_prior
-            status = "failed: non-finite update, kept the prediction"
+            status = "failed: non-finite update (h or dh/dx at the prediction); kept the prediction"
         else:
-            status = "failed: non-finite prediction, kept the previous estimate"
+            what = ("update" if flags[2] else "Jacobian dF/dx" if flags[5]
+                    else "prediction F(x, u)")
+            nx = self.model.nx
+            x, P = self._anchor(self._s_trusted[:nx],
+                                self._s_trusted[nx:].reshape(nx, nx, order="F"))
+            self._s[:nx] = x
+            self._s[nx:] = P.ravel(order="F")
+            s_new, _, flags, _ = self._update.evaluate()
+            if flags[1]:
+                self._s[:] = s_new
+            status = (f"failed: non-finite {what}; re-anchored on the last trusted estimate "
+                      f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
+        self._trusted = False
         return self.x.copy(), StepInfo(status=status, success=False, P=self.P.copy())

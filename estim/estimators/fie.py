@@ -9,9 +9,15 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import check_options
-from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.nlp import SOLVERS, LeastSquaresNLP, is_diagonal, weight_factor
+from estim._validate import _holds_bool, _numeric_array, _show, as_choice
+from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.nlp import (
+    SOLVERS,
+    LeastSquaresNLP,
+    check_solver_options,
+    is_diagonal,
+    weight_factor,
+)
 from estim.model import Model
 
 
@@ -150,10 +156,9 @@ class FullInformation(Estimator):
     _requires_P0 = False
 
     def __init__(self, model: Model, *, Q, R, x0=None, P0=None, lower=None, upper=None,
-                 solver: str = "gauss-newton", solver_options: dict | None = None, **options):
-        check_options(options, (), "FullInformation")
-        if solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
+                 solver: str = "gauss-newton", solver_options: dict | None = None):
+        solver = as_choice(solver, SOLVERS, "solver")
+        solver_options = check_solver_options(solver, solver_options)
         self._prior = x0 is not None and P0 is not None
         if P0 is not None and x0 is None:
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
@@ -163,11 +168,12 @@ class FullInformation(Estimator):
                              "(the weights are Q^-1)")
         self.lower, self.upper = self._bounds(lower, upper)
         self.solver = solver
-        self.solver_options = dict(solver_options or {})
+        self.solver_options = solver_options
         self._WQ = weight_factor(self.Q)
         self._WR = weight_factor(self.R)
         self._nlps: dict[tuple[int, bool], LeastSquaresNLP] = {}
         self._maps: dict[int, tuple] = {}
+        self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._reset()
 
     def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
@@ -182,6 +188,8 @@ class FullInformation(Estimator):
     # ------------------------------------------------------------------ batch
     def _record(self, Y, U):
         m = self.model
+        if _holds_bool(Y) or np.iscomplexobj(Y):
+            raise TypeError(f"Y must be a numeric (T, ny) array, got {_show(Y)}")
         try:
             Y = np.asarray(Y, dtype=float)
         except (TypeError, ValueError) as exc:
@@ -201,7 +209,7 @@ class FullInformation(Estimator):
         if U is None:
             U = np.zeros((T, m.nu))
         else:
-            U = np.asarray(U, dtype=float)
+            U = _numeric_array(U, "U")
             if U.ndim == 1 and m.nu == 1:
                 U = U[:, None]
             if U.shape == (T - 1, m.nu):
@@ -239,17 +247,23 @@ class FullInformation(Estimator):
             X0 = np.empty((T, nx))
             X0[:] = self.x0
         else:
-            X0 = np.asarray(guess, dtype=float)
+            X0 = _numeric_array(guess, "guess")
             if X0.shape != (T, nx):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
-        return self._solve(Y, U, Uprev, X0, T, full=True)
+            if not np.isfinite(X0).all():
+                raise ValueError("guess must be finite")
+        return self._solve(Y, U, Uprev, X0, T, full=True)[0]
 
-    def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False) -> FitResult:
+    def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None
+               ) -> tuple[FitResult, bool]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
         (see :mod:`estim.estimators.nlp`), so the optimum is that of the
         ``T``-sample problem; one problem then serves every shorter record.
+        ``prior``: ``(mean, weight factor or None)`` of the first sample (default
+        ``x0`` with ``P0``'s). Returns the result and whether its trajectory is
+        usable (see :class:`~estim.estimators.nlp.Solution`).
         """
         m, T, C = self.model, Y.shape[0], capacity
         pad = C - T
@@ -259,8 +273,11 @@ class FullInformation(Estimator):
             Uprev = np.vstack([np.zeros((pad, m.nu)), Uprev])
             X0 = np.vstack([np.repeat(X0[:1], pad, axis=0), X0])
         nlp = self._problem(C, full=full and pad == 0)
-        sol = nlp.solve(X0, Y, U, Uprev, T, self.x0, self._W0, self._WR, self.R)
-        return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad)
+        if full:  # a fit does not depend on earlier fits (warm-start multipliers, ridge)
+            nlp.reset()
+        xbar, W0 = (self.x0, self._W0) if prior is None else prior
+        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, self._WR, self.R)
+        return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol.usable
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
         m, Xfull = self.model, sol.X
@@ -286,37 +303,66 @@ class FullInformation(Estimator):
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:
         self._W0 = weight_factor(self.P0) if self._prior else None  # reset may change P0
+        for nlp in self._nlps.values():  # as if freshly built
+            nlp.reset()
         self._Ys: list[np.ndarray] = []
         self._Us: list[np.ndarray] = []
+        self._up0 = np.zeros(self.model.nu)  # input held when the record's first y was taken
         self._X: np.ndarray | None = None
-        self._last = self.x0.copy()
+        self._start = (self.x0.copy(), self._W0)  # prior of the record's first sample
+        # the last estimate (and covariance) of a step reported "ok" or "inexact":
+        # where a failed step re-anchors
+        self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
+
+    def _solve_record(self) -> tuple[FitResult, bool, int]:
+        """Solve the record held so far, warm-started from the previous trajectory plus
+        the prediction of its last state; the result, whether it is usable, and the
+        chi-square degrees of freedom of its cost."""
+        m, T = self.model, len(self._Ys)
+        Y = np.array(self._Ys)
+        U = np.vstack([np.array(self._Us).reshape(T - 1, m.nu), np.zeros((1, m.nu))])
+        Uprev = np.vstack([self._up0[None, :], U[:-1]])
+        if self._X is None or len(self._X) != T - 1:
+            guess = np.repeat(self._start[0][None, :], T, axis=0)
+        else:
+            pred = self._F(self._X[-1], U[-2], m.p)[0]
+            guess = np.vstack([self._X, pred if np.isfinite(pred).all() else self._X[-1]])
+        capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
+        res, usable = self._solve(Y, U, Uprev, guess, capacity, prior=self._start)
+        dof = int(np.isfinite(Y).sum()) + (0 if self._start[1] is None else m.nx)
+        return res, usable, dof
 
     def _step(self, y, u, first):
         t0 = time.perf_counter()
-        m = self.model
-        if not first:
+        if self._Ys:
             self._Us.append(u.copy())
-        self._Ys.append(y.copy())
-        T = len(self._Ys)
-        Y = np.array(self._Ys)
-        U = np.vstack([np.array(self._Us).reshape(len(self._Us), m.nu), np.zeros((1, m.nu))])
-        # warm start: the previous trajectory plus the prediction of its last state
-        if self._X is None:
-            guess = self.x0[None, :]
         else:
-            guess = np.vstack([self._X, m._fast_F(self._X[-1], U[-2], m.p)[0]])
-        Uprev = np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
-        res = self._solve(Y, U, Uprev, guess, capacity)
-        if res.success:
-            self._X = res.x
-            x_hat = res.x[-1].copy()
-        else:  # keep the prediction of the last good estimate
-            x_hat = self._last if first else m._fast_F(self._last, u, m.p)[0].copy()
-            self._X = guess
-        self._last = x_hat
-        return x_hat.copy(), StepInfo(
-            status=res.status if res.success else f"failed: {res.status}",
-            success=res.success, iterations=res.iterations,
-            solve_time=time.perf_counter() - t0, P=res.P_last, cost=res.cost,
-            extra={"trajectory": res.x})
+            self._up0 = u.copy()
+        self._Ys.append(y.copy())
+        res, usable, dof = self._solve_record()
+        check = consistency_status(res.cost, dof, "cost")
+        failure = None
+        if not usable or (not res.success and check != "ok"):
+            # restart the record at this sample, the last trusted estimate its prior
+            failure = res.status if not usable else f"{res.status} at cost {res.cost:.3g}"
+            x, P = self._anchor(*self._trusted)
+            self._Ys, self._Us, self._up0 = [y.copy()], [], u.copy()
+            self._start = (x, None if P is None else weight_factor(P))
+            self._X = None
+            res, usable, dof = self._solve_record()
+            check = consistency_status(res.cost, dof, "cost")
+        x_hat = res.x[-1].copy() if usable else self._start[0].copy()
+        self._X = res.x if usable else np.repeat(self._start[0][None, :], len(self._Ys), 0)
+        P = res.P_last if usable else None
+        if failure is not None:
+            status = f"failed: {failure}; re-anchored on the last trusted estimate" + (
+                "" if usable else " (no update: the restarted record failed too)")
+        else:
+            status = check if res.success else \
+                f"inexact: {res.status}" + ("" if check == "ok" else f"; {check}")
+            if check == "ok":
+                self._trusted = (x_hat.copy(), P)
+        return x_hat, StepInfo(
+            status=status, success=failure is None, iterations=res.iterations,
+            solve_time=time.perf_counter() - t0, P=P, cost=res.cost,
+            extra={"trajectory": self._X})

@@ -56,7 +56,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from estim._fast import FastFunction
+from estim._fast import FastFunction, jit_options
 from estim.model import Model
 
 #: Gauss-Newton steps that shrink by less than this factor switch to Newton steps.
@@ -212,8 +212,10 @@ class _StageFunctions:
             A0a + _gram(Jy), A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0], gy, c])
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots (a diagonal weight is a row scaling)
-        A = om * model.F_x(x, u, pm) + (1 - om) * eye
-        G = om * model.F(x, u, pm) + (1 - om) * x
+        # omega is 0 or 1: a switch, not a blend, so that a model that is not finite at
+        # an unused slot's input cannot poison the chain (0 * NaN is NaN)
+        A = ca.if_else(om, model.F_x(x, u, pm), eye)
+        G = ca.if_else(om, model.F(x, u, pm), x)
         if np.allclose(WQ, np.diag(np.diag(WQ))):
             mv = om * ca.DM(np.diag(WQ)) + (1 - om)
             rw = mv * (xb - G)
@@ -601,9 +603,7 @@ class StructuredGaussNewton:
                 scaled = -g / (diag + 1e-300)
                 directions = [ca.if_else(1 - free, scaled, d) for d in directions]
             outs = [cost, g] + directions[::-1]  # Newton's first, Gauss-Newton's last
-        opts = {"jit": True, "compiler": "shell",
-                "jit_options": {"flags": ["-O2"], "verbose": False}} \
-            if self.jit and key != "cov" else {}
+        opts = jit_options() if self.jit and key != "cov" else {}
         name = f"gn_{key}" + ("_complete" if complete else "")
         if self.mode == "unrolled":
             fun = ca.Function(name, ins, outs).expand(name, opts)
@@ -844,6 +844,19 @@ class StructuredGaussNewton:
         self._lbuf[0] = lam
         out = fun.evaluate()
         return float(out[0][0]), out[1], tuple(out[2:])
+
+    def cost(self, x: np.ndarray, p: np.ndarray, complete: bool = False) -> float:
+        """The cost ``||r(x)||^2`` at ``x`` (flat) for the parameters ``p``."""
+        self._xbuf[:] = x
+        self._pbuf[:] = p
+        fun = self._function("cost", bool(complete) and self._weights is not None)
+        return float(fun.evaluate()[0][0])
+
+    def reset(self) -> None:
+        """Back to the state after construction (the ridge is added again only when
+        a block turns out singular)."""
+        self._ridge = False
+        self._complete = False
 
     def covariance(self, x: np.ndarray, p: np.ndarray, complete: bool = False) -> np.ndarray:
         """``(J^T J)^{-1}`` block of the last state at ``x`` (the posterior covariance)

@@ -8,9 +8,15 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import check_options
-from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.nlp import SOLVERS, LeastSquaresNLP, is_diagonal, weight_factor
+from estim._validate import as_choice, as_int
+from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.nlp import (
+    SOLVERS,
+    LeastSquaresNLP,
+    check_solver_options,
+    is_diagonal,
+    weight_factor,
+)
 from estim.model import Model
 
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
@@ -109,20 +115,17 @@ class MHE(Estimator):
 
     def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
                  arrival_cost: str = "filtering", lower=None, upper=None,
-                 solver: str = "ipopt", solver_options: dict | None = None, **options):
-        check_options(options, (), "MHE")
-        if arrival_cost not in ARRIVAL_COSTS:
-            raise ValueError(f"arrival_cost must be one of {ARRIVAL_COSTS}, got {arrival_cost!r}")
+                 solver: str = "ipopt", solver_options: dict | None = None):
+        arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        if not isinstance(horizon, int | np.integer) or horizon < 1:
-            raise ValueError(f"horizon must be a positive integer, got {horizon!r}")
+        horizon = as_int(horizon, "horizon", minimum=1)
         if np.linalg.eigvalsh(self.Q)[0] <= 0:
             raise ValueError("Q must be positive definite for MHE (the weights are Q^-1); "
                              "give every state, parameters included, a small variance")
-        if solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
-        self.horizon = int(horizon)
+        solver = as_choice(solver, SOLVERS, "solver")
+        solver_options = check_solver_options(solver, solver_options)
+        self.horizon = horizon
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
@@ -132,6 +135,7 @@ class MHE(Estimator):
                                     solver, solver_options or {},
                                     diagonal_R=is_diagonal(self.R), weights=self._WR)
         self._cov_step = FastFunction(self._build_cov_step())
+        self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._reset()
 
     # ------------------------------------------------------------------ build
@@ -163,12 +167,13 @@ class MHE(Estimator):
         self._U = np.zeros((N, m.nu))             # _U[j]: input from slot j to j+1
         self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
         self._X = np.tile(self.x0, (N, 1))        # current/previous window solution
-        self._lam = np.zeros(N * m.nx)
         self._n = 0                               # measurements in the window
         self._xbar = self.x0.copy()
         self._Pbar = None if self.P0 is None else self.P0.copy()
         self._history: list[np.ndarray] = []      # MHE estimates of the window's times
-        self._last = self.x0.copy()
+        # the last estimate (and covariance) of a step reported "ok" or "inexact":
+        # where a failed step re-anchors
+        self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
         self._nlp.reset()
 
     # ------------------------------------------------------------------- step
@@ -179,15 +184,55 @@ class MHE(Estimator):
         if self.arrival_cost in ("filtering", "smoothing"):
             mask = np.isfinite(y_old).astype(float)
             Pn, _ = self._cov_step(x_est, u_old, up_old, mask, self._Pbar.ravel(order="F"))
-            self._Pbar = Pn.reshape(self.model.nx, self.model.nx, order="F").copy()
+            Pn = Pn.reshape(self.model.nx, self.model.nx, order="F")
+            # a non-finite linearisation: the covariance grows as for a random walk
+            self._Pbar = Pn.copy() if np.isfinite(Pn).all() else self._Pbar + self.Q
+        xbar = self._X[1].copy()  # previous window's estimate of the new first time
         if self.arrival_cost == "filtering":
-            self._xbar = self.model._fast_F(x_est, u_old, self.model.p)[0].copy()
-        elif self.arrival_cost in ("fixed", "smoothing"):
-            self._xbar = self._X[1].copy()  # previous window's estimate of the new first time
+            pred = self._F(x_est, u_old, self.model.p)[0]
+            xbar = pred.copy() if np.isfinite(pred).all() else xbar
+        if self.arrival_cost != "none":
+            self._xbar = xbar
         for arr in (self._Y, self._U, self._Uprev, self._X):
             arr[:-1] = arr[1:]
         self._history.pop(0)
         self._n -= 1
+
+    def _arrival_weight(self) -> np.ndarray | None:
+        """The arrival weight factor :math:`W` with :math:`W^\\top W = \\bar P^{-1}`."""
+        if self.arrival_cost == "none":
+            return None
+        if self.arrival_cost == "fixed":
+            return self._W0  # P0 is constant: factored at reset, not every step
+        try:
+            W = weight_factor(self._Pbar)
+        except np.linalg.LinAlgError:  # lost definiteness: back to the prior's spread
+            self._Pbar, W = self.P0.copy(), self._W0
+        return W
+
+    def _solve(self):
+        """Solve the current window; the arrival weight and its chi-square degrees."""
+        weight = self._arrival_weight()
+        sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
+                              weight, self._WR, self.R)
+        dof = int(np.isfinite(self._Y[self.horizon - self._n:]).sum())
+        return sol, dof + (0 if weight is None else self.model.nx)
+
+    def _reanchor(self, y, u) -> None:
+        """Restart the window after a failed solve: only this measurement, the arrival
+        cost on the last trusted estimate with its covariance inflated by ``P0``."""
+        N = self.horizon
+        x, P = self._anchor(*self._trusted)
+        self._Y[:] = np.nan
+        self._Y[N - 1] = y
+        self._Uprev[N - 1] = u
+        self._X[:] = x
+        self._n = 1
+        self._history.clear()
+        if self.arrival_cost != "none":
+            self._xbar = x
+        if self.arrival_cost in ("filtering", "smoothing"):
+            self._Pbar = P
 
     def _step(self, y, u, first):
         m, N = self.model, self.horizon
@@ -200,34 +245,41 @@ class MHE(Estimator):
                 for arr in (self._Y, self._U, self._Uprev, self._X):
                     arr[:-1] = arr[1:]
             # warm start: the new slot is the prediction of the previous estimate
-            self._X[N - 1] = m._fast_F(self._X[N - 2], self._U[N - 2], m.p)[0]
+            pred = self._F(self._X[N - 2], self._U[N - 2], m.p)[0]
+            self._X[N - 1] = pred if np.isfinite(pred).all() else self._X[N - 2]
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
         self._n += 1
+        self._X[:N - self._n] = self._X[N - self._n]
+        sol, dof = self._solve()
+        check = consistency_status(sol.cost, dof, "cost")
+        failure = None
+        # an unusable solve, or an early stop whose cost the data do not support: restart
+        # from the last trusted estimate with this measurement
+        if not sol.usable or (not sol.success and check != "ok"):
+            failure = sol.status if not sol.usable else f"{sol.status} at cost {sol.cost:.3g}"
+            self._reanchor(y, u)
+            sol, dof = self._solve()
+            check = consistency_status(sol.cost, dof, "cost")
         s0 = N - self._n
-        self._X[:s0] = self._X[s0]
-        weight = None
-        if self.arrival_cost == "fixed":
-            weight = self._W0  # P0 is constant: factored at reset, not every step
-        elif self.arrival_cost != "none":
-            weight = weight_factor(self._Pbar)
-        sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
-                              weight, self._WR, self.R)
-        elapsed = time.perf_counter() - t0
-        if sol.success:
+        if sol.usable:
             self._X[:] = sol.X
             x_hat = sol.X[-1].copy()
-            status = "ok" if sol.status == "ok" else sol.status
-        else:  # keep the prediction of the last good estimate; the next step recovers
-            x_hat = self._last if first else m._fast_F(self._last, u, m.p)[0].copy()
-            self._X[s0:] = np.where(np.isfinite(self._X[s0:]), self._X[s0:], x_hat)
-            status = f"failed: {sol.status}"
+        else:
+            x_hat = self._X[-1].copy()  # the anchor itself
+        P = self._nlp.covariance(self._X) if sol.usable else None
+        if failure is not None:
+            status = f"failed: {failure}; re-anchored on the last trusted estimate" + (
+                "" if sol.usable else " (no update: the restarted window failed too)")
+        else:
+            status = check if sol.success else \
+                f"inexact: {sol.status}" + ("" if check == "ok" else f"; {check}")
+            if check == "ok":
+                self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
-        self._last = x_hat
-        P = self._nlp.covariance(self._X) if sol.success else None
         return x_hat.copy(), StepInfo(
-            status=status, success=sol.success, iterations=sol.iterations,
-            solve_time=elapsed, P=P, cost=sol.cost,
+            status=status, success=failure is None, iterations=sol.iterations,
+            solve_time=time.perf_counter() - t0, P=P, cost=sol.cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "solver_time": sol.solve_time})

@@ -23,12 +23,15 @@ outputs. One NLP thus serves every window length, built once.
 
 from __future__ import annotations
 
+import re
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
+from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
 from estim.estimators.gauss_newton import StructuredGaussNewton, full_record_constants
 from estim.model import Model
 
@@ -39,6 +42,7 @@ _IPOPT_DEFAULTS = {
     "ipopt.tol": 1e-10, "ipopt.acceptable_tol": 1e-7, "ipopt.max_iter": 200,
     "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
     "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9,
+    "show_eval_warnings": False,
 }
 _SQP_DEFAULTS = {
     "qpsol": "qrqp",
@@ -46,13 +50,115 @@ _SQP_DEFAULTS = {
                       "error_on_fail": False},
     "print_header": False, "print_iteration": False, "print_status": False,
     "print_time": False, "max_iter": 100, "tol_pr": 1e-9, "tol_du": 1e-9,
-    "min_step_size": 1e-12, "error_on_fail": False,
+    "min_step_size": 1e-12, "error_on_fail": False, "show_eval_warnings": False,
 }
 _FATROP_DEFAULTS = {
     "print_time": False, "structure_detection": "auto", "expand": True,
     "fatrop.print_level": 0, "fatrop.tol": 1e-10, "fatrop.max_iter": 200,
-    "error_on_fail": False,
+    "error_on_fail": False, "show_eval_warnings": False,
 }
+
+
+#: The options of the Gauss-Newton solver and their checks.
+_GN_OPTIONS = {
+    "max_iter": lambda v, n: as_int(v, n, minimum=1),
+    "xtol": lambda v, n: as_float(v, n, positive=True),
+    "newton": as_bool,
+    "jit": as_bool,
+    "mode": lambda v, n: as_choice(v, ("auto", "unrolled", "mapped"), n),
+}
+_PLUGINS = {"ipopt": "ipopt", "sqp": "sqpmethod", "fatrop": "fatrop"}
+_CASADI_TYPES = {"double": "a number", "int": "an integer", "string": "a string",
+                 "bool": "a bool", "dict": "a dict"}
+
+
+def _casadi_reason(exc: Exception) -> str:
+    """The useful part of a CasADi error message (source locations and banners removed)."""
+    lines = []
+    for line in str(exc).splitlines():
+        line = re.sub(r"^\S*\.(?:cpp|hpp):\d+:\s*", "", line.strip())
+        if not line or line.startswith(("Error calling", "Error in Function::call", ">",
+                                        "Did you mean", "Use print_options")):
+            continue
+        lines.append(line)
+    text = " ".join(lines[:2]) or str(exc).strip()
+    text = re.sub(r'Assertion "is_(\w+)\(\)" failed:\s*type mismatch',
+                  lambda m: f"type mismatch (expected {_CASADI_TYPES.get(m[1], m[1])})", text)
+    return re.sub(r'Assertion "[^"]*" failed:\s*', "", text)
+
+
+def _dry_run(solver: str, options: dict) -> None:
+    """Build (and for fatrop, which reads its options late, solve) a one-variable problem
+    with ``options`` merged over the defaults; CasADi's exceptions pass through."""
+    x, w, z = ca.SX.sym("x"), ca.SX.sym("w"), ca.SX.sym("z")
+    if solver == "fatrop":
+        opts = _merge(_FATROP_DEFAULTS, options)
+        opts.setdefault("equality", [True])
+        opts["fatrop.print_level"] = 0
+        nlp = {"x": ca.vertcat(x, w, z), "f": x**2 + w**2 + z**2, "g": z - x - w}
+        ca.nlpsol("options_check", "fatrop", nlp, opts)(x0=0, lbg=0, ubg=0)
+        return
+    defaults = _IPOPT_DEFAULTS if solver == "ipopt" else _SQP_DEFAULTS
+    ca.nlpsol("options_check", _PLUGINS[solver], {"x": x, "f": x**2},
+              _merge(defaults, options))
+
+
+def check_solver_options(solver: str, options) -> dict:
+    """Check ``solver_options`` for ``solver`` before anything is built; return a copy.
+
+    Gauss-Newton's options are checked by name and type; the CasADi solvers'
+    (``"ipopt"``, ``"sqp"``, ``"fatrop"``) by CasADi itself on a one-variable
+    problem, its refusal turned into a ``ValueError`` naming the option.
+    """
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise TypeError(f"solver_options must be a dict, got {type(options).__name__}")
+    options = dict(options)
+    for key in options:
+        if not isinstance(key, str):
+            raise TypeError(f"solver_options keys must be strings, got {key!r}")
+    if solver == "gauss-newton":
+        unknown = [k for k in options if k not in _GN_OPTIONS]
+        if unknown:
+            raise ValueError(unknown_keywords_message(
+                "solver_options for solver 'gauss-newton'", unknown, list(_GN_OPTIONS)))
+        return {k: _GN_OPTIONS[k](v, f"solver_options[{k!r}]") for k, v in options.items()}
+    only_gn = sorted(set(options) & {"xtol", "newton", "mode"})
+    if only_gn:
+        raise ValueError(f"solver_options {only_gn} apply to solver='gauss-newton' only "
+                         f"(solver is {solver!r})")
+    if not options:
+        return options
+    try:
+        _dry_run(solver, options)
+    except (RuntimeError, NotImplementedError) as exc:
+        # name the option: the first one CasADi refuses on its own
+        for key, value in options.items():
+            try:
+                _dry_run(solver, {key: value})
+            except (RuntimeError, NotImplementedError) as one:
+                reason = _casadi_reason(one)
+                if solver in ("ipopt", "fatrop") and reason.startswith("Unknown option") \
+                        and not key.startswith(solver + "."):
+                    reason += (f" ({solver}'s own options are given as '{solver}.<name>', "
+                               f"e.g. '{solver}.max_iter')")
+                raise ValueError(f"solver_options for solver {solver!r} were refused by "
+                                 f"CasADi: solver_options[{key!r}]: {reason}") from None
+        raise ValueError(f"solver_options for solver {solver!r} were refused by CasADi: "
+                         f"{_casadi_reason(exc)}") from None
+    return options
+
+
+def _nlpsol(name: str, solver: str, nlp: dict, opts: dict, user: dict):
+    """``ca.nlpsol`` with CasADi's refusal of the user's options as a ``ValueError``."""
+    try:
+        return ca.nlpsol(name, _PLUGINS[solver], nlp, opts)
+    except (RuntimeError, NotImplementedError) as exc:
+        if not user:
+            raise
+        raise ValueError(f"solver_options for solver {solver!r} were refused by CasADi: "
+                         f"{_casadi_reason(exc)}") from None
 
 
 def is_diagonal(M: np.ndarray) -> bool:
@@ -67,7 +173,12 @@ def weight_factor(cov: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Solution:
-    """One solve: trajectory ``X (N, nx)``, status and statistics."""
+    """One solve: trajectory ``X (N, nx)``, status and statistics.
+
+    ``success``: converged. ``usable``: ``X`` and ``cost`` are finite and the cost is
+    not above that of the (projected) initial guess, so ``X`` may serve as an
+    estimate even where the solver stopped early (``max_iter``, a failed line search).
+    """
 
     X: np.ndarray
     success: bool
@@ -75,6 +186,10 @@ class Solution:
     iterations: int
     cost: float
     solve_time: float
+    usable: bool = False
+
+    def __post_init__(self):
+        self.usable = self.usable or self.success
 
 
 def _merge(defaults: dict, user: dict) -> dict:
@@ -173,7 +288,7 @@ class LeastSquaresNLP:
         for j in range(N - 1):
             om = part["omega"][j]
             xn = model.F(X[:, j], U[:, j], pm)
-            res.append(om * (WQd @ (X[:, j + 1] - xn)) + (1 - om) * (X[:, j + 1] - X[:, j]))
+            res.append(ca.if_else(om, WQd @ (X[:, j + 1] - xn), X[:, j + 1] - X[:, j]))
         for j in range(N):
             Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
             res.append(Wy @ (Y[:, j] - model.H(X[:, j], Up[:, j], pm)))
@@ -182,7 +297,8 @@ class LeastSquaresNLP:
         f = ca.dot(r, r)
         nlp = {"x": x, "p": p, "f": f}
         if solver == "ipopt":
-            self._solver = ca.nlpsol("mhe_ipopt", "ipopt", nlp, _merge(_IPOPT_DEFAULTS, options))
+            self._solver = _nlpsol("mhe_ipopt", "ipopt", nlp, _merge(_IPOPT_DEFAULTS, options),
+                                   options)
         else:
             J = ca.jacobian(r, x)
             lam_f, lam_g = ca.SX.sym("lam_f"), ca.SX.sym("lam_g", 0)
@@ -193,7 +309,7 @@ class LeastSquaresNLP:
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
             opts = _merge(_SQP_DEFAULTS, options)
             opts["hess_lag"] = hess
-            self._solver = ca.nlpsol("mhe_sqp", "sqpmethod", nlp, opts)
+            self._solver = _nlpsol("mhe_sqp", "sqp", nlp, opts, options)
         self.reset()
 
     # ----------------------------------------------------------- stage-wise form
@@ -219,7 +335,7 @@ class LeastSquaresNLP:
                 variables.append(ws[k])
                 om = part["omega"][k]
                 cost += om * ca.sumsqr(WQd @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
-                g.append(xs[k + 1] - (om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
+                g.append(xs[k + 1] - (ca.if_else(om, m.F(xs[k], U[:, k], pm), xs[k])
                                       + ws[k]))
                 lbg.append(np.zeros(nx))
                 ubg.append(np.zeros(nx))
@@ -227,7 +343,7 @@ class LeastSquaresNLP:
         nlp = {"x": x, "p": p, "f": cost, "g": ca.vertcat(*g)}
         opts = _merge(_FATROP_DEFAULTS, options)
         opts.setdefault("equality", [True] * (nx * (N - 1)))
-        self._solver = ca.nlpsol("mhe_fatrop", "fatrop", nlp, opts)
+        self._solver = _nlpsol("mhe_fatrop", "fatrop", nlp, opts, options)
         self._lbg = np.concatenate(lbg) if lbg else np.zeros(0)
         self._ubg = np.concatenate(ubg) if ubg else np.zeros(0)
         inf = np.full(nx, np.inf)
@@ -243,8 +359,10 @@ class LeastSquaresNLP:
         self.reset()
 
     def reset(self) -> None:
+        """Forget the warm-start multipliers and the solver's adaptive state."""
         self._lam_x = None
         self._lam_g = None
+        self.gn.reset()
 
     # ------------------------------------------------------------------ solve
     def parameters(self, Y, U, Uprev, n, xbar, W0, WR, R) -> np.ndarray:
@@ -300,8 +418,10 @@ class LeastSquaresNLP:
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
         if self.solver_name == "gauss-newton":
             x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
+            # the iterations only ever decrease the cost: a finite end point is usable
+            usable = bool(np.isfinite(cost) and np.isfinite(x).all())
             return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
-                            elapsed)
+                            elapsed, usable)
         x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         t0 = time.perf_counter()
         try:
@@ -314,7 +434,8 @@ class LeastSquaresNLP:
                 sol = self._solver(**args)
             stats = self._solver.stats()
         except RuntimeError as exc:  # solver crashed on NaN or similar
-            return Solution(np.asarray(X0, float), False, f"error: {exc}"[:200], 0, np.nan,
+            return Solution(np.asarray(X0, float), False,
+                            f"error: {str(exc).strip().splitlines()[-1]}"[:200], 0, np.nan,
                             time.perf_counter() - t0)
         elapsed = time.perf_counter() - t0
         status = str(stats.get("return_status", "unknown"))
@@ -327,11 +448,16 @@ class LeastSquaresNLP:
         ok = bool(stats.get("success", False)) or status in (
             "Solved_To_Acceptable_Level", "Search_Direction_Becomes_Too_Small")
         ok = ok and np.isfinite(X).all() and np.isfinite(cost)
+        usable = ok
         if ok:
             if self.solver_name != "fatrop":
                 self._lam_x = np.asarray(sol["lam_x"]).ravel()
             status = "ok"
-        return Solution(X, ok, status, iters, cost, elapsed)
+        elif np.isfinite(X).all():  # an early stop: usable if no worse than the start
+            cost = self.gn.cost(X.ravel(), p, self._complete)
+            start = self.gn.cost(x0, p, self._complete)
+            usable = bool(np.isfinite(cost) and not cost > start)
+        return Solution(X, ok, status, iters, cost, elapsed, usable)
 
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the

@@ -33,8 +33,9 @@ import numpy as np
 from scipy import optimize
 
 from estim._fast import FastFunction
-from estim._validate import check_options
+from estim._validate import as_choice, as_float, as_int
 from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.nlp import _casadi_reason
 from estim.model import Model, euler_step, rk4_step
 
 METHODS = ("bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient")
@@ -117,6 +118,9 @@ class ShootingObserver(Estimator):
         so windows with little information (between bursts, without
         excitation) do not push the estimate around. The bounded methods use
         the full space.
+    history_length : int or None
+        Optimisations kept in :attr:`history` (the oldest are dropped, so memory
+        stays flat over long runs); None keeps all.
 
     Attributes
     ----------
@@ -129,10 +133,10 @@ class ShootingObserver(Estimator):
         window carries no information on some direction; the Fisher
         information's condition number is its square), ``derivative_weight``
         and ``window_start``.
-    history : list of dict
-        One record per optimisation since the last reset: ``k`` (sample),
-        ``condition``, ``cost``, ``iterations``, ``solve_time``, ``success``,
-        ``derivative_weight``.
+    history : collections.deque of dict
+        One record per optimisation since the last reset, the last
+        ``history_length`` of them: ``k`` (sample), ``condition``, ``cost``,
+        ``iterations``, ``solve_time``, ``success``, ``derivative_weight``.
     """
 
     name = "shooting"
@@ -141,21 +145,19 @@ class ShootingObserver(Estimator):
     def __init__(self, model: Model, *, window: int, every: int, R, x0, Q=None, P0=None,
                  derivative_weight: float | None = None, derivative_samples: int = 5,
                  method: str = "bfgs", direction: str = "forward", lower=None, upper=None,
-                 max_iter: int = 100, tol: float = 1e-3, resolution: float = 0.01, **options):
-        check_options(options, (), "ShootingObserver")
+                 max_iter: int = 100, tol: float = 1e-3, resolution: float = 0.01,
+                 history_length: int | None = 1000):
         super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
         for name, val, least in (("window", window, 1), ("every", every, 1),
                                  ("derivative_samples", derivative_samples, 3),
                                  ("max_iter", max_iter, 1)):
-            if not isinstance(val, int | np.integer) or val < least:
-                raise ValueError(f"{name} must be an integer >= {least}, got {val!r}")
-        if method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-        if direction not in ("forward", "backward"):
-            raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
-        if derivative_weight is not None and (not np.isfinite(derivative_weight)
-                                              or derivative_weight < 0):
-            raise ValueError(f"derivative_weight must be >= 0 or None, got {derivative_weight!r}")
+            as_int(val, name, minimum=least, expected=f"an integer >= {least}")
+        as_choice(method, METHODS, "method")
+        as_choice(direction, ("forward", "backward"), "direction")
+        derivative_weight = as_float(derivative_weight, "derivative_weight", minimum=0.0,
+                                     allow_none=True, expected=">= 0 or None")
+        tol = as_float(tol, "tol", positive=True)
+        resolution = as_float(resolution, "resolution", positive=True)
         if not model.continuous and derivative_weight != 0:
             if derivative_weight is not None:
                 raise ValueError("derivative_weight needs a continuous model (ode=): the "
@@ -167,16 +169,15 @@ class ShootingObserver(Estimator):
         self.derivative_samples = int(derivative_samples)
         self.method, self.direction = method, direction
         self.max_iter = int(max_iter)
-        if not np.isfinite(tol) or tol <= 0:
-            raise ValueError(f"tol must be a positive number, got {tol!r}")
-        self.tol = float(tol)
-        if not np.isfinite(resolution) or resolution <= 0:
-            raise ValueError(f"resolution must be a positive number, got {resolution!r}")
-        self.resolution = float(resolution)
+        self.tol, self.resolution = tol, resolution
+        self.history_length = None if history_length is None else \
+            as_int(history_length, "history_length", minimum=1)
         self.lower, self.upper = self._bounds(lower, upper)
         self._fixed_w2 = derivative_weight
         self._Rinv = np.linalg.inv(self.R)
+        self._WR = np.linalg.cholesky(self._Rinv).T  # W^T W = R^-1
         self._span = (self.window - 1) * self.every  # steps from first to last sample
+        self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._build()
         self._reset()
 
@@ -194,6 +195,9 @@ class ShootingObserver(Estimator):
         W2 = ca.SX.sym("W2")
         xbar = ca.SX.sym("xbar", nx)
         Wp = ca.SX.sym("Wp", nx, nx)
+        # per-sample output weights, W_i^T W_i = R^-1 on the measured rows (0 elsewhere)
+        WY = ca.SX.sym("WY", ny * ny, w)
+        Ws = [ca.reshape(WY[:, i], ny, ny) for i in range(w)]
         Rinv = ca.DM(self._Rinv)
         sign = 1.0 if self.direction == "forward" else -1.0
         F = self._stepper(sign)
@@ -214,7 +218,7 @@ class ShootingObserver(Estimator):
             return U[:, k]
         yhat = ca.horzcat(*[m.H(xs[i], u_at(i), p) for i in range(w)])
         E = Y - yhat
-        cost = sum(ca.bilin(Rinv, E[:, i], E[:, i]) for i in range(w))
+        cost = sum(ca.sumsqr(Ws[i] @ E[:, i]) for i in range(w))
         if m.continuous:
             ydot = ca.horzcat(*[m.H_x(xs[i], u_at(i), p) @ m.f_c(xs[i], u_at(i), p)
                                 for i in range(w)])
@@ -224,22 +228,26 @@ class ShootingObserver(Estimator):
             cost_d = ca.SX(0)
         prior = ca.sumsqr(Wp @ (x0 - xbar))
         J = cost + W2 * cost_d + prior
-        args = [x0, U, Y, Yd, W2, xbar, ca.vec(Wp)]
+        args = [x0, U, Y, Yd, W2, xbar, ca.vec(Wp), WY]
         self._J = FastFunction(ca.Function("J", args, [J, ca.gradient(J, x0)]))
         self._terms = FastFunction(ca.Function("terms", args, [cost, cost_d]))
         # gradient of the terms outside report eqs. 1.8-1.10 (derivative term, prior)
         self._grad_other = FastFunction(ca.Function("grad_other", args, [
             ca.gradient(W2 * cost_d + prior, x0)]))
-        sens = ca.jacobian(ca.vec(ca.mtimes(ca.diag(ca.sqrt(ca.diag(Rinv))), yhat)), x0)
-        self._sens = FastFunction(ca.Function("sens", args[:2], [sens]))
+        sens = ca.jacobian(ca.vertcat(*[Ws[i] @ yhat[:, i] for i in range(w)]), x0)
+        self._sens = FastFunction(ca.Function("sens", [x0, U, WY], [sens]))
         self._traj = FastFunction(ca.Function("traj", [x0, U], [ca.horzcat(*traj)]))
         if self.method == "gradient":
-            self._build_sensitivity_gradient(sign, steps, U, Y, p, args)
+            self._build_sensitivity_gradient(sign, steps, U, Y, Ws, p, args)
         if self.method == "ipopt":
             nlp = {"x": x0, "p": ca.vertcat(*[ca.vec(a) for a in args[1:]]), "f": J}
-            self._ipopt = ca.nlpsol("shooting_ipopt", "ipopt", nlp, {
-                "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
-                "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-10})
+            try:
+                self._ipopt = ca.nlpsol("shooting_ipopt", "ipopt", nlp, {
+                    "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+                    "ipopt.max_iter": self.max_iter, "ipopt.tol": 1e-10})
+            except (RuntimeError, NotImplementedError) as exc:
+                raise ValueError(f"method='ipopt': CasADi refused to build the solver "
+                                 f"(max_iter={self.max_iter}): {_casadi_reason(exc)}") from None
 
     def _stepper(self, sign: float):
         """One sample of the dynamics, forward or backward in time."""
@@ -252,14 +260,15 @@ class ShootingObserver(Estimator):
         xn = step(m.f_c, x, u, p, sign * m.dt, m.substeps)
         return ca.Function("F_dir", [x, u, p], [xn])
 
-    def _build_sensitivity_gradient(self, sign, steps, U, Y, p, args) -> None:
+    def _build_sensitivity_gradient(self, sign, steps, U, Y, Ws, p, args) -> None:
         r"""Gradient of the output term by the forward sensitivity equations.
 
         The pair :math:`(\xi_1, \xi_2)` with :math:`\dot\xi_1 = f(\xi_1)`,
         :math:`\dot\xi_2 = \partial f/\partial x\, \xi_2`, :math:`\xi_2(0) = I`
         is integrated with the same RK4 step as the state (report eqs.
         1.8-1.10), then :math:`\partial J/\partial\xi_0 = -2\sum_i E_i^\top
-        R^{-1} \partial h/\partial x\, \xi_2(t_i)`.
+        W_i^\top W_i\, \partial h/\partial x\, \xi_2(t_i)` (:math:`W_i^\top W_i = R^{-1}`
+        on the measured rows).
         """
         m, nx, n, w = self.model, self.model.nx, self.every, self.window
         if self.direction != "forward":
@@ -293,7 +302,6 @@ class ShootingObserver(Estimator):
             z = Fz(z, U[:, k], p)
             if (k + 1) % n == 0:
                 zs.append(z)
-        Rinv = ca.DM(self._Rinv)
         grad = ca.SX.zeros(nx, 1)
         for i in range(w):
             k = min(max(i * n - 1, 0), steps - 1) if steps else 0
@@ -301,8 +309,8 @@ class ShootingObserver(Estimator):
             xi_i = zs[i][:nx]
             Phi = ca.reshape(zs[i][nx:], nx, nx)
             e = Y[:, i] - m.H(xi_i, ui, p)
-            grad += -2 * (m.H_x(xi_i, ui, p) @ Phi).T @ (Rinv @ e)
-        self._grad_sens = FastFunction(ca.Function("grad_sens", args[:3], [grad]))
+            grad += -2 * (m.H_x(xi_i, ui, p) @ Phi).T @ (Ws[i].T @ (Ws[i] @ e))
+        self._grad_sens = FastFunction(ca.Function("grad_sens", args[:3] + [args[-1]], [grad]))
 
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
@@ -312,30 +320,50 @@ class ShootingObserver(Estimator):
         self._xs: deque = deque(maxlen=self._span + 1)  # estimates, oldest first
         self._x = self.x0.copy()                   # estimate at the current time
         self._w2 = self._fixed_w2
-        self.history: list[dict] = []
+        self.history: deque = deque(maxlen=self.history_length)
 
     # ------------------------------------------------------------------- step
     def _step(self, y, u, first):
-        m = self.model
         t0 = time.perf_counter()
+        failure = None
         if not first:
             self._us.append(u.copy())
-            self._x = m._fast_F(self._x, u, m.p)[0].copy()  # open-loop propagation
+            x = self._F(self._x, u, self.model.p)[0]  # open-loop propagation
+            if np.isfinite(x).all():
+                self._x = x.copy()
+            else:  # re-anchor on the last estimate, projected on the bounds
+                self._x = self._anchor(self._x)[0]
+                failure = "failed: non-finite prediction F(x, u); re-anchored on the last estimate"
         self._ys.append(y.copy())
         self._xs.append(self._x.copy())
         k = self._k  # index of this sample (Estimator increments after the step)
-        ready = k >= self._span and k % self.every == 0 and np.isfinite(y).all()
+        ready = k >= self._span and k % self.every == 0 and np.isfinite(y).any()
         if not ready:
-            return self._x.copy(), StepInfo(status="ok", solve_time=time.perf_counter() - t0,
-                                            extra={"optimised": False})
-        return self._optimise(t0)
+            return self._x.copy(), StepInfo(
+                status=failure or "ok", success=failure is None,
+                solve_time=time.perf_counter() - t0, extra={"optimised": False})
+        x, info = self._optimise(t0)
+        if failure is not None:
+            info.__dict__.update(status=failure + f" ({info.status})", success=False)
+        return x, info
 
     def _window_data(self):
-        """Buffer samples Y (ny, w), derivatives Yd, inputs U (nu, span), oldest first."""
+        """Buffer samples Y (ny, w) (0 where missing), derivatives Yd, inputs U (nu, span),
+        oldest first, and the output weights WY (ny * ny, w) (zero rows where missing)."""
         ys = np.array(self._ys)
         n, w, span = self.every, self.window, self._span
         idx = [len(ys) - 1 - span + i * n for i in range(w)]
         Y = ys[idx].T
+        WY = np.zeros((self.model.ny, self.model.ny, w))
+        for c in range(w):
+            rows = np.flatnonzero(np.isfinite(Y[:, c]))
+            if len(rows) == len(Y):
+                WY[:, :, c] = self._WR
+            elif len(rows):
+                sub = np.linalg.cholesky(np.linalg.inv(self.R[np.ix_(rows, rows)])).T
+                WY[np.ix_(rows, rows, [c])] = sub[:, :, None]
+        WY = WY.reshape(-1, w, order="F")
+        Y = np.where(np.isfinite(Y), Y, 0.0)
         Yd = np.zeros_like(Y)
         ms = self.derivative_samples
         for c, j in enumerate(idx):
@@ -348,31 +376,34 @@ class ShootingObserver(Estimator):
         U = us[len(us) - span:].T if span else np.zeros((self.model.nu, 1))
         if U.shape[1] == 0:
             U = np.zeros((self.model.nu, 1))
-        return Y, Yd, U
+        return Y, Yd, U, WY
 
     def _optimise(self, t0):
         m, nx = self.model, self.model.nx
-        Y, Yd, U = self._window_data()
+        Y, Yd, U, WY = self._window_data()
         use_d = m.continuous and self._w2 != 0 and np.isfinite(Yd).all()
         Yd = np.where(np.isfinite(Yd), Yd, 0.0)
         # warm start: the propagated previous estimate at the optimised time
         forward = self.direction == "forward"
         start = self._xs[0].copy() if forward else self._x.copy()
         if self._w2 is None and use_d:  # set on the first window with derivatives
-            self._w2 = self._balanced_weight(start, U, Y, Yd)
+            self._w2 = self._balanced_weight(start, U, Y, Yd, WY)
         w2 = self._w2 if use_d and self._w2 else 0.0
         Wp = np.zeros((nx, nx)) if self.P0 is None else np.linalg.cholesky(
             np.linalg.inv(self.P0)).T
-        args = (U, Y, Yd, w2, start, Wp.ravel(order="F"))
+        args = (U, Y, Yd, w2, start, Wp.ravel(order="F"), WY)
         x_opt, cost, iters, ok, status = self._minimise(start, args)
-        anchor = x_opt if ok else start
         if ok:  # the whole window re-propagated from the optimum
-            traj = self._traj(anchor, U)[0].reshape(nx, -1, order="F").T
-            self._xs = deque((row.copy() for row in traj), maxlen=self._span + 1)
-            self._x = traj[-1].copy()
+            traj = self._traj(x_opt, U)[0].reshape(nx, -1, order="F").T
+            if np.isfinite(traj).all():
+                self._xs = deque((row.copy() for row in traj), maxlen=self._span + 1)
+                self._x = traj[-1].copy()
+            else:  # keep the propagated previous estimate
+                ok, status = False, "non-finite propagation from the optimum"
+        anchor = x_opt if ok else start
         # relative sensitivity (columns scaled by |xi|): states span many decades
         scale = np.maximum(np.abs(anchor), 1e-3 * max(float(np.abs(anchor).max()), 1e-300))
-        S = self._sens(anchor, U)[0].reshape(-1, nx, order="F") * scale
+        S = self._sens(anchor, U, WY)[0].reshape(-1, nx, order="F") * scale
         if np.isfinite(S).all():
             sv = np.linalg.svd(S, compute_uv=False)
             cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
@@ -388,10 +419,10 @@ class ShootingObserver(Estimator):
             extra={"optimised": True, "singular_values": sv, "condition": cond,
                    "derivative_weight": w2, "window_start": anchor.copy()})
 
-    def _balanced_weight(self, start, U, Y, Yd) -> float:
+    def _balanced_weight(self, start, U, Y, Yd, WY) -> float:
         """W2/W1 making both terms equal at the starting point (report sec. 1.2.1)."""
         Wp = np.zeros(self.model.nx ** 2)
-        c1, c2 = (float(v[0]) for v in self._terms(start, U, Y, Yd, 1.0, start, Wp))
+        c1, c2 = (float(v[0]) for v in self._terms(start, U, Y, Yd, 1.0, start, Wp, WY))
         if not (np.isfinite(c1) and np.isfinite(c2)) or c2 <= 0 or c1 <= 0:
             return 0.0
         return c1 / c2
@@ -399,7 +430,7 @@ class ShootingObserver(Estimator):
     def _hessian(self, start, args) -> np.ndarray | None:
         """Gauss-Newton Hessian of the output term (and prior) at ``start``."""
         nx = self.model.nx
-        S = self._sens(start, args[0])[0].reshape(-1, nx, order="F")
+        S = self._sens(start, args[0], args[-1])[0].reshape(-1, nx, order="F")
         H = 2.0 * S.T @ S
         if self.P0 is not None:
             H += 2.0 * np.linalg.inv(self.P0)
@@ -491,7 +522,7 @@ class ShootingObserver(Estimator):
         J = float(self._J(x, *args)[0][0])
         alpha = 1.0
         for it in range(1, self.max_iter + 1):
-            g = self._grad_sens(x, U, Y)[0] + self._grad_other(x, *args)[0]
+            g = self._grad_sens(x, U, Y, args[-1])[0] + self._grad_other(x, *args)[0]
             if not np.isfinite(g).all():
                 return x, J, it, False, "non-finite gradient"
             gg = float(g @ g)

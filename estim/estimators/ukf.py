@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
-from estim._validate import check_options
-from estim.estimators.base import Estimator, StepInfo
+from estim._fast import FastFunction
+from estim._validate import as_bool, as_float
+from estim.estimators.base import Estimator, StepInfo, consistency_status
 from estim.model import Model
 
 
@@ -41,19 +42,21 @@ class UKF(Estimator):
     name = "ukf"
 
     def __init__(self, model: Model, *, Q, R, x0, P0, alpha: float = 0.1, beta: float = 2.0,
-                 kappa: float = 0.0, clip: bool = False, **options):
-        check_options(options, (), "UKF")
+                 kappa: float = 0.0, clip: bool = False):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        if not alpha > 0:
-            raise ValueError(f"alpha must be positive, got {alpha!r}")
-        self.alpha, self.beta, self.kappa, self.clip = float(alpha), float(beta), float(kappa), clip
+        self.alpha = as_float(alpha, "alpha", positive=True)
+        self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
+        self.clip = as_bool(clip, "clip")
+        self.lower, self.upper = model.lower, model.upper
+        # buffered model evaluations of this filter's own (never shared between threads)
+        self._F, self._H = FastFunction(model.F), FastFunction(model.H)
         self._reset()
 
     def _fx(self, x, dt, u):
-        return self.model._fast_F(x, u, self.model.p)[0].copy()
+        return self._F(x, u, self.model.p)[0].copy()
 
     def _hx(self, x, u, rows=None):
-        y = self.model._fast_H(x, u, self.model.p)[0]
+        y = self._H(x, u, self.model.p)[0]
         return y.copy() if rows is None else y[rows].copy()
 
     def _reset(self) -> None:
@@ -66,6 +69,8 @@ class UKF(Estimator):
         ukf.Q = self.Q.copy()
         ukf.R = self.R.copy()
         self._ukf = ukf
+        self._trusted = True  # the last step was "ok" (or none was taken)
+        self._anchor_state = (self.x0.copy(), self.P0.copy())
 
     @property
     def x(self) -> np.ndarray:
@@ -77,33 +82,82 @@ class UKF(Estimator):
 
     def _step(self, y, u, first):
         ukf = self._ukf
+        if self._trusted:  # the anchor of a failed step: the last state reported "ok"
+            self._anchor_state = (ukf.x.copy(), ukf.P.copy())
+        if first:  # no prediction: the sigma points of the prior x0, P0
+            ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
+            error = None
+        else:
+            error = self._guard(lambda: ukf.predict(u=u), "prediction F(x, u)")
+        if error is None:
+            prediction = (ukf.x.copy(), ukf.P.copy())
+            update_error = self._update(y, u)
+            if update_error is None:
+                return self._accepted(y)
+            if self._trusted:  # a usable prediction of a trusted estimate: keep it
+                ukf.x, ukf.P = prediction
+                self._trusted = False
+                return ukf.x.copy(), StepInfo(
+                    status=f"failed: {update_error}; kept the prediction", success=False,
+                    P=ukf.P.copy())
+            error = update_error
+        # re-anchor on the last trusted estimate with P + P0 and update with this y
+        ukf.x, ukf.P = self._anchor(*self._anchor_state)
+        ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
         saved = (ukf.x.copy(), ukf.P.copy())
-        try:
-            if first:  # no prediction: the sigma points of the prior x0, P0
-                ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
-            else:
-                ukf.predict(u=u)
-            rows = np.isfinite(y)
-            if rows.all():
-                ukf.update(y, u=u)
-            elif rows.any():
-                idx = np.flatnonzero(rows)
-                ukf.update(y[idx], R=self.R[np.ix_(idx, idx)],
-                           hx=lambda x, u: self._hx(x, u, idx), u=u)
-            # with nothing measured the prediction is the estimate
-            if self.clip:
-                ukf.x = self.model.clip(ukf.x)
-            ok = np.isfinite(ukf.x).all() and np.isfinite(ukf.P).all()
-            status = "ok" if ok else "failed: non-finite update"
-        except np.linalg.LinAlgError as exc:  # sigma points need a Cholesky factor of P
-            ok, status = False, f"failed: {exc}"
-        if not ok:
+        again = self._update(y, u)
+        if again is not None:
             ukf.x, ukf.P = saved
-            return ukf.x.copy(), StepInfo(status=status, success=False, P=ukf.P.copy())
+        self._trusted = False
+        status = (f"failed: {error}; re-anchored on the last trusted estimate with P + P0"
+                  + ("" if again is None else " (no update: non-finite)"))
+        return ukf.x.copy(), StepInfo(status=status, success=False, P=ukf.P.copy())
+
+    def _guard(self, action, what: str) -> str | None:
+        """Run a filterpy step; None, or what went wrong (an exception or non-finite
+        values; scipy's Cholesky raises ``ValueError`` on NaN, ``LinAlgError`` when
+        the covariance is not positive definite)."""
+        ukf = self._ukf
+        try:
+            action()
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            return f"{what}: {exc}"
+        if not (np.isfinite(ukf.x).all() and np.isfinite(ukf.P).all()):
+            return f"non-finite {what}"
+        try:  # the next sigma points need a Cholesky factor
+            np.linalg.cholesky(0.5 * (ukf.P + ukf.P.T))
+        except np.linalg.LinAlgError:
+            return f"{what}: covariance not positive definite"
+        return None
+
+    def _update(self, y, u) -> str | None:
+        """Measurement update with the measured rows of ``y`` (none: the prediction is
+        the estimate); None or what went wrong."""
+        ukf = self._ukf
+        rows = np.isfinite(y)
+        if rows.all():
+            error = self._guard(lambda: ukf.update(y, u=u), "update")
+        elif rows.any():
+            idx = np.flatnonzero(rows)
+            error = self._guard(lambda: ukf.update(
+                y[idx], R=self.R[np.ix_(idx, idx)], hx=lambda x, u: self._hx(x, u, idx), u=u),
+                "update")
+        else:
+            error = None
+        if error is None and self.clip:
+            ukf.x = self.model.clip(ukf.x)
+        return error
+
+    def _accepted(self, y):
+        """Estimate and information of a successful update."""
+        ukf = self._ukf
         ukf.P = 0.5 * (ukf.P + ukf.P.T)
+        rows = np.isfinite(y)
         e = np.zeros(self.model.ny)
-        nis = float("nan")
+        nis, status = float("nan"), "ok"
         if rows.any():
             e[rows] = np.ravel(ukf.y)
             nis = float(np.ravel(ukf.y) @ np.linalg.solve(ukf.S, np.ravel(ukf.y)))
-        return ukf.x.copy(), StepInfo(P=ukf.P.copy(), innovation=e, nis=nis)
+            status = consistency_status(nis, int(rows.sum()))
+        self._trusted = status == "ok"
+        return ukf.x.copy(), StepInfo(status=status, P=ukf.P.copy(), innovation=e, nis=nis)

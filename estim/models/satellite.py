@@ -9,6 +9,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
+from estim._validate import as_bool, as_float
 from estim.model import Model
 
 MU_EARTH = 3.986004418e14  # m^3 s^-2
@@ -173,7 +174,8 @@ class PDAttitudeController:
     """
 
     def __init__(self, kp: float = 0.01, kd: float = 0.09, excitation: bool = True):
-        self.kp, self.kd, self.excitation = kp, kd, excitation
+        self.kp, self.kd = as_float(kp, "kp"), as_float(kd, "kd")
+        self.excitation = as_bool(excitation, "excitation")
 
     def __call__(self, t: float, x: np.ndarray) -> np.ndarray:
         q = np.asarray(x[0:4], dtype=float)
