@@ -115,8 +115,11 @@ class _Recorder:
         steps failed."""
         if log.failures > FAILED_FRACTION * len(log):
             name = getattr(estimator, "name", type(estimator).__name__)
+            first = str(log.status[~log.success][0])
+            hint = " (the model or its Jacobian is not finite at the estimates: a sqrt, " \
+                "log or division at the edge of its domain?)" if "non-finite" in first else ""
             warnings.warn(f"{name} on {log.model_name or 'the model'}: {log.problems()}; "
-                          f"see log.status", EstimationWarning,
+                          f"see log.status{hint}", EstimationWarning,
                           stacklevel=4)  # this method, simulate, its argument check, caller
 
 

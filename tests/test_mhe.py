@@ -170,9 +170,9 @@ def test_failed_solve_reanchors_and_recovers(monkeypatch):
     real = mhe._nlp.solve
     calls = {"n": 0}
 
-    def flaky(*args):
+    def flaky(*args, **kwargs):
         calls["n"] += 1
-        sol = real(*args)
+        sol = real(*args, **kwargs)
         if calls["n"] == 8:
             return Solution(sol.X * np.nan, False, "Invalid_Number_Detected", 3, np.nan, 0.0)
         return sol

@@ -49,7 +49,7 @@ from functools import cache
 import numpy as np
 from scipy.special import chdtri
 
-from estim._validate import as_bounds, as_covariance, as_vector, check_keywords
+from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
 from estim.model import Model
 
 
@@ -112,10 +112,10 @@ SUSPECT_TAIL = 1e-9
 
 
 @cache
-def chi2_limit(dof: int) -> float:
-    """The :data:`SUSPECT_TAIL` quantile of the chi-square distribution with ``dof``
-    degrees of freedom (inf without any)."""
-    return float(chdtri(dof, SUSPECT_TAIL)) if dof > 0 else float("inf")
+def chi2_limit(dof: int, tail: float = SUSPECT_TAIL) -> float:
+    """The value that a chi-square variable with ``dof`` degrees of freedom exceeds
+    with probability ``tail`` (inf without any degree of freedom)."""
+    return float(chdtri(dof, tail)) if dof > 0 else float("inf")
 
 
 def consistency_status(statistic: float, dof: int, what: str = "NIS") -> str:
@@ -209,6 +209,23 @@ class Estimator:
         """Reset method-specific state (called by :meth:`reset`)."""
 
     # -------------------------------------------------------------- helpers
+    @staticmethod
+    def _gate(gate) -> float | None:
+        """The ``gate`` option of the filters: None or a tail probability in (0, 1)."""
+        if gate is None:
+            return None
+        gate = as_float(gate, "gate", expected="a tail probability in (0, 1) or None")
+        if not 0.0 < gate < 1.0:
+            raise ValueError(f"gate must be a tail probability in (0, 1) or None, got {gate!r}")
+        return gate
+
+    def _consistency(self, nis: float, dof: int, rejected: bool) -> str:
+        """Status of a filter step whose NIS is beyond the suspect or the gate limit."""
+        if not rejected:
+            return consistency_status(nis, dof)
+        return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
+                f"kept the prediction with P + P0")
+
     def _anchor(self, x: np.ndarray, P: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray | None]:
         """Where a failed step re-anchors: ``x`` (finite) projected on the estimator's

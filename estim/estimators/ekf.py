@@ -7,7 +7,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._validate import as_bool
-from estim.estimators.base import Estimator, StepInfo, chi2_limit, consistency_status
+from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
 from estim.model import Model
 
 
@@ -49,6 +49,13 @@ class EKF(Estimator):
         covariance is left as it is), as in the KU Leuven course, exercise 4.
     lower, upper : optional
         Bounds for clipping (default: the model's).
+    gate : float, optional
+        Reject a measurement whose normalised innovation squared lies beyond this
+        tail probability of its chi-square distribution (e.g. ``1e-9``): the
+        prediction is kept, with ``P0`` added to its covariance so that a lasting
+        disagreement (a diverged estimate rather than an outlier) opens the gate
+        again, and the status says ``"rejected: ..."``. None (default): every
+        measurement is used, as in the textbook filter.
 
     Attributes
     ----------
@@ -67,9 +74,10 @@ class EKF(Estimator):
     _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q, R, x0, P0, clip: bool = False, lower=None,
-                 upper=None):
+                 upper=None, gate: float | None = None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.clip = as_bool(clip, "clip")
+        self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
         nx = model.nx
         # the filter state [x; vec(P)] lives where both compiled functions read it
@@ -120,13 +128,19 @@ class EKF(Estimator):
         ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
         measured = ca.sum1(mask) if ny else ca.SX(0)
         # beyond the chi-square tail for the number of outputs measured (see SUSPECT_TAIL)
-        limits = ca.DM([chi2_limit(k) for k in range(1, ny + 1)])
-        limit = ca.dot(limits, ca.vertcat(*[measured == k for k in range(1, ny + 1)])) \
-            if ny else ca.SX(0)
-        suspect = ca.logic_and(measured > 0, nis > limit)
+        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
+
+        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
+            if not ny or tail is None:
+                return ca.SX(0)
+            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
+            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
+
+        suspect, gated = beyond(SUSPECT_TAIL), beyond(self.gate)
         name = "ekf_predict_update" if predict else "ekf_update"
         return ca.Function(name, [s, u, y], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
-                                                                  measured, ok_mean, suspect),
+                                                                  measured, ok_mean, suspect,
+                                                                  gated),
                                              s_prior],
                            ["s", "u", "y"], ["s_new", "innovation", "flags", "s_prior"])
 
@@ -162,15 +176,20 @@ class EKF(Estimator):
         if not flags[1]:
             return self._recover(flags, s_prior)
         nx = self.model.nx
-        suspect = flags[6]
+        suspect = flags[6] or flags[7]
         if suspect and self._trusted:
             self._s_trusted[:] = self._s
         self._trusted = not suspect
-        self._s[:] = s_new
+        if flags[7]:  # gated: the prediction, with P0 added
+            self._s[:] = s_prior
+            self._s[nx:] += self.P0.ravel(order="F")
+        else:
+            self._s[:] = s_new
         info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
                               innovation=e.copy(), nis=float(flags[0]))
         if suspect:
-            info.__dict__["status"] = consistency_status(float(flags[0]), int(flags[4]))
+            info.__dict__["status"] = self._consistency(float(flags[0]), int(flags[4]),
+                                                        bool(flags[7]))
         return self._s[:nx].copy(), info
 
     def _recover(self, flags, s_prior):

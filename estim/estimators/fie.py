@@ -254,16 +254,17 @@ class FullInformation(Estimator):
                 raise ValueError("guess must be finite")
         return self._solve(Y, U, Uprev, X0, T, full=True)[0]
 
-    def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None
-               ) -> tuple[FitResult, bool]:
+    def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
+               robust: bool = False) -> tuple[FitResult, bool]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
         (see :mod:`estim.estimators.nlp`), so the optimum is that of the
         ``T``-sample problem; one problem then serves every shorter record.
         ``prior``: ``(mean, weight factor or None)`` of the first sample (default
-        ``x0`` with ``P0``'s). Returns the result and whether its trajectory is
-        usable (see :class:`~estim.estimators.nlp.Solution`).
+        ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver.
+        Returns the result and whether its trajectory is usable (see
+        :class:`~estim.estimators.nlp.Solution`).
         """
         m, T, C = self.model, Y.shape[0], capacity
         pad = C - T
@@ -276,7 +277,7 @@ class FullInformation(Estimator):
         if full:  # a fit does not depend on earlier fits (warm-start multipliers, ridge)
             nlp.reset()
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
-        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, self._WR, self.R)
+        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, self._WR, self.R, robust=robust)
         return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol.usable
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
@@ -314,7 +315,7 @@ class FullInformation(Estimator):
         # where a failed step re-anchors
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
 
-    def _solve_record(self) -> tuple[FitResult, bool, int]:
+    def _solve_record(self, robust: bool = False) -> tuple[FitResult, bool, int]:
         """Solve the record held so far, warm-started from the previous trajectory plus
         the prediction of its last state; the result, whether it is usable, and the
         chi-square degrees of freedom of its cost."""
@@ -328,7 +329,8 @@ class FullInformation(Estimator):
             pred = self._F(self._X[-1], U[-2], m.p)[0]
             guess = np.vstack([self._X, pred if np.isfinite(pred).all() else self._X[-1]])
         capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
-        res, usable = self._solve(Y, U, Uprev, guess, capacity, prior=self._start)
+        res, usable = self._solve(Y, U, Uprev, guess, capacity, prior=self._start,
+                                  robust=robust)
         dof = int(np.isfinite(Y).sum()) + (0 if self._start[1] is None else m.nx)
         return res, usable, dof
 
@@ -349,7 +351,7 @@ class FullInformation(Estimator):
             self._Ys, self._Us, self._up0 = [y.copy()], [], u.copy()
             self._start = (x, None if P is None else weight_factor(P))
             self._X = None
-            res, usable, dof = self._solve_record()
+            res, usable, dof = self._solve_record(robust=True)
             check = consistency_status(res.cost, dof, "cost")
         x_hat = res.x[-1].copy() if usable else self._start[0].copy()
         self._X = res.x if usable else np.repeat(self._start[0][None, :], len(self._Ys), 0)

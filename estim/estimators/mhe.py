@@ -210,11 +210,12 @@ class MHE(Estimator):
             self._Pbar, W = self.P0.copy(), self._W0
         return W
 
-    def _solve(self):
-        """Solve the current window; the arrival weight and its chi-square degrees."""
+    def _solve(self, robust: bool = False):
+        """Solve the current window (``robust``: by Gauss-Newton, see
+        :meth:`LeastSquaresNLP.solve`); the arrival weight and its chi-square degrees."""
         weight = self._arrival_weight()
         sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
-                              weight, self._WR, self.R)
+                              weight, self._WR, self.R, robust=robust)
         dof = int(np.isfinite(self._Y[self.horizon - self._n:]).sum())
         return sol, dof + (0 if weight is None else self.model.nx)
 
@@ -259,7 +260,7 @@ class MHE(Estimator):
         if not sol.usable or (not sol.success and check != "ok"):
             failure = sol.status if not sol.usable else f"{sol.status} at cost {sol.cost:.3g}"
             self._reanchor(y, u)
-            sol, dof = self._solve()
+            sol, dof = self._solve(robust=True)
             check = consistency_status(sol.cost, dof, "cost")
         s0 = N - self._n
         if sol.usable:

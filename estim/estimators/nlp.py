@@ -32,6 +32,7 @@ import casadi as ca
 import numpy as np
 
 from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
+from estim.estimators.base import chi2_limit
 from estim.estimators.gauss_newton import StructuredGaussNewton, full_record_constants
 from estim.model import Model
 
@@ -411,19 +412,37 @@ class LeastSquaresNLP:
         p[s["w0"]] = (np.zeros((nx, nx)) if W0 is None else W0).ravel(order="F")
         return p
 
-    def solve(self, X0, Y, U, Uprev, n, xbar, W0, WR, R) -> Solution:
-        """Solve from the initial guess ``X0 (N, nx)``; never raises on solver failure."""
+    def solve(self, X0, Y, U, Uprev, n, xbar, W0, WR, R, robust: bool = False) -> Solution:
+        """Solve from the initial guess ``X0 (N, nx)``; never raises on solver failure.
+
+        ``robust``: with the structured Gauss-Newton solver whatever the solver chosen
+        (a descent method from any finite start: the estimators' recovery solves).
+        """
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
-        if self.solver_name == "gauss-newton":
+        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+        if self.solver_name == "fatrop" and not robust:
+            # fatrop can stall and never return where the data contradict the start (an
+            # outlier in the window, a start in an overflowing region of the model):
+            # such windows, whose cost is beyond the chi-square limit of the suspect
+            # test, go to the Gauss-Newton solver
+            dof = int(np.isfinite(Y[self.N - n:]).sum()) + (0 if W0 is None else self.model.nx)
+            robust = not self.gn.cost(x0, p, self._complete) <= chi2_limit(dof)
+        if self.solver_name == "gauss-newton" or robust:
             x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
             # the iterations only ever decrease the cost: a finite end point is usable
             usable = bool(np.isfinite(cost) and np.isfinite(x).all())
             return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
                             elapsed, usable)
-        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         t0 = time.perf_counter()
+        # not started where the model is not finite (the solvers would spend their
+        # iterations on it, or crash)
+        start = self.gn.cost(x0, p, self._complete)
+        if not np.isfinite(start):
+            return Solution(np.asarray(X0, float), False,
+                            "non-finite cost at the initial guess", 0, start,
+                            time.perf_counter() - t0)
         try:
             if self.solver_name == "fatrop":
                 sol = self._solve_fatrop(X0, p)
@@ -455,7 +474,6 @@ class LeastSquaresNLP:
             status = "ok"
         elif np.isfinite(X).all():  # an early stop: usable if no worse than the start
             cost = self.gn.cost(X.ravel(), p, self._complete)
-            start = self.gn.cost(x0, p, self._complete)
             usable = bool(np.isfinite(cost) and not cost > start)
         return Solution(X, ok, status, iters, cost, elapsed, usable)
 

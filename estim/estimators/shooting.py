@@ -34,7 +34,7 @@ from scipy import optimize
 
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_float, as_int
-from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.base import Estimator, StepInfo, consistency_status
 from estim.estimators.nlp import _casadi_reason
 from estim.model import Model, euler_step, rk4_step
 
@@ -363,6 +363,7 @@ class ShootingObserver(Estimator):
                 sub = np.linalg.cholesky(np.linalg.inv(self.R[np.ix_(rows, rows)])).T
                 WY[np.ix_(rows, rows, [c])] = sub[:, :, None]
         WY = WY.reshape(-1, w, order="F")
+        self._measured = int(np.isfinite(Y).sum())  # outputs in the window
         Y = np.where(np.isfinite(Y), Y, 0.0)
         Yd = np.zeros_like(Y)
         ms = self.derivative_samples
@@ -401,6 +402,11 @@ class ShootingObserver(Estimator):
             else:  # keep the propagated previous estimate
                 ok, status = False, "non-finite propagation from the optimum"
         anchor = x_opt if ok else start
+        if ok:  # the output term is chi-square in the noise: flag what the data contradict
+            check = consistency_status(float(self._terms(x_opt, *args)[0][0]), self._measured,
+                                       "output cost")
+            if check != "ok":
+                status = check if status == "ok" else f"{status}; {check}"
         # relative sensitivity (columns scaled by |xi|): states span many decades
         scale = np.maximum(np.abs(anchor), 1e-3 * max(float(np.abs(anchor).max()), 1e-300))
         S = self._sens(anchor, U, WY)[0].reshape(-1, nx, order="F") * scale
@@ -414,7 +420,7 @@ class ShootingObserver(Estimator):
                              "iterations": iters, "solve_time": elapsed, "success": ok,
                              "derivative_weight": w2})
         return self._x.copy(), StepInfo(
-            status="ok" if ok else f"failed: {status}", success=ok, iterations=iters,
+            status=status if ok else f"failed: {status}", success=ok, iterations=iters,
             solve_time=elapsed, cost=cost,
             extra={"optimised": True, "singular_values": sv, "condition": cond,
                    "derivative_weight": w2, "window_start": anchor.copy()})
@@ -459,7 +465,21 @@ class ShootingObserver(Estimator):
         return (D[:, None] * V[:, keep]) / np.sqrt(lam[keep])
 
     def _minimise(self, start, args):
-        """Run the chosen method; returns ``(x, cost, iterations, ok, status)``."""
+        """Run the chosen method; returns ``(x, cost, iterations, ok, status)``.
+
+        ``ok`` with status ``"ok"``: converged; with ``"inexact: ..."``: stopped early
+        (an iteration limit) at a finite point no worse than ``start``, which is used.
+        """
+        x, cost, iters, converged, message = self._run_method(start, args)
+        finite = bool(np.isfinite(x).all() and np.isfinite(cost))
+        if finite and converged:
+            return x, cost, iters, True, "ok"
+        if finite and not cost > float(self._J(start, *args)[0][0]):
+            return x, cost, iters, True, f"inexact: {message}"
+        return x, cost, iters, False, message
+
+    def _run_method(self, start, args):
+        """The chosen method from ``start``: ``(x, cost, iterations, converged, message)``."""
         if self.method == "gradient":
             return self._gradient_descent(start, args)
         gtol = np.sqrt(2.0 * self.tol)
@@ -486,7 +506,7 @@ class ShootingObserver(Estimator):
                 # 0: converged; 2: precision loss at the optimum (no further decrease)
                 ok = (res.status in (0, 2) or self.method == "nelder-mead") and \
                     np.isfinite(x).all() and np.isfinite(res.fun)
-                return x, float(res.fun), int(res.nit), ok, str(res.message)
+                return x, float(res.fun), int(res.nit), ok, str(res.message).strip()
             if self.method == "lbfgsb":
                 # diagonal Gauss-Newton scaling keeps the bounds as boxes
                 diag = np.ones(len(start)) if H is None else np.diag(H)
@@ -504,7 +524,7 @@ class ShootingObserver(Estimator):
                                                  "ftol": 0.0})
                 x = np.clip(start + res.x / d, self.lower, self.upper)
                 ok = res.status in (0, 2) and np.isfinite(x).all() and np.isfinite(res.fun)
-                return x, float(res.fun), int(res.nit), ok, str(res.message)
+                return x, float(res.fun), int(res.nit), ok, str(res.message).strip()
             pvec = np.concatenate([np.ravel(a, order="F") for a in args])
             sol = self._ipopt(x0=np.clip(start, self.lower, self.upper), p=pvec,
                               lbx=self.lower, ubx=self.upper)
@@ -541,4 +561,4 @@ class ShootingObserver(Estimator):
             alpha *= 2.0
             if converged:
                 return x, J, it, True, "converged"
-        return x, J, self.max_iter, True, "max_iter"
+        return x, J, self.max_iter, False, "max_iter"

@@ -7,7 +7,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
-from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.base import Estimator, StepInfo, chi2_limit
 from estim.model import Model
 
 
@@ -30,6 +30,9 @@ class UKF(Estimator):
         distribution (:math:`\beta = 2` for Gaussian) and secondary scaling.
     clip : bool
         Project the estimate onto the model bounds after each update.
+    gate : float, optional
+        Reject a measurement whose normalised innovation squared lies beyond this
+        tail probability of its chi-square distribution, as :class:`~estim.EKF` does.
 
     References
     ----------
@@ -42,8 +45,9 @@ class UKF(Estimator):
     name = "ukf"
 
     def __init__(self, model: Model, *, Q, R, x0, P0, alpha: float = 0.1, beta: float = 2.0,
-                 kappa: float = 0.0, clip: bool = False):
+                 kappa: float = 0.0, clip: bool = False, gate: float | None = None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.gate = self._gate(gate)
         self.alpha = as_float(alpha, "alpha", positive=True)
         self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
         self.clip = as_bool(clip, "clip")
@@ -93,7 +97,7 @@ class UKF(Estimator):
             prediction = (ukf.x.copy(), ukf.P.copy())
             update_error = self._update(y, u)
             if update_error is None:
-                return self._accepted(y)
+                return self._accepted(y, prediction)
             if self._trusted:  # a usable prediction of a trusted estimate: keep it
                 ukf.x, ukf.P = prediction
                 self._trusted = False
@@ -148,8 +152,9 @@ class UKF(Estimator):
             ukf.x = self.model.clip(ukf.x)
         return error
 
-    def _accepted(self, y):
-        """Estimate and information of a successful update."""
+    def _accepted(self, y, prediction):
+        """Estimate and information of a successful update (the prediction with
+        ``P + P0`` where the gate rejects the measurement)."""
         ukf = self._ukf
         ukf.P = 0.5 * (ukf.P + ukf.P.T)
         rows = np.isfinite(y)
@@ -158,6 +163,11 @@ class UKF(Estimator):
         if rows.any():
             e[rows] = np.ravel(ukf.y)
             nis = float(np.ravel(ukf.y) @ np.linalg.solve(ukf.S, np.ravel(ukf.y)))
-            status = consistency_status(nis, int(rows.sum()))
+            dof = int(rows.sum())
+            gated = self.gate is not None and nis > chi2_limit(dof, self.gate)
+            if gated or nis > chi2_limit(dof):
+                status = self._consistency(nis, dof, gated)
+            if gated:
+                ukf.x, ukf.P = prediction[0], prediction[1] + self.P0
         self._trusted = status == "ok"
         return ukf.x.copy(), StepInfo(status=status, P=ukf.P.copy(), innovation=e, nis=nis)
