@@ -212,10 +212,8 @@ class _StageFunctions:
             A0a + _gram(Jy), A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0], gy, c])
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots (a diagonal weight is a row scaling)
-        # omega is 0 or 1: a switch, not a blend, so that a model that is not finite at
-        # an unused slot's input cannot poison the chain (0 * NaN is NaN)
-        A = ca.if_else(om, model.F_x(x, u, pm), eye)
-        G = ca.if_else(om, model.F(x, u, pm), x)
+        A = om * model.F_x(x, u, pm) + (1 - om) * eye
+        G = om * model.F(x, u, pm) + (1 - om) * x
         if np.allclose(WQ, np.diag(np.diag(WQ))):
             mv = om * ca.DM(np.diag(WQ)) + (1 - om)
             rw = mv * (xb - G)

@@ -216,8 +216,7 @@ class MHE(Estimator):
         weight = self._arrival_weight()
         sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
                               weight, self._WR, self.R, robust=robust)
-        dof = int(np.isfinite(self._Y[self.horizon - self._n:]).sum())
-        return sol, dof + (0 if weight is None else self.model.nx)
+        return sol, self._nlp.degrees_of_freedom(self._Y, self._n, weight is not None)
 
     def _reanchor(self, y, u) -> None:
         """Restart the window after a failed solve: only this measurement, the arrival

@@ -289,7 +289,7 @@ class LeastSquaresNLP:
         for j in range(N - 1):
             om = part["omega"][j]
             xn = model.F(X[:, j], U[:, j], pm)
-            res.append(ca.if_else(om, WQd @ (X[:, j + 1] - xn), X[:, j + 1] - X[:, j]))
+            res.append(om * (WQd @ (X[:, j + 1] - xn)) + (1 - om) * (X[:, j + 1] - X[:, j]))
         for j in range(N):
             Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
             res.append(Wy @ (Y[:, j] - model.H(X[:, j], Up[:, j], pm)))
@@ -336,7 +336,7 @@ class LeastSquaresNLP:
                 variables.append(ws[k])
                 om = part["omega"][k]
                 cost += om * ca.sumsqr(WQd @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
-                g.append(xs[k + 1] - (ca.if_else(om, m.F(xs[k], U[:, k], pm), xs[k])
+                g.append(xs[k + 1] - (om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
                                       + ws[k]))
                 lbg.append(np.zeros(nx))
                 ubg.append(np.zeros(nx))
@@ -400,6 +400,10 @@ class LeastSquaresNLP:
             Wsub = np.linalg.cholesky(np.linalg.inv(R[np.ix_(rows, rows)])).T
             wy[j][np.ix_(rows, rows)] = Wsub
         p[s["wy"]] = wy.transpose(0, 2, 1).ravel()            # each block column-major
+        if s0:  # the unused slots evaluate the model at the inputs of the first used one
+            U, Uprev = U.copy(), Uprev.copy()  # (stale ones may make it non-finite, and
+            U[:s0] = U[s0] if n > 1 else 0.0  # the zero weights of these slots cannot
+            Uprev[:s0] = Uprev[s0]             # undo that: 0 * NaN is NaN)
         p[s["u"]] = U.ravel()
         p[s["up"]] = Uprev.ravel()
         omega = np.zeros(max(N - 1, 0))
@@ -421,14 +425,15 @@ class LeastSquaresNLP:
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
-        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+        if self.solver_name != "gauss-newton" and not robust:
+            x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         if self.solver_name == "fatrop" and not robust:
             # fatrop can stall and never return where the data contradict the start (an
             # outlier in the window, a start in an overflowing region of the model):
             # such windows, whose cost is beyond the chi-square limit of the suspect
             # test, go to the Gauss-Newton solver
-            dof = int(np.isfinite(Y[self.N - n:]).sum()) + (0 if W0 is None else self.model.nx)
-            robust = not self.gn.cost(x0, p, self._complete) <= chi2_limit(dof)
+            robust = not self.gn.cost(x0, p, self._complete) <= chi2_limit(
+                self.degrees_of_freedom(Y, n, W0 is not None))
         if self.solver_name == "gauss-newton" or robust:
             x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
             # the iterations only ever decrease the cost: a finite end point is usable
@@ -476,6 +481,13 @@ class LeastSquaresNLP:
             cost = self.gn.cost(X.ravel(), p, self._complete)
             usable = bool(np.isfinite(cost) and not cost > start)
         return Solution(X, ok, status, iters, cost, elapsed, usable)
+
+    def degrees_of_freedom(self, Y: np.ndarray, n: int, arrival: bool) -> int:
+        """Chi-square degrees of freedom of the cost of a window of ``n`` measured slots
+        (its measured outputs, and ``nx`` for an arrival term), for the consistency test
+        of :func:`~estim.estimators.base.consistency_status`."""
+        measured = n * self.model.ny if self._complete else int(np.isfinite(Y[self.N - n:]).sum())
+        return measured + (self.model.nx if arrival else 0)
 
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the
