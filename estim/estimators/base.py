@@ -21,21 +21,24 @@ Failures and recovery
 
 ``"failed: "``
     the step could not use this measurement as intended (a non-finite
-    prediction or update, a solver that failed or returned a point worse than
-    its start); ``info.success`` is False. The estimator never keeps a
-    non-finite value: it *re-anchors* on its last finite estimate, projected
-    on the bounds, with the covariance inflated by ``P0`` (the arrival
-    covariance for MHE, a new prior for full-information estimation), and
-    applies the measurement to that, so that the following steps proceed
-    normally.
+    prediction or update, a covariance that lost definiteness, a solver that
+    failed or stopped early at a cost the data do not support);
+    ``info.success`` is False. The estimator never keeps a non-finite value: it
+    *re-anchors* on its last trusted estimate (the last one reported ``"ok"``
+    or ``"inexact"``), projected on the bounds, with the covariance inflated by
+    ``P0`` (the arrival covariance for MHE, a new prior for full-information
+    estimation), and applies the measurement to that.
 ``"inexact: "``
     a solver stopped early (e.g. ``max_iter``) at a finite point no worse than
-    its warm start; that point is the estimate (``success`` is True).
+    its warm start, at a cost the data support; that point is the estimate
+    (``success`` is True).
 ``"suspect: "``
     the step succeeded, but the normalised innovation squared (filters) or the
     weighted cost (MHE, full information) lies beyond the :data:`SUSPECT_TAIL`
     tail of its chi-square distribution: an outlier, a fault, or an estimate
     that lost track (``success`` is True).
+``"rejected: "``
+    a filter with ``gate`` rejected the measurement (``success`` is True).
 
 A returned estimate is always finite.
 """
