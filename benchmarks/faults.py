@@ -218,8 +218,10 @@ def main(argv=None) -> list[dict]:
         print(f"\nover {args.seeds} seeds, most samples to recover:")
         for key in runs[0]:
             worst = max(r[key].recover for r in runs)
-            ok = all(r[key].passed for r in runs)
-            print(f"  {' / '.join(key):<34}{worst:>4}  {'within the bound' if ok else 'OUT'}")
+            verdict = "OUT" if not all(r[key].passed for r in runs) else \
+                "reported, no bound" if runs[0][key].bound is None else \
+                f"within the bound of {runs[0][key].bound}"
+            print(f"  {' / '.join(key):<34}{worst:>4}  {verdict}")
     return runs
 
 
