@@ -78,6 +78,11 @@ class ComparisonRow:
             out.append(f"{self.name}: {self.failures} of {self.steps} steps failed "
                        f"({100 * self.failures / self.steps:.0f} %): the estimates there are "
                        f"re-anchored, see the logs' status")
+        if self.steps and self.flagged > FAILED_FRACTION * self.steps:
+            out.append(f"{self.name}: {self.flagged} of {self.steps} steps flagged "
+                       f"({100 * self.flagged / self.steps:.0f} %): inexact solves, or NIS/cost "
+                       f"beyond the 1e-9 chi-square tail (outliers, or an estimator the data "
+                       f"contradict); see the logs' status")
         return out
 
 
