@@ -192,6 +192,27 @@ def _numeric_array(value, name: str) -> np.ndarray:
                         f"{_show(value)}") from exc
 
 
+def as_record(value, n: int, name: str, *, missing: bool = True) -> np.ndarray:
+    """A time-major record: ``value`` as a ``(T, n)`` float array with ``T >= 1`` (a
+    ``(T,)`` array when ``n == 1``). With ``missing``, NaN entries are allowed (a
+    missing sample); ±inf is refused naming the first row that holds one, as is any
+    non-finite entry without ``missing``."""
+    arr = _numeric_array(value, name)
+    if arr.ndim == 1 and n == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[1] != n:
+        raise ValueError(f"{name} must have shape (T, {n}), got {arr.shape}")
+    if arr.shape[0] < 1:
+        raise ValueError(f"{name} must hold at least one sample")
+    bad = np.isinf(arr) if missing else ~np.isfinite(arr)
+    rows = np.flatnonzero(bad.any(axis=1))
+    if len(rows):
+        what = "must not contain inf" if missing else "must be finite"
+        hint = " (use NaN for a missing output)" if missing else ""
+        raise ValueError(f"{name} {what}: row {rows[0]} is {arr[rows[0]]}{hint}")
+    return arr
+
+
 def as_bool(value, name: str, *, allow_none: bool = False) -> bool | None:
     """``value`` if it is a bool (Python or numpy), else ``TypeError`` naming ``name``.
 
@@ -312,10 +333,15 @@ def as_choice(value, choices: Sequence[str], name: str) -> str:
     if not isinstance(value, str):
         raise TypeError(f"{name} must be one of {tuple(choices)}, got {_show(value)}")
     if value not in choices:
-        close = difflib.get_close_matches(value, list(choices), n=1)
-        hint = f"; did you mean {close[0]!r}?" if close else ""
-        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}{hint}")
+        raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}"
+                         f"{did_you_mean(value, choices)}")
     return value
+
+
+def did_you_mean(value: str, choices: Sequence[str]) -> str:
+    """``"; did you mean 'x'?"`` for the nearest of ``choices``, or ``""``."""
+    close = difflib.get_close_matches(value, list(choices), n=1)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 # ----------------------------------------------------------------- keywords

@@ -23,6 +23,7 @@ from estim._validate import (
     as_int,
     as_vector,
     check_call,
+    did_you_mean,
 )
 from estim.model import Model
 
@@ -330,10 +331,7 @@ def get(name: str, **kwargs) -> Scenario:
     if not isinstance(name, str):
         raise TypeError(f"name must be a scenario name (str), got {type(name).__name__}")
     if name not in SCENARIOS:
-        import difflib
-
-        close = difflib.get_close_matches(name, list(SCENARIOS), n=1)
-        hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ValueError(f"unknown scenario {name!r}{hint}; known: {sorted(SCENARIOS)}")
+        raise ValueError(f"unknown scenario {name!r}; known: {sorted(SCENARIOS)}"
+                         f"{did_you_mean(name, SCENARIOS)}")
     check_call(SCENARIOS[name], kwargs, f"scenario {name!r}")
     return SCENARIOS[name](**kwargs)

@@ -17,6 +17,7 @@ same seed gives the same noise whatever the estimator does.
 from __future__ import annotations
 
 import warnings
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from estim._validate import (
     as_covariance,
     as_float,
     as_int,
+    as_record,
     as_seed,
     as_vector,
     check_keywords,
@@ -100,20 +102,27 @@ class _Recorder:
             log.set(key, arr[:n])
         return log
 
-    def keep(self, exc: BaseException, model: Model, estimator: Estimator, t, x, y, u) -> None:
-        """Attach the log of the completed steps to ``exc`` (as ``exc.log``)."""
+    @contextmanager
+    def running(self, model: Model, estimator: Estimator, t, x, y, u):
+        """The loop's context: any exception leaving it carries the log of the completed
+        steps as ``exc.log``."""
         try:
-            exc.log = self.log(model, estimator, t, x, y, u)
-        except Exception:  # noqa: BLE001 - never mask the original error
-            return
-        note = f"estim: the log of the {self.done} steps completed before this is exc.log"
-        if hasattr(exc, "add_note"):
-            exc.add_note(note)
+            yield
+        except BaseException as exc:
+            try:
+                exc.log = self.log(model, estimator, t, x, y, u)
+            except Exception:  # noqa: BLE001 - never mask the original error
+                raise exc from None
+            if hasattr(exc, "add_note"):
+                exc.add_note(f"estim: the log of the {self.done} steps completed before "
+                             f"this is exc.log")
+            raise
 
-    def warn(self, estimator: Estimator, log: Log) -> None:
-        """An :class:`EstimationWarning` when more than :data:`FAILED_FRACTION` of the
-        steps failed."""
-        if log.failures > FAILED_FRACTION * len(log):
+    def finish(self, model: Model, estimator: Estimator, t, x, y, u, warn: bool) -> Log:
+        """The log of the run, with an :class:`EstimationWarning` (``warn``) when more than
+        :data:`FAILED_FRACTION` of the steps failed."""
+        log = self.log(model, estimator, t, x, y, u)
+        if warn and log.failures > FAILED_FRACTION * len(log):
             name = getattr(estimator, "name", type(estimator).__name__)
             first = str(log.status[~log.success][0])
             hint = " (the model or its Jacobian is not finite at the estimates: a sqrt, " \
@@ -121,6 +130,7 @@ class _Recorder:
             warnings.warn(f"{name} on {log.model_name or 'the model'}: {log.problems()}; "
                           f"see log.status{hint}", EstimationWarning,
                           stacklevel=4)  # this method, simulate, its argument check, caller
+        return log
 
 
 def output_state_map(model: Model) -> dict[int, int]:
@@ -251,7 +261,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     u_prev = np.zeros(nu) if U is None else U[0].copy()
     p = model.p
     next_change = 0
-    try:
+    with rec.running(model, estimator, ts, X, Y, Uk):
         for k in range(T):
             t = ts[k]
             while next_change < len(changes) and t >= changes[next_change][0] - 1e-12:
@@ -282,13 +292,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
                 raise FloatingPointError(f"the plant state became non-finite after step {k} "
                                          f"(t={t:g})")
             u_prev = u.copy()
-    except BaseException as exc:  # the steps done so far go with the exception
-        rec.keep(exc, model, estimator, ts, X, Y, Uk)
-        raise
-    log = rec.log(model, estimator, ts, X, Y, Uk)
-    if warn:
-        rec.warn(estimator, log)
-    return log
+    return rec.finish(model, estimator, ts, X, Y, Uk, warn)
 
 
 @check_keywords
@@ -337,18 +341,12 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
         raise ValueError(f"t must have shape ({T},), got {ts.shape}")
     rec = _Recorder(T, model.nx)
     estimator.reset()
-    try:
+    with rec.running(model, estimator, ts, X, Y, U):
         for k in range(T):
             x_hat = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
             rec.record(k, x_hat, estimator.info)
             rec.done = k + 1
-    except BaseException as exc:  # the steps done so far go with the exception
-        rec.keep(exc, model, estimator, ts, X, Y, U)
-        raise
-    log = rec.log(model, estimator, ts, X, Y, U)
-    if warn:
-        rec.warn(estimator, log)
-    return log
+    return rec.finish(model, estimator, ts, X, Y, U, warn)
 
 
 def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:
@@ -408,27 +406,12 @@ def _check_simulate(model: Model, n_steps, seed, clip, inputs, controller, missi
 
 def _check_replay(model: Model, y, u, x, t) -> np.ndarray:
     """Check every array of :func:`replay` before the first step; return ``y`` as (T, ny)."""
-    Y = _numeric_array(y, "y")
-    if Y.ndim == 1 and model.ny == 1:
-        Y = Y[:, None]
-    if Y.ndim != 2 or Y.shape[1] != model.ny:
-        raise ValueError(f"y must have shape (T, {model.ny}), got {Y.shape}")
+    Y = as_record(y, model.ny, "y")
     T = Y.shape[0]
-    if T < 1:
-        raise ValueError("y must hold at least one sample")
-    rows = np.flatnonzero(np.isinf(Y).any(axis=1))
-    if len(rows):
-        raise ValueError(f"y must not contain inf: row {rows[0]} is {Y[rows[0]]} "
-                         f"(use NaN for a missing output)")
     if u is not None and not callable(u):
-        U = _numeric_array(u, "u")
-        if U.ndim == 1 and model.nu == 1:
-            U = U[:, None]
+        U = as_record(u, model.nu, "u", missing=False)
         if U.shape != (T, model.nu):
             raise ValueError(f"u must have shape ({T}, {model.nu}) = (T, nu), got {U.shape}")
-        bad = np.flatnonzero(~np.isfinite(U).all(axis=1))
-        if len(bad):
-            raise ValueError(f"u must be finite: row {bad[0]} is {U[bad[0]]}")
     if x is not None:
         X = _numeric_array(x, "x")
         if X.shape != (T, model.nx):

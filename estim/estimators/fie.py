@@ -9,7 +9,7 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
-from estim._validate import _holds_bool, _numeric_array, _show, as_choice
+from estim._validate import _numeric_array, as_choice, as_record
 from estim.estimators.base import Estimator, StepInfo, consistency_status
 from estim.estimators.nlp import (
     SOLVERS,
@@ -188,24 +188,10 @@ class FullInformation(Estimator):
     # ------------------------------------------------------------------ batch
     def _record(self, Y, U):
         m = self.model
-        if _holds_bool(Y) or np.iscomplexobj(Y):
-            raise TypeError(f"Y must be a numeric (T, ny) array, got {_show(Y)}")
-        try:
-            Y = np.asarray(Y, dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise TypeError("Y must be a numeric (T, ny) array") from exc
-        if Y.ndim == 1 and m.ny == 1:
-            Y = Y[:, None]
-        if Y.ndim != 2 or Y.shape[1] != m.ny:
-            raise ValueError(f"Y must have shape (T, {m.ny}), got {Y.shape}")
+        Y = as_record(Y, m.ny, "Y")
         T = Y.shape[0]
-        if T < 1:
-            raise ValueError("Y must hold at least one sample")
-        if not np.isfinite(Y).all():
-            if np.isinf(Y).any():
-                raise ValueError("Y must not contain inf (NaN marks a missing output)")
-            if np.isnan(Y).all():
-                raise ValueError("Y has no measured value")
+        if np.isnan(Y).all():
+            raise ValueError("Y has no measured value")
         if U is None:
             U = np.zeros((T, m.nu))
         else:
