@@ -267,6 +267,7 @@ class MHE(Estimator):
             x_hat = sol.X[-1].copy()
         else:
             x_hat = self._X[-1].copy()  # the anchor itself
+        elapsed = time.perf_counter() - t0  # the estimate; its covariance is extra
         P = self._nlp.covariance(self._X) if sol.usable else None
         if failure is not None:
             status = f"failed: {failure}; re-anchored on the last trusted estimate" + (
@@ -279,7 +280,7 @@ class MHE(Estimator):
         self._history.append(x_hat.copy())
         return x_hat.copy(), StepInfo(
             status=status, success=failure is None, iterations=sol.iterations,
-            solve_time=time.perf_counter() - t0, P=P, cost=sol.cost,
+            solve_time=elapsed, P=P, cost=sol.cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "solver_time": sol.solve_time})
