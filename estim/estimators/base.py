@@ -199,6 +199,46 @@ class Estimator:
         self._info = StepInfo()
         self._reset()
 
+    def set_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> None:
+        """Change the tuning; nothing is rebuilt (every compiled graph takes it as data).
+
+        Parameters
+        ----------
+        Q, R : float, (nx,)/(ny,) or matrix, optional
+            New process and measurement covariances, used from the next step on.
+            An estimator built with a diagonal ``Q`` (``R``) uses only the diagonal in
+            its graphs, so it takes a diagonal one only (build it with the full
+            matrix to tune the correlations).
+        P0, x0 : optional
+            New prior of the first state: used from the next :meth:`reset` (which
+            :func:`~estim.simulate` and :func:`~estim.replay` call), and at once by
+            the terms that use ``P0`` at every step (the fixed MHE arrival cost,
+            :meth:`FullInformation.fit`).
+        """
+        self.__dict__.update(self._validated_tuning(Q=Q, R=R, P0=P0, x0=x0))
+        self._tuning_changed()
+
+    def _validated_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> dict:
+        """The given tuning, checked as :meth:`set_tuning` does, as a dict."""
+        m = self.model
+        new = {}
+        if Q is not None:
+            new["Q"] = as_covariance(Q, m.nx, "Q", definite=False)
+        if R is not None:
+            new["R"] = as_covariance(R, m.ny, "R", definite=True)
+        if P0 is not None:
+            new["P0"] = as_covariance(P0, m.nx, "P0", definite=True)
+        if x0 is not None:
+            new["x0"] = as_vector(x0, m.nx, "x0")
+        for name in ("Q", "R"):
+            if name in new and self._diagonal.get(name) and \
+                    not np.array_equal(new[name], np.diag(np.diag(new[name]))):
+                raise ValueError(f"{name} must be diagonal: {type(self).__name__} was built "
+                                 f"with a diagonal {name} and its graphs use the diagonal "
+                                 f"only (build it with a full {name} to tune correlations)")
+        self._check_tuning(new)
+        return new
+
     @property
     def info(self) -> StepInfo:
         """What the last :meth:`step` reported."""
@@ -210,6 +250,15 @@ class Estimator:
 
     def _reset(self) -> None:
         """Reset method-specific state (called by :meth:`reset`)."""
+
+    #: Tuning matrices whose graphs use the diagonal only (set by subclasses).
+    _diagonal: dict = {}
+
+    def _check_tuning(self, new: dict) -> None:
+        """Refuse tuning this estimator cannot use (``new``: the validated values)."""
+
+    def _tuning_changed(self) -> None:
+        """Write the tuning where the compiled graphs read it."""
 
     # -------------------------------------------------------------- helpers
     @staticmethod

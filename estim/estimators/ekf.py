@@ -8,7 +8,13 @@ import numpy as np
 from estim._fast import FastFunction
 from estim._validate import as_bool
 from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
+from estim.estimators.nlp import is_diagonal
 from estim.model import Model
+
+
+def _matrix(v, n: int, diagonal: bool):
+    """The ``(n, n)`` matrix stored column-major in ``v`` (its diagonal only if asked)."""
+    return ca.diag(v[[i * n + i for i in range(n)]]) if diagonal else ca.reshape(v, n, n)
 
 
 class EKF(Estimator):
@@ -84,9 +90,12 @@ class EKF(Estimator):
         self._s = np.zeros(nx + nx * nx)
         self._u = np.zeros(model.nu)
         self._y = np.zeros(model.ny)
-        bound = [self._s, self._u, self._y]
+        self._tun = np.zeros(nx * nx + model.ny ** 2)  # Q and R, read by both functions
+        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
+        bound = [self._s, self._u, self._y, self._tun]
         self._update = FastFunction(self._build(predict=False), bound)
         self._predict_update = FastFunction(self._build(predict=True), bound)
+        self._tuning_changed()
         self._reset()
 
     def _build(self, predict: bool) -> ca.Function:
@@ -96,19 +105,21 @@ class EKF(Estimator):
         x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
         u = ca.SX.sym("u", nu)
         y = ca.SX.sym("y", ny)
+        tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
+        Q, R = (_matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
+                _matrix(tun[nx * nx:], ny, self._diagonal["R"]))
         p = ca.DM(m.p)
         mask = ca.fabs(y) < ca.inf  # 0 for NaN (missing) and for +-inf (rejected)
         y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
         if predict:
             xb = m.F(x, u, p)
             A = m.F_x(x, u, p)
-            Pb = A @ P @ A.T + ca.DM(self.Q)
+            Pb = A @ P @ A.T + Q
         else:
             xb, Pb = x, P
         D = ca.diag(mask)
         C = D @ m.H_x(xb, u, p)
         e = ca.if_else(mask, y - m.H(xb, u, p), 0)
-        R = ca.DM(self.R)
         Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ Pb @ C.T + Rm
         S = 0.5 * (S + S.T)
@@ -138,11 +149,16 @@ class EKF(Estimator):
 
         suspect, gated = beyond(SUSPECT_TAIL), beyond(self.gate)
         name = "ekf_predict_update" if predict else "ekf_update"
-        return ca.Function(name, [s, u, y], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
+        return ca.Function(name, [s, u, y, tun], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
                                                                   measured, ok_mean, suspect,
                                                                   gated),
                                              s_prior],
-                           ["s", "u", "y"], ["s_new", "innovation", "flags", "s_prior"])
+                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
+
+    def _tuning_changed(self) -> None:
+        nx = self.model.nx
+        self._tun[:nx * nx] = self.Q.ravel(order="F")
+        self._tun[nx * nx:] = self.R.ravel(order="F")
 
     @property
     def x(self) -> np.ndarray:

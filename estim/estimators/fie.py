@@ -160,6 +160,7 @@ class FullInformation(Estimator):
         solver = as_choice(solver, SOLVERS, "solver")
         solver_options = check_solver_options(solver, solver_options)
         self._prior = x0 is not None and P0 is not None
+        self._x0_given = x0 is not None
         if P0 is not None and x0 is None:
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
         super().__init__(model, Q=Q, R=R, x0=np.zeros(model.nx) if x0 is None else x0, P0=P0)
@@ -169,20 +170,40 @@ class FullInformation(Estimator):
         self.lower, self.upper = self._bounds(lower, upper)
         self.solver = solver
         self.solver_options = solver_options
-        self._WQ = weight_factor(self.Q)
-        self._WR = weight_factor(self.R)
+        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlps: dict[tuple[int, bool], LeastSquaresNLP] = {}
         self._maps: dict[int, tuple] = {}
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
+        self._tuning_changed()
         self._reset()
+
+    def _check_tuning(self, new: dict) -> None:
+        if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:
+            raise ValueError("Q must be positive definite for full-information estimation "
+                             "(the weights are Q^-1)")
+        if "P0" in new and not (self._x0_given or "x0" in new):
+            raise ValueError("P0 was given without x0: the prior needs its mean x0")
+
+    def set_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> None:
+        new = self._validated_tuning(Q=Q, R=R, P0=P0, x0=x0)
+        self._x0_given = self._x0_given or "x0" in new  # a prior needs its mean
+        self.__dict__.update(new)
+        self._tuning_changed()
+
+    set_tuning.__doc__ = Estimator.set_tuning.__doc__
+
+    def _tuning_changed(self) -> None:
+        self._WQ = weight_factor(self.Q)
+        self._WR = weight_factor(self.R)
+        self._prior = self._x0_given and self.P0 is not None
+        self._W0 = weight_factor(self.P0) if self._prior else None
 
     def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
         """The problem of N slots, built once (``full``: fit's exact-length records)."""
         if (N, full) not in self._nlps:
             self._nlps[N, full] = LeastSquaresNLP(
-                self.model, N, self._WQ, self.lower, self.upper, self.solver,
-                self.solver_options, diagonal_R=is_diagonal(self.R), full=full,
-                weights=self._WR)
+                self.model, N, self.lower, self.upper, self.solver, self.solver_options,
+                diagonal_Q=self._diagonal["Q"], diagonal_R=self._diagonal["R"], full=full)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
@@ -210,7 +231,7 @@ class FullInformation(Estimator):
         Uprev[1:] = U[:-1]
         return Y, U, Uprev
 
-    def fit(self, Y, U=None, guess=None) -> FitResult:
+    def fit(self, Y, U=None, guess=None, *, Q=None, R=None) -> FitResult:
         """Solve over the whole record.
 
         Parameters
@@ -222,11 +243,19 @@ class FullInformation(Estimator):
             ``y_{k+1}`` is taken). Zero if omitted.
         guess : (T, nx) array, optional
             Initial trajectory; default ``x0`` repeated (zeros without ``x0``).
+        Q, R : optional
+            Covariances for this fit only (default: the estimator's, see
+            :meth:`set_tuning`); nothing is rebuilt.
 
         Returns
         -------
         FitResult
         """
+        weights = None
+        if Q is not None or R is not None:
+            new = self._validated_tuning(Q=Q, R=R)
+            Qf, Rf = new.get("Q", self.Q), new.get("R", self.R)
+            weights = (weight_factor(Qf), weight_factor(Rf), Rf)
         Y, U, Uprev = self._record(Y, U)
         T, nx = Y.shape[0], self.model.nx
         if guess is None:
@@ -238,17 +267,18 @@ class FullInformation(Estimator):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
             if not np.isfinite(X0).all():
                 raise ValueError("guess must be finite")
-        return self._solve(Y, U, Uprev, X0, T, full=True)[0]
+        return self._solve(Y, U, Uprev, X0, T, full=True, weights=weights)[0]
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
-               robust: bool = False) -> tuple[FitResult, bool]:
+               robust: bool = False, weights=None) -> tuple[FitResult, bool]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
         (see :mod:`estim.estimators.nlp`), so the optimum is that of the
         ``T``-sample problem; one problem then serves every shorter record.
         ``prior``: ``(mean, weight factor or None)`` of the first sample (default
-        ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver.
+        ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver;
+        ``weights``: ``(W_Q, W_R, R)`` (default the estimator's).
         Returns the result and whether its trajectory is usable (see
         :class:`~estim.estimators.nlp.Solution`).
         """
@@ -263,7 +293,8 @@ class FullInformation(Estimator):
         if full:  # a fit does not depend on earlier fits (warm-start multipliers, ridge)
             nlp.reset()
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
-        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, self._WR, self.R, robust=robust)
+        WQ, WR, R = (self._WQ, self._WR, self.R) if weights is None else weights
+        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
         return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol.usable
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
@@ -289,7 +320,7 @@ class FullInformation(Estimator):
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:
-        self._W0 = weight_factor(self.P0) if self._prior else None  # reset may change P0
+        self._tuning_changed()  # reset may have changed P0
         for nlp in self._nlps.values():  # as if freshly built
             nlp.reset()
         self._Ys: list[np.ndarray] = []

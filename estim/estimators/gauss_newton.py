@@ -183,13 +183,13 @@ class _StageFunctions:
     a symmetric block inverse; :meth:`fused`: one slot of the forward pass.
     """
 
-    def __init__(self, model: Model, WQ: np.ndarray, diagonal_R: bool = False):
+    def __init__(self, model: Model, diagonal_Q: bool = False, diagonal_R: bool = False):
         nx, nu, ny = model.nx, model.nu, model.ny
         pm, eye = ca.DM(model.p), ca.DM.eye(nx)
         x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
         y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
         u, up = ca.SX.sym("u", nu), ca.SX.sym("up", nu)
-        a, om = ca.SX.sym("a"), ca.SX.sym("omega")
+        a, om, wq = ca.SX.sym("a"), ca.SX.sym("omega"), ca.SX.sym("wq", nx * nx)
         xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
         W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
         # arrival and measurement terms of one slot; a diagonal R gives diagonal
@@ -211,19 +211,20 @@ class _StageFunctions:
         self.meas_newton = ca.Function("meas_newton", margs, [
             A0a + _gram(Jy), A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0], gy, c])
         self.meas_cost = ca.Function("meas_cost", margs, [c])
-        # process term between slots (a diagonal weight is a row scaling)
+        # process term between slots, weighted by W_Q (a parameter: tuning is data; a
+        # diagonal weight is a row scaling)
         A = om * model.F_x(x, u, pm) + (1 - om) * eye
         G = om * model.F(x, u, pm) + (1 - om) * x
-        if np.allclose(WQ, np.diag(np.diag(WQ))):
-            mv = om * ca.DM(np.diag(WQ)) + (1 - om)
+        if diagonal_Q:
+            mv = om * wq[[i * nx + i for i in range(nx)]] + (1 - om)
             rw = mv * (xb - G)
             Ja, Jb = -(mv @ ca.DM.ones(1, nx)) * A, ca.diag(mv)
         else:
-            M = om * ca.DM(WQ) + (1 - om) * eye
+            M = om * ca.reshape(wq, nx, nx) + (1 - om) * eye
             rw = M @ (xb - G)
             Ja, Jb = -M @ A, M
         Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(x, xb))[0]
-        targs = [x, xb, u, om]
+        targs = [x, xb, u, om, wq]
         gn_blocks = [_gram(Ja), _gram(Jb), Ja.T @ Jb]
         rest = [Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)]
         self.trans = ca.Function("trans", targs, gn_blocks + rest)
@@ -289,16 +290,17 @@ class _StageFunctions:
             carry.append(f_prev)
         x, xn, y, wy = sym("x", nx), sym("x_next", nx), sym("y", ny), sym("wy", ny * ny)
         up, a, u, om = sym("up", nu), sym("a"), sym("u", nu), sym("omega")
+        wq = sym("wq", nx * nx)
         link, xbar, w0, a0 = sym("link"), sym("xbar", nx), sym("w0", nx * nx), sym("A0", nx * nx)
         lam = sym("lam")
         margs = [x, y, wy, up, a, xbar, w0, a0]
         if newton:
             Dm, Dmh, gm, cm = self.meas_newton(*margs)
-            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self.trans_newton(x, xn, u, om)
+            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self.trans_newton(x, xn, u, om, wq)
             blocks = [(Dm, Daa, Dbb, Eab), (Dmh, Haa, Hbb, Hab)]
         else:
             Dm, gm, cm = self.meas(*margs)
-            Daa, Dbb, Eab, ga, gb, ct = self.trans(x, xn, u, om)
+            Daa, Dbb, Eab, ga, gb, ct = self.trans(x, xn, u, om, wq)
             blocks = [(Dm, Daa, Dbb, Eab)]
         g = gm + link * ga + gb_prev
         cost = cm + link * ct
@@ -324,7 +326,8 @@ class _StageFunctions:
         if bounds is not None:
             out_carry.append(free)
             extra = [free, ca.diag(D_gn)]
-        ins = carry + [x, xn, y, wy, up, a, u, om, link, xbar, w0, a0] + ([lam] if damped else [])
+        ins = carry + [x, xn, y, wy, up, a, u, om, wq, link, xbar, w0, a0] + \
+            ([lam] if damped else [])
         fun = ca.Function("slot", ins, out_carry + per_chain + [g, cost] + extra)
         self._fused[key] = fun
         return fun
@@ -518,11 +521,10 @@ class StructuredGaussNewton:
         One flat expanded graph, mapped calls of expanded chunks, or
         ``"auto"``: unrolled up to :data:`AUTO_UNROLL_SLOTS` slots (mapped with
         ``jit``).
-    diagonal_R : bool
-        The measurement weights are diagonal.
-    weights : (ny, ny) array, optional
-        The measurement weight factor of complete data. Solves told that every
-        slot holds every output use graphs with these weights as constants.
+    diagonal_Q, diagonal_R : bool
+        The process and measurement weights are diagonal (their graphs use the
+        diagonals only). The weights themselves are parameters: changing the
+        tuning never rebuilds a graph.
     full : bool
         Every slot holds data and the arrival term is on the first: the window
         bookkeeping parameters are constants in the graph.
@@ -534,11 +536,10 @@ class StructuredGaussNewton:
     and all read the same input buffers.
     """
 
-    def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
-                 upper: np.ndarray, slices: dict, n_params: int, max_iter: int = 50,
-                 xtol: float = 1e-8, newton: bool = False, jit: bool = False,
-                 mode: str = "auto", diagonal_R: bool = False, full: bool = False,
-                 weights: np.ndarray | None = None):
+    def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
+                 slices: dict, n_params: int, max_iter: int = 50, xtol: float = 1e-8,
+                 newton: bool = False, jit: bool = False, mode: str = "auto",
+                 diagonal_Q: bool = False, diagonal_R: bool = False, full: bool = False):
         if mode not in ("auto", "unrolled", "mapped"):
             raise ValueError(f"mode must be 'auto', 'unrolled' or 'mapped', got {mode!r}")
         self.model, self.N = model, N
@@ -551,13 +552,12 @@ class StructuredGaussNewton:
         self._bounded = bounded
         self._project = (lambda z: np.clip(z, lower, upper)) if bounded else (lambda z: z)
         self.max_iter, self.xtol = int(max_iter), float(xtol)
-        self._weights = None if weights is None else np.asarray(weights, float)
         self.newton, self.jit = bool(newton), bool(jit)
         self.full = bool(full)
         if mode == "auto":  # compiled code: small chunks compile fast and run as fast
             mode = "mapped" if self.jit or N > AUTO_UNROLL_SLOTS else "unrolled"
         self.mode = mode
-        self._stages = _StageFunctions(model, WQ, diagonal_R)
+        self._stages = _StageFunctions(model, diagonal_Q, diagonal_R)
         self._slots = _Slots(None if self.mode == "unrolled" else
                              JIT_CHUNK_SLOTS if self.jit else CHUNK_SLOTS)
         self._slices, self._n_params = slices, n_params
@@ -635,8 +635,8 @@ class StructuredGaussNewton:
         om = ca.horzcat(om, ca.DM.zeros(1, 1) if isinstance(om, ca.DM) else ca.MX.zeros(1, 1))
         link = ca.DM([[1.0] * (N - 1) + [0.0]])  # the last slot has no process term
         x_next = ca.horzcat(X[:, 1:], X[:, N - 1:])
-        args = init + [X, x_next, q["Y"], q["WY"], q["Up"], q["a"], q["U"], om, link, q["xbar"],
-                       q["W0"], q["A0"]] + ([lam] if damped else [])
+        args = init + [X, x_next, q["Y"], q["WY"], q["Up"], q["a"], q["U"], om, q["WQ"], link,
+                       q["xbar"], q["W0"], q["A0"]] + ([lam] if damped else [])
         outs = slots.scan(step, N, n_carry, *args, last_only=True)
         carries, rest = outs[:n_carry], outs[n_carry:]
         g, cost = rest[3 * chains], ca.sum2(rest[3 * chains + 1])
@@ -665,10 +665,9 @@ class StructuredGaussNewton:
         nx, nu, ny = m.nx, m.nu, m.ny
         part = {k: p[s] for k, s in self._slices.items()}
         W0 = ca.reshape(part["w0"], nx, nx)
-        # complete data: the same weights in every slot, constants in the graph
-        WY = ca.DM(np.tile(self._weights.reshape(-1, 1, order="F"), (1, N))) if complete \
-            else ca.reshape(part["wy"], ny * ny, N)
-        q = {"Y": ca.reshape(part["y"], ny, N), "WY": WY,
+        # complete data: one measurement weight for every slot (passed once, shared)
+        WY = part["wr"] if complete else ca.reshape(part["wy"], ny * ny, N)
+        q = {"Y": ca.reshape(part["y"], ny, N), "WY": WY, "WQ": part["wq"],
              "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
              "xbar": part["xbar"], "W0": part["w0"], "A0": ca.vec(W0.T @ W0)}
         if self.full:  # constants that fold away
@@ -682,7 +681,7 @@ class StructuredGaussNewton:
         return (X, q["Y"], q["WY"], q["Up"], q["a"], q["xbar"], q["W0"], q["A0"])
 
     def _trans_args(self, X, q, N):
-        return (X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1], q["omega"])
+        return (X[:, :N - 1], X[:, 1:], q["U"][:, :N - 1], q["omega"], q["WQ"])
 
     def _cost_graph(self, X, q, N):
         st = self._stages
@@ -727,7 +726,7 @@ class StructuredGaussNewton:
         t0 = time.perf_counter()
         proj, bounded, xtol = self._project, self._bounded, self.xtol
         x = proj(np.array(X0, dtype=float).ravel())
-        self._complete = bool(complete) and self._weights is not None
+        self._complete = bool(complete)
         self._pbuf[:] = p  # fixed for the whole solve: written once
         lam, newton, last_step, last_full = 0.0, self.newton, np.inf, np.inf
         # two output buffers: the current point's, and the one a trial point writes
@@ -847,7 +846,7 @@ class StructuredGaussNewton:
         """The cost ``||r(x)||^2`` at ``x`` (flat) for the parameters ``p``."""
         self._xbuf[:] = x
         self._pbuf[:] = p
-        fun = self._function("cost", bool(complete) and self._weights is not None)
+        fun = self._function("cost", bool(complete))
         return float(fun.evaluate()[0][0])
 
     def reset(self) -> None:
@@ -862,5 +861,5 @@ class StructuredGaussNewton:
         nx = self.model.nx
         self._xbuf[:] = x
         self._pbuf[:] = p
-        fun = self._function("cov", bool(complete) and self._weights is not None)
+        fun = self._function("cov", bool(complete))
         return fun.evaluate()[0].reshape(nx, nx, order="F").copy()

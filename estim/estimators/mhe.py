@@ -129,14 +129,24 @@ class MHE(Estimator):
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
-        self._WQ = weight_factor(self.Q)
-        self._WR = weight_factor(self.R)
-        self._nlp = LeastSquaresNLP(model, self.horizon, self._WQ, self.lower, self.upper,
-                                    solver, solver_options or {},
-                                    diagonal_R=is_diagonal(self.R), weights=self._WR)
+        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
+        self._nlp = LeastSquaresNLP(model, self.horizon, self.lower, self.upper, solver,
+                                    solver_options or {}, diagonal_Q=self._diagonal["Q"],
+                                    diagonal_R=self._diagonal["R"])
         self._cov_step = FastFunction(self._build_cov_step())
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
+        self._tuning_changed()
         self._reset()
+
+    def _check_tuning(self, new: dict) -> None:
+        if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:
+            raise ValueError("Q must be positive definite for MHE (the weights are Q^-1)")
+
+    def _tuning_changed(self) -> None:
+        self._WQ = weight_factor(self.Q)
+        self._WR = weight_factor(self.R)
+        if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
+            self._W0 = weight_factor(self.P0)
 
     # ------------------------------------------------------------------ build
     def _build_cov_step(self) -> ca.Function:
@@ -146,17 +156,18 @@ class MHE(Estimator):
         x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("u_prev", nu)
         mask = ca.SX.sym("mask", ny)
         P = ca.SX.sym("P", nx, nx)
+        Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)  # the tuning is data
         p = ca.DM(m.p)
         D = ca.diag(mask)
         C = D @ m.H_x(x, up, p)
-        Rm = D @ ca.DM(self.R) @ D + ca.diag(1 - mask)
+        Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ P @ C.T + Rm
         K = ca.solve(0.5 * (S + S.T), C @ P).T
         IKC = ca.DM.eye(nx) - K @ C
         Pu = IKC @ P @ IKC.T + K @ Rm @ K.T
         A = m.F_x(x, u, p)
-        Pn = A @ Pu @ A.T + ca.DM(self.Q)
-        return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P)],
+        Pn = A @ Pu @ A.T + Q
+        return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P), ca.vec(Q), ca.vec(R)],
                            [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
 
     # ------------------------------------------------------------------ state
@@ -183,7 +194,8 @@ class MHE(Estimator):
         x_est = self._history[0]  # MHE estimate of the time that leaves the window
         if self.arrival_cost in ("filtering", "smoothing"):
             mask = np.isfinite(y_old).astype(float)
-            Pn, _ = self._cov_step(x_est, u_old, up_old, mask, self._Pbar.ravel(order="F"))
+            Pn, _ = self._cov_step(x_est, u_old, up_old, mask, self._Pbar.ravel(order="F"),
+                                   self.Q, self.R)
             Pn = Pn.reshape(self.model.nx, self.model.nx, order="F")
             # a non-finite linearisation: the covariance grows as for a random walk
             self._Pbar = Pn.copy() if np.isfinite(Pn).all() else self._Pbar + self.Q
@@ -215,7 +227,7 @@ class MHE(Estimator):
         :meth:`LeastSquaresNLP.solve`); the arrival weight and its chi-square degrees."""
         weight = self._arrival_weight()
         sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
-                              weight, self._WR, self.R, robust=robust)
+                              weight, self._WQ, self._WR, self.R, robust=robust)
         return sol, self._nlp.degrees_of_freedom(self._Y, self._n, weight is not None)
 
     def _reanchor(self, y, u) -> None:

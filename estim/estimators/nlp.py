@@ -211,26 +211,24 @@ class LeastSquaresNLP:
     model : Model
     N : int
         Number of slots (window length).
-    WQ : (nx, nx) array
-        Process-noise weight factor, :math:`W_Q^\\top W_Q = Q^{-1}`.
     lower, upper : (nx,) arrays
         State bounds.
     solver : {"ipopt", "sqp", "fatrop"}
     options : dict
         Solver options merged over the defaults.
-    diagonal_R : bool
-        The measurement weights are diagonal (cheaper stage functions).
+    diagonal_Q, diagonal_R : bool
+        The process and measurement weights are diagonal (cheaper stage
+        functions). The weights :math:`W_Q` (:math:`W_Q^\\top W_Q = Q^{-1}`),
+        :math:`W_R`, the arrival weight and mean are parameters of every graph,
+        given to each :meth:`solve`: the tuning is data.
     full : bool
         Solved only with every slot holding data (``n == N``); the
         Gauss-Newton graph then treats the window bookkeeping as constants.
-    weights : (ny, ny) array, optional
-        The estimator's measurement weight factor ``W_R``: windows of complete
-        data are solved by Gauss-Newton graphs with these weights as constants.
     """
 
-    def __init__(self, model: Model, N: int, WQ: np.ndarray, lower: np.ndarray,
-                 upper: np.ndarray, solver: str, options: dict, diagonal_R: bool = False,
-                 full: bool = False, weights: np.ndarray | None = None):
+    def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
+                 solver: str, options: dict, diagonal_Q: bool = False,
+                 diagonal_R: bool = False, full: bool = False):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -240,7 +238,8 @@ class LeastSquaresNLP:
         self.bounded = bool(np.isfinite(self.lbx).any() or np.isfinite(self.ubx).any())
         # parameter layout
         sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * nu, "up": N * nu,
-                 "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx}
+                 "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx, "wq": nx * nx,
+                 "wr": ny * ny}
         self._slices, start = {}, 0
         for key, size in sizes.items():
             self._slices[key] = slice(start, start + size)
@@ -255,7 +254,8 @@ class LeastSquaresNLP:
         a = part["a"]
         xbar = part["xbar"]
         W0 = ca.reshape(part["w0"], nx, nx)
-        WQd = ca.DM(WQ)
+        WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
+            ca.reshape(part["wq"], nx, nx)
         pm = ca.DM(model.p)
         gn_keys = ("max_iter", "xtol", "newton", "jit", "mode")
         gn_opts = {k: options[k] for k in gn_keys if k in options} \
@@ -268,10 +268,9 @@ class LeastSquaresNLP:
             raise ValueError(f"solver_options {only_gn} apply to solver='gauss-newton' only "
                              f"(solver is {solver!r})")
         self.full = bool(full)
-        self.gn = StructuredGaussNewton(model, N, WQ, self.lbx, self.ubx, self._slices,
-                                        self.np, diagonal_R=diagonal_R, full=full,
-                                        weights=weights, **gn_opts)
-        self._weights = weights
+        self.gn = StructuredGaussNewton(model, N, self.lbx, self.ubx, self._slices, self.np,
+                                        diagonal_Q=diagonal_Q, diagonal_R=diagonal_R,
+                                        full=full, **gn_opts)
         self._wy_complete = None  # (W_R, its weights tiled over the slots)
         self._complete = False  # the last parameters: every slot holds every output
         if solver == "gauss-newton":
@@ -366,20 +365,24 @@ class LeastSquaresNLP:
         self.gn.reset()
 
     # ------------------------------------------------------------------ solve
-    def parameters(self, Y, U, Uprev, n, xbar, W0, WR, R) -> np.ndarray:
-        """Fill the parameter vector for a window with ``n`` measured slots."""
+    def parameters(self, Y, U, Uprev, n, xbar, W0, WQ, WR, R) -> np.ndarray:
+        """Fill the parameter vector for a window with ``n`` measured slots: data,
+        arrival mean ``xbar`` and weight ``W0`` (None: no arrival term), the process
+        and measurement weight factors ``WQ``, ``WR`` and ``R`` (for the weights of
+        partly measured samples)."""
         m, N = self.model, self.N
         nx, ny = m.nx, m.ny
         p, s = self._p, self._slices
+        p[s["wq"]] = WQ.ravel(order="F")
+        p[s["wr"]] = WR.ravel(order="F")
         mask = np.isfinite(Y)
         s0 = N - n
         self._complete = False
         if s0 == 0 and mask.all():  # complete data in a full window: the common case
-            self._complete = WR is self._weights or (
-                self._weights is not None and np.array_equal(WR, self._weights))
+            self._complete = True
             p[s["y"]] = Y.ravel()
-            if self._wy_complete is None or self._wy_complete[0] is not WR:
-                self._wy_complete = (WR, np.tile(WR.ravel(order="F"), N))
+            if self._wy_complete is None or not np.array_equal(self._wy_complete[0], WR):
+                self._wy_complete = (WR.copy(), np.tile(WR.ravel(order="F"), N))
             p[s["wy"]] = self._wy_complete[1]
             p[s["u"]] = U.ravel()
             p[s["up"]] = Uprev.ravel()
@@ -416,7 +419,8 @@ class LeastSquaresNLP:
         p[s["w0"]] = (np.zeros((nx, nx)) if W0 is None else W0).ravel(order="F")
         return p
 
-    def solve(self, X0, Y, U, Uprev, n, xbar, W0, WR, R, robust: bool = False) -> Solution:
+    def solve(self, X0, Y, U, Uprev, n, xbar, W0, WQ, WR, R, robust: bool = False
+              ) -> Solution:
         """Solve from the initial guess ``X0 (N, nx)``; never raises on solver failure.
 
         ``robust``: with the structured Gauss-Newton solver whatever the solver chosen
@@ -424,7 +428,7 @@ class LeastSquaresNLP:
         """
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
-        p = self.parameters(Y, U, Uprev, n, xbar, W0, WR, R)
+        p = self.parameters(Y, U, Uprev, n, xbar, W0, WQ, WR, R)
         if self.solver_name != "gauss-newton" and not robust:
             x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         if self.solver_name == "fatrop" and not robust:

@@ -56,6 +56,9 @@ class UKF(Estimator):
         self._F, self._H = FastFunction(model.F), FastFunction(model.H)
         self._reset()
 
+    def _tuning_changed(self) -> None:
+        self._ukf.Q, self._ukf.R = self.Q.copy(), self.R.copy()
+
     def _fx(self, x, dt, u):
         return self._F(x, u, self.model.p)[0].copy()
 

@@ -1,0 +1,84 @@
+"""Tuning is data: changing Q, R, P0 never rebuilds a compiled graph, and gives what a
+freshly built estimator gives."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import estim
+
+SC = estim.scenarios.van_der_pol(n_steps=60)
+NEW = {"Q": [0.02, 0.005], "R": [0.5, 2.0]}
+
+
+def _built(est):
+    """The compiled functions an estimator holds (to see that none is rebuilt)."""
+    if isinstance(est, estim.EKF):
+        return [est._update, est._predict_update]
+    if isinstance(est, estim.MHE):
+        return [est._nlp, est._cov_step] + list(est._nlp.gn._funs.values())
+    if isinstance(est, estim.FullInformation):
+        return list(est._nlps.values())
+    return [est._F, est._H]
+
+
+MAKERS = {
+    "ekf": lambda **t: estim.EKF(SC.model, **t),
+    "ukf": lambda **t: estim.UKF(SC.model, **t),
+    "mhe gauss-newton": lambda **t: estim.MHE(SC.model, horizon=8, solver="gauss-newton", **t),
+    "mhe ipopt": lambda **t: estim.MHE(SC.model, horizon=8, solver="ipopt", **t),
+    "mhe fixed": lambda **t: estim.MHE(SC.model, horizon=8, solver="gauss-newton",
+                                       arrival_cost="fixed", **t),
+    "fie": lambda **t: estim.FullInformation(SC.model, **t),
+}
+
+
+@pytest.mark.parametrize("name", list(MAKERS))
+def test_set_tuning_equals_a_fresh_estimator_and_rebuilds_nothing(name):
+    make = MAKERS[name]
+    est = make(**SC.tuning)
+    estim.simulate(SC, est, seed=0)
+    before = _built(est)
+    est.set_tuning(**NEW, P0=[2.0, 0.5])
+    after = estim.simulate(SC, est, seed=1)
+    assert all(a is b for a, b in zip(before, _built(est), strict=False))
+    fresh = estim.simulate(SC, make(**{**SC.tuning, **NEW, "P0": [2.0, 0.5]}), seed=1)
+    np.testing.assert_allclose(after.x_hat, fresh.x_hat, rtol=0, atol=1e-12)
+
+
+def test_fit_takes_the_tuning_per_call():
+    log = estim.simulate(SC, estim.EKF(SC.model, **SC.tuning), seed=0)
+    fie = estim.FullInformation(SC.model, **SC.tuning)
+    fie.fit(log.y)
+    problems = dict(fie._nlps)
+    per_call = fie.fit(log.y, Q=NEW["Q"], R=NEW["R"])
+    fresh = estim.FullInformation(SC.model, **{**SC.tuning, **NEW}).fit(log.y)
+    np.testing.assert_allclose(per_call.x, fresh.x, rtol=0, atol=1e-10)
+    assert per_call.cost == pytest.approx(fresh.cost, rel=1e-12)
+    assert all(fie._nlps[k] is v for k, v in problems.items())
+    # the estimator's own tuning is unchanged
+    np.testing.assert_array_equal(fie.Q, SC.tuning["Q"] * np.eye(2))
+    np.testing.assert_allclose(fie.fit(log.y).x, fie.fit(log.y).x)
+
+
+def test_set_tuning_adds_a_prior_to_full_information():
+    log = estim.simulate(SC, estim.EKF(SC.model, **SC.tuning), seed=0)
+    fie = estim.FullInformation(SC.model, Q=0.01, R=1.0)
+    with pytest.raises(ValueError, match="P0 was given without x0"):
+        fie.set_tuning(P0=1.0)
+    fie.set_tuning(x0=[0.0, 0.0], P0=1.0)
+    ref = estim.FullInformation(SC.model, Q=0.01, R=1.0, x0=[0.0, 0.0], P0=1.0).fit(log.y)
+    np.testing.assert_allclose(fie.fit(log.y).x, ref.x, rtol=0, atol=1e-10)
+
+
+def test_a_diagonal_estimator_takes_a_diagonal_tuning_only():
+    est = estim.MHE(SC.model, horizon=5, solver="gauss-newton", **SC.tuning)
+    with pytest.raises(ValueError, match="Q must be diagonal: MHE was built with a diagonal Q"):
+        est.set_tuning(Q=[[0.01, 0.001], [0.001, 0.01]])
+    full = estim.EKF(SC.model, **{**SC.tuning, "R": [[1.0, 0.1], [0.1, 1.0]]})
+    full.set_tuning(R=[[1.0, 0.3], [0.3, 1.0]])  # built full: any structure
+    with pytest.raises(ValueError, match="Q must be positive definite for MHE"):
+        est.set_tuning(Q=[0.01, 0.0])
+    with pytest.raises(TypeError, match="R must be numeric"):
+        est.set_tuning(R="large")
