@@ -51,6 +51,7 @@ G. H. Golub, C. F. Van Loan, *Matrix Computations*, 4th ed., sec. 4.1 (LDLᵀ).
 
 from __future__ import annotations
 
+import copy
 import time
 
 import casadi as ca
@@ -67,10 +68,12 @@ _ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "ne
 #: ``mode="auto"`` expands graphs up to this many slots (about 60 MB per 1000 slots
 #: for a three-state model), and maps beyond.
 AUTO_UNROLL_SLOTS = 4096
-#: ``mode="mapped"`` expands chunks of this many slots (with ``jit``: fewer, compiled in
-#: about two seconds instead of ten, and as fast).
+#: ``mode="mapped"`` evaluates chunks of at least this many slots in a loop (with
+#: ``jit``: fewer, compiled in about two seconds instead of ten, and as fast), and at
+#: most :data:`MAX_CHUNKS` of them (longer chunks for longer records).
 CHUNK_SLOTS = 64
 JIT_CHUNK_SLOTS = 16
+MAX_CHUNKS = 128
 
 
 def full_record_constants(N: int) -> tuple[ca.DM, ca.DM]:
@@ -231,6 +234,14 @@ class _StageFunctions:
         self.trans_newton = ca.Function("trans_newton", targs, gn_blocks + [
             Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + rest)
         self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
+        # a step taken through the dynamics: from the moved state xp of slot k, the next
+        # slot is G(xp) plus the defect the linearised step predicts,
+        # x_{k+1} + alpha d_{k+1} - G(x_k) - alpha A d_k (see StructuredGaussNewton.solve)
+        xp, d, dn, alpha = (ca.SX.sym("xp", nx), ca.SX.sym("d", nx), ca.SX.sym("dn", nx),
+                            ca.SX.sym("alpha"))
+        Gp = om * model.F(xp, u, pm) + (1 - om) * xp
+        self.roll = ca.Function("roll", [xp, x, d, xb, dn, u, om, alpha],
+                                [Gp + (xb + alpha * dn - G - alpha * ca.jtimes(G, x, d))])
         Dj = ca.SX.sym("D", nx, nx)
         # one elimination step: with S_{j-1} = L D L^T factored once,
         # V = L^{-1} [E_{j-1}, z~_{j-1}] and Vs = D^{-1} V give
@@ -563,7 +574,9 @@ class StructuredGaussNewton:
         self._slices, self._n_params = slices, n_params
         # input buffers shared by every compiled function
         self._xbuf, self._pbuf, self._lbuf = np.zeros(N * model.nx), np.zeros(n_params), np.zeros(1)
+        self._dbuf, self._abuf = np.zeros(N * model.nx), np.zeros(1)  # for the rollout
         self._funs: dict[tuple[str, bool], object] = {}  # FastFunction or a pair
+        self._chunked: _Chunked | None = None  # the mapped mode's chunk functions
         self._ridge = False  # set for good once a block was singular without it
         self._complete = False  # graphs of the current solve
 
@@ -580,6 +593,8 @@ class StructuredGaussNewton:
         return fun
 
     def _build(self, key: str, complete: bool):
+        if self.mode == "mapped":
+            return self._build_chunked(key, complete)
         st, nx, N = self._stages, self.model.nx, self.N
         p = ca.MX.sym("p", self._n_params)
         X = ca.MX.sym("X", nx, N)
@@ -592,6 +607,14 @@ class StructuredGaussNewton:
         elif key == "cov":
             S_last = self._forward(X, q, N, lam, False, False, None)[0][0][0]
             ins, outs = [xv, p], [st.inverse(S_last)]
+        elif key == "roll":
+            D, alpha = ca.MX.sym("D", nx, N), ca.MX.sym("alpha")
+            cols = [X[:, 0] + alpha * D[:, 0]]
+            if N > 1:
+                cols.append(self._slots.scan(
+                    st.roll, N - 1, 1, cols[0], X[:, :N - 1], D[:, :N - 1], X[:, 1:],
+                    D[:, 1:], q["U"][:, :N - 1], q["omega"], alpha)[0])
+            ins, outs = [xv, p, ca.vec(D), alpha], [ca.vec(ca.horzcat(*cols))]
         else:
             ins = [xv, p] + ([lam] if damped else [])
             bounds = (self.lower[:nx], self.upper[:nx]) if self._bounded else None
@@ -608,9 +631,29 @@ class StructuredGaussNewton:
         else:
             fun = ca.Function(name, ins, outs, opts)
         bufs = [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else [])
+        if key == "roll":
+            return FastFunction(fun, [self._xbuf, self._pbuf, self._dbuf, self._abuf])
         if key in ("cost", "cov"):
             return FastFunction(fun, bufs)
         return FastFunction(fun, bufs), FastFunction(fun, bufs)  # two output buffers
+
+    def _build_chunked(self, key: str, complete: bool):
+        """The mapped mode's function ``key``: loops over chunks (see :class:`_Chunked`)."""
+        if self._chunked is None:
+            chunk = JIT_CHUNK_SLOTS if self.jit else \
+                max(CHUNK_SLOTS, -(-self.N // MAX_CHUNKS))
+            self._chunked = _Chunked(self, chunk, self.jit)
+        ch, nx = self._chunked, self.model.nx
+        if key == "cost":
+            return _ChunkedCost(ch, complete)
+        if key == "cov":
+            return _ChunkedCovariance(ch, complete)
+        if key == "roll":
+            return _ChunkedRoll(ch)
+        bounds = (self.lower[:nx], self.upper[:nx]) if self._bounded else None
+        it = _ChunkedIteration(ch, key.startswith("newton"), key.endswith("_lam"), bounds,
+                               complete)
+        return it, it.twin()
 
     def _forward(self, X, q, N, lam, newton, damped, bounds, solve=False):
         """The fused forward scan over the slots (see :meth:`_StageFunctions.fused`).
@@ -728,7 +771,8 @@ class StructuredGaussNewton:
         x = proj(np.array(X0, dtype=float).ravel())
         self._complete = bool(complete)
         self._pbuf[:] = p  # fixed for the whole solve: written once
-        lam, newton, last_step, last_full = 0.0, self.newton, np.inf, np.inf
+        lam, newton, last_step, last_full, last_alpha = 0.0, self.newton, np.inf, np.inf, 0.0
+        self._prefer_roll = False
         # two output buffers: the current point's, and the one a trial point writes
         slot, pair = 0, self._iteration(newton, lam)
         f, g, dirs = self._evaluate(pair[slot], x, lam)
@@ -784,10 +828,14 @@ class StructuredGaussNewton:
                 f, g, dirs = self._evaluate(pair[slot], x, lam)
                 last_full = np.inf
                 continue
-            xn, alpha, evaluated = new
-            step = alpha * size if d is d_gn and not bounded else np.abs(xn - x).max()
-            switch = not newton and step > SWITCH_RATIO * last_step
-            x, steps, last_step, xmax = xn, steps + 1, step, xmax + step
+            xn, alpha, evaluated, fn = new
+            step = np.abs(xn - x).max()
+            # Gauss-Newton's linear rate near a large-residual optimum: full steps that
+            # shrink slowly and gain little (not the steps far from it, which halve the
+            # cost or are damped)
+            switch = not newton and alpha == 1.0 == last_alpha and \
+                step > SWITCH_RATIO * last_step and fn > 0.5 * f
+            x, steps, last_step, xmax, last_alpha = xn, steps + 1, step, xmax + step, alpha
             last_full = step if alpha == 1.0 and not lam else np.inf  # for the rate rho
             if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0
@@ -801,34 +849,64 @@ class StructuredGaussNewton:
         return x, ok, status, steps, f, time.perf_counter() - t0
 
     def _line_search(self, x, f, g, d, fun, lam, slope=None):
-        """Armijo backtracking along the projection arc.
+        """Armijo backtracking along one of two paths: the step ``x + alpha d``
+        (projected on the bounds), or the same step taken through the dynamics
+        (:meth:`_rolled`).
 
-        The full step is tried with a whole iteration evaluation by ``fun``
-        (reused by the next iteration when accepted), shorter ones with the
-        cost only. ``slope``: ``g @ d`` if known.
-        Returns ``(x_new, alpha, evaluation or None)``, or None on failure.
+        The path that gave the last accepted step is tried first, its full step
+        evaluated by the iteration function ``fun`` (reused by the next iteration
+        when accepted); then the other path's full step, by the cost alone; then
+        shorter steps along the path whose full step was cheaper, by the cost alone.
+        ``slope``: ``g @ d`` if known. Returns ``(x_new, alpha, evaluation or None,
+        cost at x_new)``, or None on failure.
         """
         proj, bounded = self._project, self._bounded
         if slope is None:
             slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
         if not slope < 0.0:
             return None  # not a descent direction (or not finite)
-        xn = proj(x + d) if bounded else x + d
-        ev = self._evaluate(fun, xn, lam)
-        # Armijo test; the gradient of f is 2 g
-        gd = float(g @ (xn - x)) if bounded else slope
-        if ev[0] <= f + 2e-4 * gd:  # False for NaN
-            return xn, 1.0, ev
+        paths = ("line",) if self.N == 1 else ("roll", "line") if self._prefer_roll \
+            else ("line", "roll")
         cost = self._function("cost")
+        full = {}
+        for path in paths:
+            xn = self._point(path, x, d, 1.0)
+            if path == paths[0]:
+                ev = self._evaluate(fun, xn, lam)
+                fn = ev[0]
+            else:
+                ev, self._xbuf[:] = None, xn
+                fn = float(cost.evaluate()[0][0])
+            # Armijo test (False for NaN); the gradient of f is 2 g
+            if fn <= f + 2e-4 * float(g @ (xn - x)):
+                self._prefer_roll = path == "roll"
+                return xn, 1.0, ev, fn
+            full[path] = fn if fn == fn else np.inf
+        path = min(full, key=full.get)
         alpha = 0.5
         while alpha > 1e-8:
-            xn = proj(x + alpha * d)
+            xn = self._point(path, x, d, alpha)
             self._xbuf[:] = xn
             fn = float(cost.evaluate()[0][0])
-            if fn <= f + 2e-4 * (float(g @ (xn - x)) if bounded else alpha * slope):
-                return xn, alpha, None
+            if fn <= f + 2e-4 * float(g @ (xn - x)):
+                self._prefer_roll = path == "roll"
+                return xn, alpha, None, fn
             alpha *= 0.5
         return None
+
+    def _point(self, path: str, x, d, alpha: float) -> np.ndarray:
+        """The point ``alpha`` along ``path`` (see :meth:`_line_search`)."""
+        if path == "roll":
+            return self._rolled(x, d, alpha)
+        return self._project(x + alpha * d) if self._bounded else x + alpha * d
+
+    def _rolled(self, x, d, alpha: float) -> np.ndarray:
+        """The step ``alpha d`` from ``x`` taken through the dynamics (projected)."""
+        self._xbuf[:] = x
+        self._dbuf[:] = d
+        self._abuf[0] = alpha
+        out = self._function("roll").evaluate()[0]
+        return self._project(out.copy()) if self._bounded else out.copy()
 
     def _iteration(self, newton, lam):
         """The pair of iteration functions (two output buffers) for the current state."""
@@ -863,3 +941,297 @@ class StructuredGaussNewton:
         self._pbuf[:] = p
         fun = self._function("cov", bool(complete))
         return fun.evaluate()[0].reshape(nx, nx, order="F").copy()
+
+
+class _Chunked:
+    """The iteration, cost, covariance and rollout functions of a long record, evaluated
+    as a loop over chunks of slots.
+
+    Each chunk length has one compiled SX function per task (a forward elimination
+    chunk, a backward one, a cost one, a rollout one), applied to consecutive slices of
+    the buffers: the slices are bound in place (no copies), so memory holds only the
+    per-slot data, and building costs the same at any record length. A call is a
+    Python loop over the chunks (``N / chunk`` function calls per scan). The results
+    equal the unrolled graph's up to rounding.
+    """
+
+    def __init__(self, gn: StructuredGaussNewton, chunk: int, jit: bool):
+        self.gn, self.st = gn, gn._stages
+        m, N = gn.model, gn.N
+        self.nx, self.nu, self.ny, self.N = m.nx, m.nu, m.ny, N
+        self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
+        # transitions 0..N-2 in chunks, for the backward pass and the rollout
+        self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
+        self.opts = jit_options() if jit else {}
+        self._funs: dict[tuple, ca.Function] = {}
+        self._bufs: dict[tuple, tuple] = {}
+        nx, ny, nu = self.nx, self.ny, self.nu
+        self.xnext = np.zeros(N * nx)
+        self.om = np.zeros(N)
+        self.link = np.ones(N)
+        self.link[-1] = 0.0
+        self.a = np.zeros(N)
+        self.a0 = np.zeros(nx * nx)
+        self.full_a, self.full_om = gn.full, gn.full
+        sl = gn._slices
+        p = gn._pbuf
+        self.views = {"y": p[sl["y"]], "wy": p[sl["wy"]], "u": p[sl["u"]], "up": p[sl["up"]],
+                      "xbar": p[sl["xbar"]], "w0": p[sl["w0"]], "wq": p[sl["wq"]],
+                      "wr": p[sl["wr"]]}
+        self.sizes = {"x": nx, "xn": nx, "y": ny, "wy": ny * ny, "up": nu, "a": 1, "u": nu,
+                      "om": 1, "link": 1}
+
+    # ---------------------------------------------------------------- building
+    def _compiled(self, key, build):
+        """``build()``'s function with dense outputs (the buffers are read as dense
+        arrays), compiled with ``jit``."""
+        if key not in self._funs:
+            fun = build()
+            ins = fun.sx_in()
+            self._funs[key] = ca.Function(fun.name(), ins,
+                                          [ca.densify(o) for o in fun.call(ins)], self.opts)
+        return self._funs[key]
+
+    def _buffer(self, fun):
+        key = id(fun)
+        if key not in self._bufs:
+            self._bufs[key] = fun.buffer()
+        return self._bufs[key]
+
+    def _forward_chunk(self, step, L, n_carry, complete, damped):
+        """``L`` slots of the fused forward step (:meth:`_StageFunctions.fused`)."""
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            carry = [sym(f"c{i}", step.sparsity_in(i)) for i in range(n_carry)]
+            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
+            if complete:
+                seq["wy"] = sym("wy", self.ny * self.ny)
+            shared = [sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
+                      sym("a0", nx * nx)] + ([sym("lam")] if damped else [])
+            c, slots = carry, []
+            for j in range(L):
+                wy = seq["wy"] if complete else seq["wy"][:, j]
+                res = step(*c, seq["x"][:, j], seq["xn"][:, j], seq["y"][:, j], wy,
+                           seq["up"][:, j], seq["a"][j], seq["u"][:, j], seq["om"][j],
+                           shared[0], seq["link"][j], *shared[1:])
+                c, slots = res[:n_carry], slots + [res[n_carry:]]
+            outs = list(c) + [ca.horzcat(*col) for col in zip(*slots, strict=True)]
+            return ca.Function(f"fwd_chunk_{L}", carry + list(seq.values()) + shared, outs)
+        return self._compiled(("fwd", id(step), L, complete), build)
+
+    def _backward_chunk(self, L):
+        """``L`` steps of the backward substitution, the last slot first."""
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            dn, Vs, vs, Lm = (sym("d_next", nx), sym("Vs", nx, nx * L), sym("vs", nx, L),
+                              sym("L", nx, nx * L))
+            d, out = dn, [None] * L
+            for j in range(L - 1, -1, -1):
+                d = self.st.bwd(d, Vs[:, j * nx:(j + 1) * nx], vs[:, j], Lm[:, j * nx:(j + 1) * nx])
+                out[j] = d
+            return ca.Function(f"bwd_chunk_{L}", [dn, Vs, vs, Lm], [ca.horzcat(*out)])
+        return self._compiled(("bwd", L), build)
+
+    def _cost_chunk(self, L, complete):
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
+            if complete:
+                seq["wy"] = sym("wy", self.ny * self.ny)
+            wq, xbar, w0, a0 = (sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
+                                sym("a0", nx * nx))
+            total = ca.SX(0)
+            for j in range(L):
+                wy = seq["wy"] if complete else seq["wy"][:, j]
+                total += self.st.meas_cost(seq["x"][:, j], seq["y"][:, j], wy, seq["up"][:, j],
+                                           seq["a"][j], xbar, w0, a0)
+                total += seq["link"][j] * self.st.trans_cost(
+                    seq["x"][:, j], seq["xn"][:, j], seq["u"][:, j], seq["om"][j], wq)
+            return ca.Function(f"cost_chunk_{L}", list(seq.values()) + [wq, xbar, w0, a0],
+                               [total])
+        return self._compiled(("cost", L, complete), build)
+
+    def _roll_chunk(self, L):
+        def build():
+            nx, nu, sym = self.nx, self.nu, ca.SX.sym
+            xp0 = sym("xp0", nx)
+            xp = xp0
+            x, d, xn, dn = (sym(k, nx, L) for k in ("x", "d", "xn", "dn"))
+            u, om, alpha = sym("u", nu, L), sym("om", 1, L), sym("alpha")
+            cols = []
+            for j in range(L):
+                xp = self.st.roll(xp, x[:, j], d[:, j], xn[:, j], dn[:, j], u[:, j], om[j],
+                                  alpha)
+                cols.append(xp)
+            return ca.Function(f"roll_chunk_{L}", [xp0, x, d, xn, dn, u, om, alpha],
+                               [ca.horzcat(*cols)])
+        return self._compiled(("roll", L), build)
+
+    # ---------------------------------------------------------------- calling
+    @staticmethod
+    def _call(buf, args, res) -> None:
+        b, ev = buf
+        for i, a in enumerate(args):
+            b.set_arg(i, memoryview(a))
+        for i, r in enumerate(res):
+            b.set_res(i, memoryview(r))
+        ev()
+
+    def prepare(self):
+        """The per-call data derived from the buffers (shifted states, window
+        bookkeeping, the arrival weight's Gram matrix)."""
+        gn, nx = self.gn, self.nx
+        x = gn._xbuf
+        self.xnext[:-nx] = x[nx:]
+        self.xnext[-nx:] = x[-nx:]
+        p, sl = gn._pbuf, gn._slices
+        if gn.full:
+            self.om[:-1] = 1.0
+            self.a[:] = 0.0
+            self.a[0] = 1.0
+        else:
+            self.om[:-1] = p[sl["omega"]]
+            self.a[:] = p[sl["a"]]
+        W0 = self.views["w0"].reshape(nx, nx, order="F")
+        self.a0[:] = (W0.T @ W0).ravel(order="F")
+
+    def _slot_args(self, lo, hi, complete):
+        nx, ny, nu = self.nx, self.ny, self.nu
+        v = self.views
+        wy = v["wr"] if complete else v["wy"][lo * ny * ny:hi * ny * ny]
+        return [self.gn._xbuf[lo * nx:hi * nx], self.xnext[lo * nx:hi * nx],
+                v["y"][lo * ny:hi * ny], wy, v["up"][lo * nu:hi * nu], self.a[lo:hi],
+                v["u"][lo * nu:hi * nu], self.om[lo:hi], self.link[lo:hi]]
+
+
+class _ChunkedIteration:
+    """An iteration function of the mapped mode: ``evaluate()`` returns ``[cost, g,
+    directions...]`` like the compiled graph of :meth:`StructuredGaussNewton._build`."""
+
+    def __init__(self, ch: _Chunked, newton, damped, bounds, complete, solve=True):
+        self.ch, self.complete, self.solve = ch, complete, solve
+        st, nx, N = ch.st, ch.nx, ch.N
+        self.step = st.fused(newton, damped, bounds)
+        self.chains, self.bounded, self.damped = 2 if newton else 1, bounds is not None, damped
+        self.n_carry = 4 * self.chains + 1 + (1 if self.bounded else 0)
+        M = len(ch.chunks)
+        # carries at the chunk boundaries: the initial ones, then each chunk's last
+        init = []
+        for _ in range(self.chains):
+            init += [np.eye(nx).ravel(), np.zeros(nx), np.zeros(nx * nx), np.zeros(nx * nx)]
+        init.append(np.zeros(nx))
+        if self.bounded:
+            init.append(np.ones(nx))
+        self.carries = [init] + [[np.zeros_like(a) for a in init] for _ in range(M)]
+        # per-slot outputs: per chain Vs, vs, L; then g, cost; with bounds free, diag
+        shapes = [nx * nx, nx, nx * nx] * self.chains + [nx, 1] + ([nx, nx] if self.bounded
+                                                                  else [])
+        self.slot_out = [np.zeros(n * N) for n in shapes]
+        self.d = [np.zeros(N * nx) for _ in range(self.chains)]
+        self.out = [np.zeros(1), np.zeros(N * nx)] + [np.zeros(N * nx)
+                                                      for _ in range(self.chains)]
+        self.lam = np.zeros(1)
+
+    def twin(self) -> _ChunkedIteration:
+        """The same function with its own output buffers (the scratch is shared)."""
+        other = copy.copy(self)
+        other.out = [np.zeros_like(a) for a in self.out]
+        other.d = [np.zeros_like(a) for a in self.d]
+        return other
+
+    def shared(self):
+        v = self.ch.views
+        return [v["wq"], v["xbar"], v["w0"], self.ch.a0] + ([self.lam] if self.damped else [])
+
+    def forward(self):
+        ch, shapes = self.ch, [len(a) // self.ch.N for a in self.slot_out]
+        ch.prepare()
+        shared = self.shared()
+        for c, (lo, hi) in enumerate(ch.chunks):
+            fun = ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
+                                    self.damped)
+            res = self.carries[c + 1] + [a[lo * n:hi * n] for a, n in
+                                         zip(self.slot_out, shapes, strict=True)]
+            ch._call(ch._buffer(fun), self.carries[c] + ch._slot_args(lo, hi, self.complete)
+                     + shared, res)
+        return self.carries[-1]
+
+    def evaluate(self):
+        ch, nx = self.ch, self.ch.nx
+        self.lam[0] = ch.gn._lbuf[0]
+        last = self.forward()
+        g, cost = self.slot_out[3 * self.chains], self.slot_out[3 * self.chains + 1]
+        self.out[0][0] = cost.sum()
+        self.out[1][:] = g
+        for c in range(self.chains):
+            Vs, vs, L = self.slot_out[3 * c:3 * c + 3]
+            S, z = last[4 * c], last[4 * c + 1]
+            d = self.d[c]
+            d[-nx:] = np.asarray(ch.st.last(S.reshape(nx, nx, order="F"), z)).ravel()
+            for lo, hi in reversed(ch.tchunks):  # d_j from d_{j+1} and slot j+1's factors
+                fun = ch._backward_chunk(hi - lo)
+                ch._call(ch._buffer(fun), [d[hi * nx:(hi + 1) * nx],
+                                           Vs[(lo + 1) * nx * nx:(hi + 1) * nx * nx],
+                                           vs[(lo + 1) * nx:(hi + 1) * nx],
+                                           L[(lo + 1) * nx * nx:(hi + 1) * nx * nx]],
+                         [d[lo * nx:hi * nx]])
+            if self.bounded:  # fixed variables: a step scaled by the Gauss-Newton diagonal
+                free, diag = self.slot_out[-2], self.slot_out[-1]
+                d = np.where(free > 0, d, -g / (diag + 1e-300))
+            self.out[2 + self.chains - 1 - c][:] = d  # Newton's first, Gauss-Newton's last
+        return self.out
+
+
+class _ChunkedCost:
+    def __init__(self, ch: _Chunked, complete):
+        self.ch, self.complete = ch, complete
+        self.parts = np.zeros(len(ch.chunks))
+        self.out = [np.zeros(1)]
+
+    def evaluate(self):
+        ch = self.ch
+        ch.prepare()
+        v = ch.views
+        shared = [v["wq"], v["xbar"], v["w0"], ch.a0]
+        for c, (lo, hi) in enumerate(ch.chunks):
+            fun = ch._cost_chunk(hi - lo, self.complete)
+            ch._call(ch._buffer(fun), ch._slot_args(lo, hi, self.complete) + shared,
+                     [self.parts[c:c + 1]])
+        self.out[0][0] = self.parts.sum()
+        return self.out
+
+
+class _ChunkedCovariance:
+    def __init__(self, ch: _Chunked, complete):
+        self.it = _ChunkedIteration(ch, False, False, None, complete, solve=False)
+        self.out = [np.zeros(ch.nx * ch.nx)]
+
+    def evaluate(self):
+        nx = self.it.ch.nx
+        S = self.it.forward()[0]
+        self.out[0][:] = np.asarray(self.it.ch.st.inverse(S.reshape(nx, nx, order="F"))
+                                    ).ravel(order="F")
+        return self.out
+
+
+class _ChunkedRoll:
+    def __init__(self, ch: _Chunked):
+        self.ch = ch
+        self.out = [np.zeros(ch.N * ch.nx)]
+
+    def evaluate(self):
+        ch, nx, nu = self.ch, self.ch.nx, self.ch.nu
+        gn = ch.gn
+        ch.prepare()
+        x, d, alpha = gn._xbuf, gn._dbuf, gn._abuf
+        out = self.out[0]
+        out[:nx] = x[:nx] + alpha[0] * d[:nx]
+        u = ch.views["u"]
+        for lo, hi in ch.tchunks:
+            fun = ch._roll_chunk(hi - lo)
+            ch._call(ch._buffer(fun), [out[lo * nx:(lo + 1) * nx], x[lo * nx:hi * nx],
+                                       d[lo * nx:hi * nx], x[(lo + 1) * nx:(hi + 1) * nx],
+                                       d[(lo + 1) * nx:(hi + 1) * nx], u[lo * nu:hi * nu],
+                                       ch.om[lo:hi], alpha],
+                     [out[(lo + 1) * nx:(hi + 1) * nx]])
+        return self.out
