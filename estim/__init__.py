@@ -7,7 +7,7 @@
 True
 """
 
-from estim import models, observability, scenarios
+from estim import models, observability, scenarios, smooth
 from estim.compare import Comparison, compare
 from estim.estimators import (
     EKF,
@@ -30,6 +30,6 @@ __all__ = [
     "FullInformation", "Log", "Model", "RMSE", "Record", "Scenario", "ShootingObserver",
     "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability", "replay",
-    "rmse", "scenarios", "simulate",
+    "rmse", "scenarios", "simulate", "smooth",
 ]
 __version__ = "0.1.0"
