@@ -61,6 +61,21 @@ def derivative_filter(samples: np.ndarray, dt: float) -> np.ndarray:
     return coef[1]
 
 
+class _Cost:
+    """The shooting cost and gradient at ``start + T z``, evaluated once at the start."""
+
+    def __init__(self, start, J, args):
+        self.start, self.J, self.args = start, J, args
+        J0, g0 = J(start, *args)  # views of J's output buffers: copy what is kept
+        self.J0, self.g0 = float(J0[0]), g0.copy()
+
+    def __call__(self, z, T):
+        if not z.any():
+            return self.J0, T.T @ self.g0
+        J, g = self.J(self.start + T @ z, *self.args)
+        return float(J[0]), T.T @ g
+
+
 class ShootingObserver(Estimator):
     r"""Optimisation-based observer on a downsampled measurement buffer.
 
@@ -79,7 +94,8 @@ class ShootingObserver(Estimator):
     derivative_samples : int
         Samples of the quadratic differentiator (:func:`derivative_filter`).
     method : {"bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient"}
-        ``"bfgs"``: scipy's BFGS (fminunc's analogue) with the AD gradient;
+        ``"bfgs"`` (default): scipy's BFGS (fminunc's analogue) with the AD gradient,
+        in Gauss-Newton-whitened coordinates (see ``resolution``);
         ``"lbfgsb"``/``"ipopt"``: with the bounds (fmincon's analogue);
         ``"nelder-mead"``: the simplex method (fminsearch's analogue);
         ``"gradient"``: gradient descent :math:`\xi_0 \leftarrow \xi_0 -
@@ -106,21 +122,36 @@ class ShootingObserver(Estimator):
         :math:`R^{-1}`, a :math:`\chi^2` statistic in the noise, so a decrease
         far below 1 is not information; the methods stop when the decrease
         they can still predict is below ``tol`` (in the Gauss-Newton-scaled
-        variables the gradient tolerance is :math:`\sqrt{2\,tol}`). This keeps
-        windows without information (the satellite without excitation, the
-        runaway model between bursts) from moving the estimate along
-        directions they do not determine.
-    resolution : float
-        ``"bfgs"`` and ``"nelder-mead"`` optimise only along the directions
-        the window determines to a relative standard error below
-        ``resolution`` (a truncated Gauss-Newton subspace, see
-        :meth:`_subspace`); the others keep the propagated previous estimate,
-        so windows with little information (between bursts, without
-        excitation) do not push the estimate around. The bounded methods use
-        the full space.
+        variables the gradient tolerance is :math:`\sqrt{2\,tol}`).
+    resolution : float or None
+        ``"bfgs"`` and ``"nelder-mead"`` optimise along the eigen-directions of
+        the window's Gauss-Newton Hessian (whitened, so the Hessian there is the
+        identity). ``None`` (default) keeps every direction the Hessian resolves
+        numerically: the method reaches the window's least-squares optimum. A number
+        keeps only the directions the window determines to a relative standard error
+        below it (a truncated Gauss-Newton subspace, see :meth:`_subspace`, relative to
+        the magnitudes of :meth:`_scales`, which do not need a non-zero start); the others
+        keep the propagated previous estimate, so windows with little information
+        (between bursts, without excitation) do not push the estimate around (the
+        report's examples use 0.003 and 0.05). The bounded methods use the full space.
     history_length : int or None
         Optimisations kept in :attr:`history` (the oldest are dropped, so memory
         stays flat over long runs); None keeps all.
+
+    Notes
+    -----
+    Statuses of an optimising step (:mod:`estim.estimators.base`): ``"ok"`` only when
+    the method converged (its own test: the gradient test of BFGS and L-BFGS-B,
+    Ipopt's ``Solve_Succeeded``, the simplex's tolerances, a vanishing gradient or
+    decrease for ``"gradient"``) with no direction left out; ``"inexact: <reason>"``
+    when the estimate is usable (finite, no worse than the start) but not converged:
+    ``max_iter`` reached, a line search that stalled or lost precision before the
+    gradient test, or directions left out because the window does not determine them to the
+    resolution (``"k of n directions left out"``; ``"no direction determined to the
+    resolution ... (0 of n)"`` when the estimate is kept as it is); ``"failed: ..."``
+    when nothing usable came out (a non-finite point or cost, or a cost above the
+    start's; the propagated estimate is kept). ``"suspect: ..."``
+    is appended when the output cost lies beyond :data:`~estim.estimators.base.SUSPECT_TAIL`.
 
     Attributes
     ----------
@@ -145,7 +176,7 @@ class ShootingObserver(Estimator):
     def __init__(self, model: Model, *, window: int, every: int, R, x0, Q=None, P0=None,
                  derivative_weight: float | None = None, derivative_samples: int = 5,
                  method: str = "bfgs", direction: str = "forward", lower=None, upper=None,
-                 max_iter: int = 100, tol: float = 1e-3, resolution: float = 0.01,
+                 max_iter: int = 100, tol: float = 1e-3, resolution: float | None = None,
                  history_length: int | None = 1000):
         super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
         for name, val, least in (("window", window, 1), ("every", every, 1),
@@ -157,7 +188,7 @@ class ShootingObserver(Estimator):
         derivative_weight = as_float(derivative_weight, "derivative_weight", minimum=0.0,
                                      allow_none=True, expected=">= 0 or None")
         tol = as_float(tol, "tol", positive=True)
-        resolution = as_float(resolution, "resolution", positive=True)
+        resolution = as_float(resolution, "resolution", positive=True, allow_none=True)
         if not model.continuous and derivative_weight != 0:
             if derivative_weight is not None:
                 raise ValueError("derivative_weight needs a continuous model (ode=): the "
@@ -437,101 +468,185 @@ class ShootingObserver(Estimator):
         """Gauss-Newton Hessian of the output term (and prior) at ``start``."""
         nx = self.model.nx
         S = self._sens(start, args[0], args[-1])[0].reshape(-1, nx, order="F")
-        H = 2.0 * S.T @ S
+        with np.errstate(over="ignore", invalid="ignore"):  # not finite: None
+            H = 2.0 * S.T @ S
         if self.P0 is not None:
             H += 2.0 * np.linalg.inv(self.P0)
         return H if np.isfinite(H).all() else None
 
-    def _subspace(self, H, start):
+    def _scales(self, H, start, g) -> np.ndarray:
+        r"""The magnitude :math:`D_i` of each component, to which ``resolution`` is relative.
+
+        Where the start (the propagated previous estimate) carries a magnitude, it is that
+        one: :math:`D_i = \max(|\xi_{0,i}|,\ 10^{-3} \max_j |\xi_{0,j}|,\ \sqrt{P_{0,ii}})`
+        -- the start, floored at 1e-3 of its largest component (a tiny state next to large
+        ones is not asked for a relative precision it cannot have), and the prior's
+        standard deviation where ``P0`` is given (the user's own scale of the component).
+
+        A start carries no magnitude when it lies within its own standard error of zero,
+        :math:`D_i^2 H_{ii} < 2` (a guess of 0, or a value the window cannot tell from 0):
+        a relative precision of it would be meaningless, and the old scale (the 1e-3
+        floor, or 0) dropped such a component whatever the window held. Its magnitude is
+        then the one the window itself gives it, :math:`|\xi^{GN}_i|` with
+        :math:`\xi^{GN} = \xi_0 - H^{+} g` the window's Gauss-Newton estimate (the
+        Jacobi-scaled pseudo-inverse of the Gauss-Newton Hessian :math:`H` applied to the
+        gradient :math:`g` at the start), provided the window determines it to the
+        resolution there: :math:`\sigma_i \le` ``resolution`` :math:`|\xi^{GN}_i|`, with
+        :math:`\sigma_i = \sqrt{2 (H^{+})_{ii}}` its marginal standard error. The
+        component is then judged as it would be from a start at that value; one the window
+        does not determine (its estimate is noise, :math:`|\xi^{GN}_i| \sim \sigma_i`)
+        keeps the small scale, and so its start. Other absolute scales were rejected:
+        :math:`1/\sqrt{H_{ii}}` makes every relative error about 1 whatever the window
+        holds, and bounds give a range, not a magnitude. Without ``g`` (or ``H``) the
+        start's scale is returned.
+        """
+        D = np.abs(start)
+        D = np.maximum(D, 1e-3 * float(D.max()))
+        if self.P0 is not None:
+            D = np.maximum(D, np.sqrt(np.diag(self.P0)))
+        if H is None or g is None or not np.isfinite(g).all():
+            return D
+        h = np.maximum(np.diag(H), 0.0)
+        tiny = D * D * h < 2.0  # the start is within its own standard error of 0
+        seen = h > 0
+        if not (tiny & seen).any():
+            return D
+        s = np.sqrt(h[seen])
+        Hs_inv = np.linalg.pinv(H[np.ix_(seen, seen)] / np.outer(s, s), rcond=1e-12,
+                                hermitian=True)
+        step, sigma = np.zeros_like(start), np.full_like(start, np.inf)
+        step[seen] = -(Hs_inv @ (g[seen] / s)) / s
+        sigma[seen] = np.sqrt(2.0 * np.maximum(np.diag(Hs_inv), 0.0)) / s
+        target = np.abs(start + step)
+        use = tiny & np.isfinite(target)
+        if self.resolution is not None:
+            use &= sigma <= self.resolution * target
+        D[use] = np.maximum(D[use], target[use])
+        return D
+
+    def _subspace(self, H, start, g=None):
         r"""Coordinates ``xi = start + T z`` spanning the directions this window determines.
 
-        In relative coordinates (``xi_i = start_i (1 + e_i)``, scales floored at
-        1e-3 of the largest) the Gauss-Newton Hessian is
-        :math:`H_r = V \Lambda V^\top`; as the weighted residuals have unit
+        In relative coordinates (``xi_i = start_i + D_i e_i``, with the magnitudes
+        :math:`D_i` of :meth:`_scales`) the Gauss-Newton Hessian is
+        :math:`H_r = D H D = V \Lambda V^\top`; as the weighted residuals have unit
         noise, eigen-direction :math:`i` is determined to the relative standard
         error :math:`\sqrt{2/\lambda_i}`. Directions known better than
         ``resolution`` span the optimisation, with :math:`T = D V_r
         \Lambda_r^{-1/2}` so the Hessian in ``z`` is the identity; the others
-        keep the warm start (the propagated previous estimate). Returns an
+        keep the warm start (the propagated previous estimate). With ``resolution=None``
+        every direction the Hessian resolves numerically is kept. Returns an
         ``(nx, 0)`` matrix when the window determines nothing.
         """
         nx = self.model.nx
         if H is None:
             return np.zeros((nx, 0))
-        D = np.maximum(np.abs(start), 1e-3 * max(float(np.abs(start).max()), 1e-300))
+        D = self._scales(H, start, g)
         Hr = H * np.outer(D, D)
         lam, V = np.linalg.eigh(0.5 * (Hr + Hr.T))
-        keep = lam >= 2.0 / self.resolution**2
+        if self.resolution is None:
+            keep = lam > nx * np.finfo(float).eps * max(float(lam.max()), 0.0)
+        else:
+            keep = lam >= 2.0 / self.resolution**2
         return (D[:, None] * V[:, keep]) / np.sqrt(lam[keep])
+
+    @property
+    def _undetermined(self) -> str:
+        """Why the subspace methods leave a direction out (for the status)."""
+        if self.resolution is None:
+            return "not determined numerically"
+        return f"not determined to the resolution {self.resolution:g}"
 
     def _minimise(self, start, args):
         """Run the chosen method; returns ``(x, cost, iterations, ok, status)``.
 
-        ``ok`` with status ``"ok"``: converged; with ``"inexact: ..."``: stopped early
-        (an iteration limit) at a finite point no worse than ``start``, which is used.
+        ``ok`` with status ``"ok"``: converged; with ``"inexact: ..."``: not converged
+        (see :meth:`_run_method`) at a finite point no worse than ``start``, which is
+        used; not ``ok`` (status without prefix, ``"failed: "`` is added by the caller):
+        nothing usable.
         """
+        self._start_cost = None  # set by the methods that evaluate it anyway
         x, cost, iters, converged, message = self._run_method(start, args)
         finite = bool(np.isfinite(x).all() and np.isfinite(cost))
         if finite and converged:
             return x, cost, iters, True, "ok"
-        if finite and not cost > float(self._J(start, *args)[0][0]):
+        if self._start_cost is None:
+            self._start_cost = float(self._J(start, *args)[0][0])
+        if finite and not cost > self._start_cost:
             return x, cost, iters, True, f"inexact: {message}"
+        if not finite:
+            message = f"non-finite cost at the method's point ({message})"
         return x, cost, iters, False, message
 
     def _run_method(self, start, args):
-        """The chosen method from ``start``: ``(x, cost, iterations, converged, message)``."""
+        """The chosen method from ``start``: ``(x, cost, iterations, converged, message)``.
+
+        ``converged`` only when the method's own convergence test passed (the gradient test
+        for BFGS and L-BFGS-B, Ipopt's ``Solve_Succeeded``, the simplex's tolerances) and,
+        for the subspace methods, no direction was left out; ``message`` says why not.
+        """
         if self.method == "gradient":
             return self._gradient_descent(start, args)
         gtol = np.sqrt(2.0 * self.tol)
         H = self._hessian(start, args)
+        n = len(start)
         try:
-            if self.method in ("bfgs", "nelder-mead"):
-                T = self._subspace(H, start)
-                if T.shape[1] == 0:  # nothing determined to the resolution: keep it
-                    return start, float(self._J(start, *args)[0][0]), 0, True, "no update"
-
-                def fun(z):
-                    J, g = self._J(start + T @ z, *args)
-                    return float(J[0]), T.T @ g
-
-                z0 = np.zeros(T.shape[1])
-                if self.method == "bfgs":
-                    res = optimize.minimize(fun, z0, jac=True, method="BFGS",
-                                            options={"maxiter": self.max_iter, "gtol": gtol})
-                else:
-                    res = optimize.minimize(lambda z: fun(z)[0], z0, method="Nelder-Mead",
-                                            options={"maxiter": self.max_iter * len(start),
-                                                     "xatol": 1e-3 * gtol, "fatol": self.tol})
-                x = start + T @ res.x
-                # 0: converged; 2: precision loss at the optimum (no further decrease)
-                ok = (res.status in (0, 2) or self.method == "nelder-mead") and \
-                    np.isfinite(x).all() and np.isfinite(res.fun)
-                return x, float(res.fun), int(res.nit), ok, str(res.message).strip()
+            if self.method == "ipopt":
+                pvec = np.concatenate([np.ravel(a, order="F") for a in args])
+                sol = self._ipopt(x0=np.clip(start, self.lower, self.upper), p=pvec,
+                                  lbx=self.lower, ubx=self.upper)
+                st = self._ipopt.stats()
+                x = np.asarray(sol["x"]).ravel()
+                converged = st["return_status"] == "Solve_Succeeded"
+                return x, float(sol["f"]), int(st["iter_count"]), converged, st["return_status"]
+            cost = _Cost(start, self._J, args)
+            self._start_cost = cost.J0
             if self.method == "lbfgsb":
                 # diagonal Gauss-Newton scaling keeps the bounds as boxes
-                diag = np.ones(len(start)) if H is None else np.diag(H)
-                d = np.sqrt(diag + 1e-9 * max(float(diag.max()), 1e-300))
-
-                def fun_d(z):
-                    J, g = self._J(start + z / d, *args)
-                    return float(J[0]), g / d
-
-                bounds = list(zip(d * (self.lower - start), d * (self.upper - start),
-                                  strict=True))
-                res = optimize.minimize(fun_d, np.zeros_like(start), jac=True,
-                                        method="L-BFGS-B", bounds=bounds,
+                diag = np.ones(n) if H is None else np.diag(H)
+                T = np.diag(1.0 / np.sqrt(diag + 1e-9 * max(float(diag.max()), 1e-300)))
+                lo, up = (self.lower - start) / np.diag(T), (self.upper - start) / np.diag(T)
+                res = optimize.minimize(lambda z: cost(z, T), np.zeros(n), jac=True,
+                                        method="L-BFGS-B", bounds=list(zip(lo, up, strict=True)),
                                         options={"maxiter": self.max_iter, "gtol": gtol,
                                                  "ftol": 0.0})
-                x = np.clip(start + res.x / d, self.lower, self.upper)
-                ok = res.status in (0, 2) and np.isfinite(x).all() and np.isfinite(res.fun)
-                return x, float(res.fun), int(res.nit), ok, str(res.message).strip()
-            pvec = np.concatenate([np.ravel(a, order="F") for a in args])
-            sol = self._ipopt(x0=np.clip(start, self.lower, self.upper), p=pvec,
-                              lbx=self.lower, ubx=self.upper)
-            st = self._ipopt.stats()
-            x = np.asarray(sol["x"]).ravel()
-            ok = bool(st["success"]) and np.isfinite(x).all()
-            return x, float(sol["f"]), int(st["iter_count"]), ok, st["return_status"]
+                # converged: the projected (scaled) gradient passes the gradient test; L-BFGS-B
+                # also stops when the cost no longer decreases (ftol=0) or its line search fails
+                z = np.clip(res.x, lo, up)
+                pg = np.clip(z - res.jac, lo, up) - z
+                converged = bool(np.isfinite(pg).all() and np.abs(pg).max() <= gtol)
+                why = "converged" if converged else (
+                    f"max_iter ({self.max_iter}) reached" if res.status == 1 else
+                    f"line search stalled before the gradient test ({str(res.message).strip()})")
+                x = np.clip(start + T @ z, self.lower, self.upper)
+                return x, float(res.fun), int(res.nit), converged, why
+            T = self._subspace(H, start, cost.g0)
+            kept = T.shape[1]
+            if kept == 0:  # nothing determined to the resolution: keep the start
+                return (start, cost.J0, 0, False,
+                        f"no direction {self._undetermined[4:]} (0 of {n})")
+            z0 = np.zeros(kept)
+            if self.method == "bfgs":
+                res = optimize.minimize(lambda z: cost(z, T), z0, jac=True,
+                                        method="BFGS",
+                                        options={"maxiter": self.max_iter, "gtol": gtol})
+                # scipy's BFGS stops with status 0 only on its gradient test; 1: max_iter,
+                # 2: precision loss (the line search found no decrease) before it
+                converged = res.status == 0
+                why = {1: f"max_iter ({self.max_iter}) reached",
+                       2: "line search stalled (precision loss) before the gradient test"
+                       }.get(res.status, str(res.message).strip())
+            else:
+                res = optimize.minimize(lambda z: cost(z, T)[0], z0, method="Nelder-Mead",
+                                        options={"maxiter": self.max_iter * n,
+                                                 "xatol": 1e-3 * gtol, "fatol": self.tol})
+                converged = res.status == 0
+                why = f"{str(res.message).strip()} (max_iter {self.max_iter} per variable)"
+            if kept < n:  # optimal in the subspace at best
+                out = f"{n - kept} of {n} directions left out ({self._undetermined})"
+                why = out if converged else f"{why}; {out}"
+                converged = False
+            return start + T @ res.x, float(res.fun), int(res.nit), converged, why
         except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
             return start, float("nan"), 0, False, str(exc)[:120]
 
@@ -555,10 +670,10 @@ class ShootingObserver(Estimator):
                     break
                 alpha *= 0.5
             else:
-                return x, J, it, True, "step below 1e-30"
+                return x, J, it, False, "line search stalled (step below 1e-30)"
             converged = abs(J - Jn) <= 1e-12 * max(abs(J), 1e-300)
             x, J = xn, Jn
             alpha *= 2.0
             if converged:
                 return x, J, it, True, "converged"
-        return x, J, self.max_iter, False, "max_iter"
+        return x, J, self.max_iter, False, f"max_iter ({self.max_iter}) reached"
