@@ -35,10 +35,20 @@ one whose step does all the work of one slot (its residuals and blocks, the
 process term to the next slot, masking, damping and one elimination step)
 and a backward one for the direction. The graph is either expanded into one
 flat SX graph (``mode="unrolled"``: building takes milliseconds per hundred
-slots, the work per slot does not depend on ``N``) or calls expanded chunks
-of slots in a loop (``mode="mapped"``: memory and build time bounded for very
-long records). For a linear model one iteration is exact, and
+slots, the work per slot does not depend on ``N``), or compiled for one chunk
+of slots and called on consecutive slices of the buffers in a loop
+(``mode="mapped"``, :class:`_Chunked`: memory proportional to the record,
+building independent of it). For a linear model one iteration is exact, and
 :math:`S_{N-1}^{-1}` is then the covariance of the last state.
+
+A full step that the line search rejects is tried again through the dynamics
+(:meth:`StructuredGaussNewton._rolled`): at small process noise the defects
+:math:`x_{k+1} - F(x_k)` are weighted so heavily that the linear step raises
+the cost (the Maratos effect of a penalty formulation), while the same step
+propagated through the model keeps each defect at its linearised prediction.
+This is the nonlinear rollout of differential dynamic programming; it makes an
+identification at tiny ``Q`` converge like single shooting, and a well-weighted
+problem like multiple shooting.
 
 References
 ----------
@@ -351,154 +361,23 @@ def _reverse_cols(M, N, width):
 
 
 class _Slots:
-    """Maps and scans of per-slot functions over ``N`` slots.
-
-    ``chunk=None``: plain CasADi ``map``/``mapaccum`` (the whole graph is
-    expanded afterwards). Otherwise chunks of ``chunk`` slots are expanded
-    into SX functions that an MX graph calls in a loop: the graph and its
-    build time do not grow with ``N``, and the per-call overhead of the MX
-    virtual machine is shared by ``chunk`` slots.
-    """
-
-    def __init__(self, chunk: int | None):
-        self.chunk = chunk
-        self._cache: dict[tuple, ca.Function] = {}
+    """Maps and scans of per-slot functions over ``N`` slots, as CasADi ``map`` and
+    ``mapaccum`` (the unrolled mode expands the whole graph afterwards)."""
 
     @staticmethod
     def _outs(res, f):
         return list(res) if f.n_out() > 1 else [res]
 
-    @staticmethod
-    def _cols(f, i, a, N, lo, hi):
-        """Slots ``lo:hi`` of argument ``i`` (arguments of one slot's width are shared)."""
-        c = f.size2_in(i)
-        return a[:, lo * c:hi * c] if a.shape[1] == c * N else a
-
-    def _expanded(self, f, K, n_acc=None):
-        key = (id(f), K, n_acc)
-        if key not in self._cache:
-            g = f.map(K) if n_acc is None else f.mapaccum(f"{f.name()}_scan", K, n_acc)
-            self._cache[key] = g.expand()
-        return self._cache[key]
-
-    def _chunk_scan(self, f, K, n_acc, last_only):
-        """Scan of ``K`` slots returning the last states first (for a scan of chunks),
-        then the state sequences (unless ``last_only``) and the other outputs."""
-        key = (id(f), K, n_acc, "chunk", last_only)
-        if key not in self._cache:
-            inner = self._expanded(f, K, n_acc)
-            ins = [ca.SX.sym(f"i{i}", inner.sparsity_in(i)) for i in range(inner.n_in())]
-            outs = self._outs(inner(*ins), inner)
-            lasts = [outs[i][:, -f.size2_out(i):] for i in range(n_acc)]
-            self._cache[key] = ca.Function(f"{f.name()}_chunk", ins,
-                                           lasts + (outs[n_acc:] if last_only else outs))
-        return self._cache[key]
-
-    def _baked(self, f, consts: dict):
-        """``f`` with the inputs in ``consts`` (index -> DM) fixed, as an SX function."""
-        key = (id(f), tuple((i, v.shape, np.asarray(v).tobytes()) for i, v in consts.items()))
-        if key not in self._cache:
-            ins = [ca.SX.sym(f"i{i}", f.sparsity_in(i)) for i in range(f.n_in())]
-            outs = self._outs(f(*[consts.get(i, x) for i, x in enumerate(ins)]), f)
-            self._cache[key] = ca.Function(f"{f.name()}_c", [x for i, x in enumerate(ins)
-                                                             if i not in consts], outs)
-        return self._cache[key]
-
-    def _segments(self, f, N, args):
-        """Runs of slots over which the constant (DM) arguments do not change, as
-        ``[(lo, hi, {index: value})]``; None when nothing is to be folded (no chunks, no
-        constants, or more than a few runs)."""
-        consts = [i for i, a in enumerate(args) if isinstance(a, ca.DM)]
-        if self.chunk is None or not consts:
-            return None
-        blocks = {}
-        for i in consts:
-            c, a = f.size2_in(i), np.asarray(args[i])
-            blocks[i] = [a[:, j * c:(j + 1) * c] for j in range(N)] if a.shape[1] == c * N \
-                else [a] * N
-        cuts = [0] + [j for j in range(1, N)
-                      if any(not np.array_equal(b[j], b[j - 1]) for b in blocks.values())]
-        if len(cuts) > 4:  # full records: two or three runs
-            return None
-        return [(lo, hi, {i: ca.DM(b[lo]) for i, b in blocks.items()})
-                for lo, hi in zip(cuts, cuts[1:] + [N], strict=True)]
-
     def map(self, f, N, *args):
-        """Like ``f.map(N)(*args)``, always a list of outputs.
-
-        With chunks, constant arguments (DM) are folded into the expanded
-        functions, over runs of slots where they do not change.
-        """
-        segments = self._segments(f, N, args)
-        if segments is None:
-            return self._map_plain(f, N, args)
-        pieces = [self._map_plain(self._baked(f, c), hi - lo,
-                                  [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
-                                   if i not in c])
-                  for lo, hi, c in segments]
-        return [ca.horzcat(*col) for col in zip(*pieces, strict=True)]
+        """``f.map(N)(*args)``, always a list of outputs."""
+        return self._outs(f.map(N)(*args), f)
 
     def scan(self, f, N, n_acc, *args, last_only=False):
-        """Like ``f.mapaccum(N, n_acc)(*args)``, always a list of outputs (constants
-        folded as in :meth:`map`; the initial states must not be DM). With
-        ``last_only`` the state outputs are the last states only (chunks then
-        do not write every intermediate state)."""
-        segments = self._segments(f, N, args)
-        if segments is None:
-            return self._scan_plain(f, N, n_acc, args, last_only)
-        state, out = list(args[:n_acc]), None
-        for lo, hi, c in segments:
-            seq = [self._cols(f, i, a, N, lo, hi) for i, a in enumerate(args)
-                   if i not in c and i >= n_acc]
-            res = self._scan_plain(self._baked(f, c), hi - lo, n_acc, state + seq, last_only)
-            state = [res[i][:, -f.size2_out(i):] for i in range(n_acc)]
-            if out is None:
-                out = res
-            else:
-                out = [b if last_only and i < n_acc else ca.horzcat(a, b)
-                       for i, (a, b) in enumerate(zip(out, res, strict=True))]
-        return out
-
-    def _map_plain(self, f, N, args):
-        K = self.chunk
-        if K is None or N <= K:
-            return self._outs((f.map(N) if K is None else self._expanded(f, N))(*args), f)
-        M, R = divmod(N, K)
-        outs = self._outs(self._expanded(f, K).map(M)(
-            *[self._cols(f, i, a, N, 0, M * K) for i, a in enumerate(args)]), f)
-        if R:
-            rest = self._outs(self._expanded(f, R)(
-                *[self._cols(f, i, a, N, M * K, N) for i, a in enumerate(args)]), f)
-            outs = [ca.horzcat(a, b) for a, b in zip(outs, rest, strict=True)]
-        return outs
-
-    def _scan_plain(self, f, N, n_acc, args, last_only=False):
-        K = self.chunk
-
-        def lasts(outs):
-            return [o[:, -f.size2_out(i):] if i < n_acc else o for i, o in enumerate(outs)]
-
-        if K is None or N <= K:
-            g = f.mapaccum(f"{f.name()}_scan", N, n_acc) if K is None else \
-                self._expanded(f, N, n_acc)
-            out = self._outs(g(*args), f)
-            return lasts(out) if last_only else out
-        M, R = divmod(N, K)
-        seq = [self._cols(f, i, a, N, 0, M * K) for i, a in enumerate(args)][n_acc:]
-        chunks = self._chunk_scan(f, K, n_acc, last_only).mapaccum(f"{f.name()}_chunks", M,
-                                                                   n_acc)
-        out = self._outs(chunks(*args[:n_acc], *seq), chunks)
-        # the chunks' last states come first; with every state, they are in the sequences
-        out = lasts(out) if last_only else out[n_acc:]
-        if R:
-            init = [out[i][:, -f.size2_out(i):] for i in range(n_acc)]
-            seq = [self._cols(f, i, a, N, M * K, N) for i, a in enumerate(args)][n_acc:]
-            rest = self._outs(self._expanded(f, R, n_acc)(*init, *seq), f)
-            if last_only:
-                out = [b[:, -f.size2_out(i):] if i < n_acc else ca.horzcat(a, b)
-                       for i, (a, b) in enumerate(zip(out, rest, strict=True))]
-            else:
-                out = [ca.horzcat(a, b) for a, b in zip(out, rest, strict=True)]
+        """``f.mapaccum(N, n_acc)(*args)``, always a list of outputs; with ``last_only``
+        the state outputs are the last states only."""
+        out = self._outs(f.mapaccum(f"{f.name()}_scan", N, n_acc)(*args), f)
+        if last_only:
+            out = [o[:, -f.size2_out(i):] if i < n_acc else o for i, o in enumerate(out)]
         return out
 
 
@@ -527,9 +406,9 @@ class StructuredGaussNewton:
         Start with Newton steps (exact Hessian blocks) instead of Gauss-Newton.
     jit : bool
         Compile the functions to C (needs a C compiler; about two seconds per
-        function with the mapped graph, far longer for an unrolled one).
+        chunk function in the mapped mode, far longer for an unrolled graph).
     mode : {"auto", "unrolled", "mapped"}
-        One flat expanded graph, mapped calls of expanded chunks, or
+        One flat expanded graph, a loop over compiled chunks of slots, or
         ``"auto"``: unrolled up to :data:`AUTO_UNROLL_SLOTS` slots (mapped with
         ``jit``).
     diagonal_Q, diagonal_R : bool
@@ -569,8 +448,7 @@ class StructuredGaussNewton:
             mode = "mapped" if self.jit or N > AUTO_UNROLL_SLOTS else "unrolled"
         self.mode = mode
         self._stages = _StageFunctions(model, diagonal_Q, diagonal_R)
-        self._slots = _Slots(None if self.mode == "unrolled" else
-                             JIT_CHUNK_SLOTS if self.jit else CHUNK_SLOTS)
+        self._slots = _Slots()
         self._slices, self._n_params = slices, n_params
         # input buffers shared by every compiled function
         self._xbuf, self._pbuf, self._lbuf = np.zeros(N * model.nx), np.zeros(n_params), np.zeros(1)
@@ -626,10 +504,7 @@ class StructuredGaussNewton:
             outs = [cost, g] + directions[::-1]  # Newton's first, Gauss-Newton's last
         opts = jit_options() if self.jit and key != "cov" else {}
         name = f"gn_{key}" + ("_complete" if complete else "")
-        if self.mode == "unrolled":
-            fun = ca.Function(name, ins, outs).expand(name, opts)
-        else:
-            fun = ca.Function(name, ins, outs, opts)
+        fun = ca.Function(name, ins, outs).expand(name, opts)
         bufs = [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else [])
         if key == "roll":
             return FastFunction(fun, [self._xbuf, self._pbuf, self._dbuf, self._abuf])
