@@ -20,6 +20,8 @@ def _built(est):
         return [est._nlp, est._cov_step] + list(est._nlp.gn._funs.values())
     if isinstance(est, estim.FullInformation):
         return list(est._nlps.values())
+    if isinstance(est, estim.ShootingObserver):
+        return [est._J, est._terms, est._sens]
     return [est._F, est._H]
 
 
@@ -31,6 +33,8 @@ MAKERS = {
     "mhe fixed": lambda **t: estim.MHE(SC.model, horizon=8, solver="gauss-newton",
                                        arrival_cost="fixed", **t),
     "fie": lambda **t: estim.FullInformation(SC.model, **t),
+    "shooting": lambda **t: estim.ShootingObserver(SC.model, window=6, every=1, R=t["R"],
+                                                   x0=t["x0"], P0=t["P0"]),
 }
 
 

@@ -205,12 +205,17 @@ class ShootingObserver(Estimator):
             as_int(history_length, "history_length", minimum=1)
         self.lower, self.upper = self._bounds(lower, upper)
         self._fixed_w2 = derivative_weight
-        self._Rinv = np.linalg.inv(self.R)
-        self._WR = np.linalg.cholesky(self._Rinv).T  # W^T W = R^-1
+        self._tuning_changed()
         self._span = (self.window - 1) * self.every  # steps from first to last sample
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._build()
         self._reset()
+
+    def _tuning_changed(self) -> None:
+        """The output weights of the windows (``R`` is data: the graphs take them per
+        window)."""
+        self._Rinv = np.linalg.inv(self.R)
+        self._WR = np.linalg.cholesky(self._Rinv).T  # W^T W = R^-1
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
@@ -229,7 +234,6 @@ class ShootingObserver(Estimator):
         # per-sample output weights, W_i^T W_i = R^-1 on the measured rows (0 elsewhere)
         WY = ca.SX.sym("WY", ny * ny, w)
         Ws = [ca.reshape(WY[:, i], ny, ny) for i in range(w)]
-        Rinv = ca.DM(self._Rinv)
         sign = 1.0 if self.direction == "forward" else -1.0
         F = self._stepper(sign)
         # states at every step from the optimised one, and at the buffer times
@@ -254,7 +258,7 @@ class ShootingObserver(Estimator):
             ydot = ca.horzcat(*[m.H_x(xs[i], u_at(i), p) @ m.f_c(xs[i], u_at(i), p)
                                 for i in range(w)])
             Ed = Yd - ydot
-            cost_d = sum(ca.bilin(Rinv, Ed[:, i], Ed[:, i]) for i in range(w))
+            cost_d = sum(ca.sumsqr(Ws[i] @ Ed[:, i]) for i in range(w))
         else:
             cost_d = ca.SX(0)
         prior = ca.sumsqr(Wp @ (x0 - xbar))
