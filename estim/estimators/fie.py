@@ -67,7 +67,10 @@ class FitResult:
         ``"ok"`` or the solver's reason for stopping.
     success : bool
     solve_time : float
-        Seconds spent in the solver.
+        Seconds spent in the solver (without building graphs).
+    build_time : float
+        Seconds spent building compiled graphs during this fit (the first fit of a
+        record length builds them; later ones reuse them).
     P_last : (nx, nx) array or None
         Laplace covariance of the last state (the Kalman filter's covariance on
         a linear-Gaussian model with a prior); computed on first access.
@@ -81,6 +84,7 @@ class FitResult:
     status: str
     success: bool
     solve_time: float
+    build_time: float = 0.0
     _residuals: object = field(default=None, repr=False, compare=False)
     _covariance: object = field(default=None, repr=False, compare=False)
 
@@ -316,6 +320,7 @@ class FullInformation(Estimator):
             if sol.success else None
         return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
                          success=sol.success, solve_time=sol.solve_time,
+                         build_time=sol.build_time,
                          _residuals=residuals, _covariance=cov)
 
     # ------------------------------------------------------------ recursive

@@ -455,6 +455,10 @@ class StructuredGaussNewton:
         self._dbuf, self._abuf = np.zeros(N * model.nx), np.zeros(1)  # for the rollout
         self._funs: dict[tuple[str, bool], object] = {}  # FastFunction or a pair
         self._chunked: _Chunked | None = None  # the mapped mode's chunk functions
+        #: seconds spent building compiled functions (all of them are built on first
+        #: use); :meth:`solve` leaves them out of its time and reports them apart
+        self.build_seconds = 0.0
+        self.last_build = 0.0
         self._ridge = False  # set for good once a block was singular without it
         self._complete = False  # graphs of the current solve
 
@@ -467,7 +471,9 @@ class StructuredGaussNewton:
         complete = self._complete if complete is None else complete
         fun = self._funs.get((key, complete))
         if fun is None:
+            t0 = time.perf_counter()
             fun = self._funs[key, complete] = self._build(key, complete)
+            self.build_seconds += time.perf_counter() - t0
         return fun
 
     def _build(self, key: str, complete: bool):
@@ -641,7 +647,7 @@ class StructuredGaussNewton:
 
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
-        t0 = time.perf_counter()
+        t0, b0 = time.perf_counter(), self.build_seconds
         proj, bounded, xtol = self._project, self._bounded, self.xtol
         x = proj(np.array(X0, dtype=float).ravel())
         self._complete = bool(complete)
@@ -652,7 +658,7 @@ class StructuredGaussNewton:
         slot, pair = 0, self._iteration(newton, lam)
         f, g, dirs = self._evaluate(pair[slot], x, lam)
         if not np.isfinite(f):
-            return x, False, "non-finite cost at the initial guess", 0, f, time.perf_counter() - t0
+            return x, False, "non-finite cost at the initial guess", 0, f, self._elapsed(t0, b0)
         status, steps = "max_iter", 0
         xmax = np.abs(x).max()  # an upper bound of max|x|, made exact when it matters
         while steps < self.max_iter:
@@ -721,7 +727,13 @@ class StructuredGaussNewton:
             f, g, dirs = evaluated if evaluated is not None else \
                 self._evaluate(pair[slot], x, lam)
         ok = status == "ok" and bool(np.isfinite(x).all()) and np.isfinite(f)
-        return x, ok, status, steps, f, time.perf_counter() - t0
+        return x, ok, status, steps, f, self._elapsed(t0, b0)
+
+    def _elapsed(self, t0: float, b0: float) -> float:
+        """Seconds since ``t0`` without the building since then (kept in
+        :attr:`last_build`)."""
+        self.last_build = self.build_seconds - b0
+        return time.perf_counter() - t0 - self.last_build
 
     def _line_search(self, x, f, g, d, fun, lam, slope=None):
         """Armijo backtracking along one of two paths: the step ``x + alpha d``
@@ -861,10 +873,12 @@ class _Chunked:
         """``build()``'s function with dense outputs (the buffers are read as dense
         arrays), compiled with ``jit``."""
         if key not in self._funs:
+            t0 = time.perf_counter()
             fun = build()
             ins = fun.sx_in()
             self._funs[key] = ca.Function(fun.name(), ins,
                                           [ca.densify(o) for o in fun.call(ins)], self.opts)
+            self.gn.build_seconds += time.perf_counter() - t0
         return self._funs[key]
 
     def _buffer(self, fun):

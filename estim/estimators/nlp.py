@@ -188,6 +188,7 @@ class Solution:
     cost: float
     solve_time: float
     usable: bool = False
+    build_time: float = 0.0
 
     def __post_init__(self):
         self.usable = self.usable or self.success
@@ -443,7 +444,7 @@ class LeastSquaresNLP:
             # the iterations only ever decrease the cost: a finite end point is usable
             usable = bool(np.isfinite(cost) and np.isfinite(x).all())
             return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
-                            elapsed, usable)
+                            elapsed, usable, self.gn.last_build)
         t0 = time.perf_counter()
         # not started where the model is not finite (the solvers would spend their
         # iterations on it, or crash)
