@@ -80,29 +80,45 @@ def _check_constants(expr, names: Sequence[str], argname: str) -> None:
                     f"math module")
 
 
+def _input_at(u, s: float):
+    """The input at the fraction ``s`` of the sample: ``u(s)`` for an interpolated
+    input (a callable), else ``u`` (held)."""
+    return u(s) if callable(u) else u
+
+
 def rk4_step(f: Callable, x, u, p, h: float, substeps: int = 1):
     r"""Classic fourth-order Runge-Kutta over ``substeps`` steps of size ``h / substeps``.
 
     .. math::
-        k_1 = f(x), k_2 = f(x + \tfrac{h}{2} k_1), k_3 = f(x + \tfrac{h}{2} k_2),
-        k_4 = f(x + h k_3), \quad x^+ = x + \tfrac{h}{6}(k_1 + 2k_2 + 2k_3 + k_4)
+        k_1 = f(x, u_0), k_2 = f(x + \tfrac{h}{2} k_1, u_{1/2}),
+        k_3 = f(x + \tfrac{h}{2} k_2, u_{1/2}), k_4 = f(x + h k_3, u_1), \quad
+        x^+ = x + \tfrac{h}{6}(k_1 + 2k_2 + 2k_3 + k_4)
+
+    ``u`` is the input held over the sample, or a callable giving it at a fraction
+    ``s`` of the sample (:math:`u_s = u(s)`, e.g. linear between two samples).
     """
     dt = h / substeps
-    for _ in range(substeps):
-        k1 = f(x, u, p)
-        k2 = f(x + dt / 2 * k1, u, p)
-        k3 = f(x + dt / 2 * k2, u, p)
-        k4 = f(x + dt * k3, u, p)
+    for i in range(substeps):
+        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
+        um = _input_at(u, sm)
+        k1 = f(x, _input_at(u, s0), p)
+        k2 = f(x + dt / 2 * k1, um, p)
+        k3 = f(x + dt / 2 * k2, um, p)
+        k4 = f(x + dt * k3, _input_at(u, s1), p)
         x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     return x
 
 
 def euler_step(f: Callable, x, u, p, h: float, substeps: int = 1):
-    r"""Explicit Euler, :math:`x^+ = x + h f(x, u)`, over ``substeps`` steps."""
+    r"""Explicit Euler, :math:`x^+ = x + h f(x, u)`, over ``substeps`` steps (``u``
+    held, or a callable of the fraction of the sample as for :func:`rk4_step`)."""
     dt = h / substeps
-    for _ in range(substeps):
-        x = x + dt * f(x, u, p)
+    for i in range(substeps):
+        x = x + dt * f(x, _input_at(u, i / substeps), p)
     return x
+
+
+HOLDS = ("zoh", "foh")
 
 
 class Model:
@@ -139,6 +155,19 @@ class Model:
     lower, upper : float, sequence or dict, optional
         State bounds (``-inf``/``inf`` where absent), used by MHE/FIE
         constraints, the clipped EKF and plant clipping.
+    hold : {"zoh", "foh"} or dict, optional
+        How a continuous model sees its inputs between samples. ``"zoh"``
+        (default): held; the input given with a sample is the one that acted
+        since the previous sample (``step(y_k, u_{k-1})``). ``"foh"``: linear
+        between the input's values at consecutive samples (a first-order hold,
+        the reconstruction of a sampled smooth signal); the input given with a
+        sample is its value *at* that sample (``step(y_k, u_k)``), and the
+        transition from sample k to k+1 integrates with ``u`` going from
+        ``u_k`` to ``u_{k+1}``. A dict gives the hold per input name (then
+        ``"zoh"`` inputs are held at their value at the start of each sample);
+        any ``"foh"`` input makes the model take inputs at the samples. Needs
+        ``ode=``, and known inputs (not a feedback controller) in
+        :func:`~estim.simulate`.
     name : str
         Label for reprs and plots.
 
@@ -184,6 +213,7 @@ class Model:
         lower=None,
         upper=None,
         name: str = "model",
+        hold: str | Mapping[str, str] = "zoh",
     ):
         self.state_names = as_names(states, "states", "x")
         self.output_names = as_names(outputs, "outputs", "y")
@@ -229,13 +259,67 @@ class Model:
             raise ValueError("lower must not exceed upper")
         self.augmented: dict[str, float] = {}
         self._ode, self._dynamics, self._output = ode, dynamics, output
+        self.hold = self._holds(hold)
+        if self.sampled and ode is None:
+            raise ValueError("hold='foh' needs a continuous model (ode=): a discrete map "
+                             "(dynamics=) already says what happens between samples")
         self._build()
+
+    def _holds(self, hold) -> dict[str, str]:
+        """``hold`` as ``{input name: "zoh" or "foh"}``."""
+        if isinstance(hold, str):
+            return dict.fromkeys(self.input_names, as_choice(hold, HOLDS, "hold"))
+        if not isinstance(hold, Mapping):
+            raise TypeError(f"hold must be 'zoh', 'foh' or a dict {{input: hold}}, "
+                            f"got {type(hold).__name__}")
+        unknown = sorted(set(hold) - set(self.input_names))
+        if unknown:
+            raise ValueError(f"hold names unknown inputs {unknown}; inputs are "
+                             f"{self.input_names}")
+        return {n: as_choice(hold.get(n, "zoh"), HOLDS, f"hold[{n!r}]")
+                for n in self.input_names}
+
+    @property
+    def sampled(self) -> bool:
+        """True when some input is interpolated between samples (``hold="foh"``): the
+        model then takes each input's value *at* the samples, and a transition needs
+        the values at both ends (see :meth:`transition`)."""
+        return "foh" in self.hold.values()
+
+    @property
+    def nw(self) -> int:
+        """Length of a transition's input ``w`` (``F(x, w, p)``): ``nu``, or ``2 nu``
+        (the values at both ends of the sample) for a sampled-input model."""
+        return 2 * self.nu if self.sampled else self.nu
+
+    def input_path(self, w, reverse: bool = False):
+        """The input along a transition whose input is ``w``: ``w`` itself (held), or
+        for a sampled model a function of the fraction ``s`` of the sample, linear
+        from the start value to the end value for ``"foh"`` inputs (``reverse``:
+        from the end back to the start, for integrating backward in time)."""
+        if not self.sampled:
+            return w
+        nu = self.nu
+        ramp = ca.DM([float(self.hold[n] == "foh") for n in self.input_names])
+        u0, u1 = (w[nu:], w[:nu]) if reverse else (w[:nu], w[nu:])
+        held = u1 if reverse else u0  # "zoh" inputs keep the value at the start
+
+        def u_of(s):
+            return held + ramp * (u0 + s * (u1 - u0) - held)
+        return u_of
+
+    def transition(self, u_prev, u) -> np.ndarray:
+        """The input ``w`` of the transition into the sample whose input is ``u``, the
+        previous sample's being ``u_prev``: ``u`` (held), or ``[u_prev; u]``."""
+        return np.concatenate([u_prev, u]) if self.sampled else u
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
-        nx, nu, ny = self.nx, self.nu, self.ny
+        nx, nu, ny, nw = self.nx, self.nu, self.ny, self.nw
         x = ca.SX.sym("x", nx)
         u = ca.SX.sym("u", nu)
+        w = ca.SX.sym("w", nw)  # a transition's input (the two ends for a sampled model)
+        u_of = self.input_path(w)
         psym = [ca.SX.sym(n) for n in self.param_names]
         p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
         pdict = dict(zip(self.param_names, psym, strict=True))
@@ -248,16 +332,16 @@ class Model:
             _check_constants(xdot, self.state_names, "ode")
             self.f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
             if self.integrator == "cvodes":
-                self.F = self._cvodes(x, u, p, xdot)
-                xm, um, pm = ca.MX.sym("x", nx), ca.MX.sym("u", nu), ca.MX.sym("p", p.numel())
-                xn = self.F(xm, um, pm)
-                self.F_x = ca.Function("F_x", [xm, um, pm], [ca.jacobian(xn, xm)],
+                self.F = self._cvodes(x, w, p, u_of)
+                xm, wm, pm = ca.MX.sym("x", nx), ca.MX.sym("w", nw), ca.MX.sym("p", p.numel())
+                xn = self.F(xm, wm, pm)
+                self.F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)],
                                        ["x", "u", "p"], ["A"])
             else:
                 step = rk4_step if self.integrator == "rk4" else euler_step
-                xn = step(self.f_c, x, u, p, self.dt, self.substeps)
-                self.F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
-                self.F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)],
+                xn = step(self.f_c, x, u_of, p, self.dt, self.substeps)
+                self.F = ca.Function("F", [x, w, p], [xn], ["x", "u", "p"], ["x_next"])
+                self.F_x = ca.Function("F_x", [x, w, p], [ca.jacobian(xn, x)],
                                        ["x", "u", "p"], ["A"])
         else:
             self.f_c = None
@@ -269,15 +353,17 @@ class Model:
         self.H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
         self._local = threading.local()
 
-    def _cvodes(self, x, u, p, xdot) -> ca.Function:
-        dae = {"x": x, "p": ca.vertcat(u, p), "ode": xdot}
+    def _cvodes(self, x, w, p, u_of) -> ca.Function:
+        t = ca.SX.sym("t")
+        u = u_of(t / self.dt) if callable(u_of) else u_of
+        dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": self.f_c(x, u, p)}
         integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, self.dt,
                               {"abstol": 1e-10, "reltol": 1e-10})
         xm = ca.MX.sym("x", self.nx)
-        um = ca.MX.sym("u", self.nu)
+        wm = ca.MX.sym("w", self.nw)
         pm = ca.MX.sym("p", p.numel())
-        xf = integ(x0=xm, p=ca.vertcat(um, pm))["xf"]
-        return ca.Function("F", [xm, um, pm], [xf], ["x", "u", "p"], ["x_next"])
+        xf = integ(x0=xm, p=ca.vertcat(wm, pm))["xf"]
+        return ca.Function("F", [xm, wm, pm], [xf], ["x", "u", "p"], ["x_next"])
 
     # ------------------------------------------------------------ properties
     @property
@@ -322,23 +408,34 @@ class Model:
             setattr(self._local, key, fun)
         return fun
 
-    def f(self, x, u=None) -> np.ndarray:
+    def _w(self, u, u_next) -> np.ndarray:
+        """A transition's input from the sample's input and (sampled models) the next
+        one's (default: the same)."""
+        if not self.sampled:
+            return u
+        return np.concatenate([u, u if u_next is None else as_vector(u_next, self.nu,
+                                                                       "u_next")])
+
+    def f(self, x, u=None, u_next=None) -> np.ndarray:
         """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input).
 
-        Safe to call from several threads at once.
+        For a sampled-input model (``hold="foh"``) ``u`` is the input at this
+        sample and ``u_next`` at the next one (default: ``u``). Safe to call from
+        several threads at once.
         """
         x, u = self._xu(x, u)
-        return self._fast("F")(x, u, self.p)[0].copy()
+        return self._fast("F")(x, self._w(u, u_next), self.p)[0].copy()
 
     def h(self, x, u=None) -> np.ndarray:
         """Output ``h(x, u; p)`` as a (ny,) array (safe from several threads)."""
         x, u = self._xu(x, u)
         return self._fast("H")(x, u, self.p)[0].copy()
 
-    def jacobians(self, x, u=None) -> tuple[np.ndarray, np.ndarray]:
-        """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays."""
+    def jacobians(self, x, u=None, u_next=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays
+        (``u_next`` as for :meth:`f`)."""
         x, u = self._xu(x, u)
-        return self.F_x(x, u, self.p).full(), self.H_x(x, u, self.p).full()
+        return self.F_x(x, self._w(u, u_next), self.p).full(), self.H_x(x, u, self.p).full()
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """Project ``x`` onto ``[lower, upper]``."""
@@ -431,6 +528,7 @@ class Model:
             lower=np.concatenate([self.lower, new_lower]),
             upper=np.concatenate([self.upper, new_upper]),
             name=self.name,
+            hold=self.hold,
             **kwargs,
         )
         model.augmented = {**self.augmented, **{n: values[n] for n in names}}

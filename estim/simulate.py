@@ -10,6 +10,11 @@ At sample :math:`k` (time :math:`t_k = k\,dt`):
 4. the plant moves: :math:`x_{k+1} = F(x_k, u_k) + w_k`,
    :math:`w_k \sim N(0, Q)`, clipped to the bounds where asked.
 
+A model whose inputs are interpolated between samples (``hold="foh"``) measures
+:math:`y_k = h(x_k, u_k)`, gives :math:`u_k` (the input *at* sample k) to the
+estimator and moves with the input going linearly from :math:`u_k` to
+:math:`u_{k+1}`; its inputs are a signal known in advance.
+
 All noise is drawn up front from ``numpy.random.default_rng(seed)``, so the
 same seed gives the same noise whatever the estimator does.
 """
@@ -234,6 +239,9 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     warn = as_bool(warn, "warn")
     if inputs is not None and controller is not None:
         raise ValueError("give inputs= or controller=, not both")
+    if model.sampled and controller is not None:
+        raise ValueError("a model with hold='foh' interpolates its inputs between samples, "
+                         "so it needs them in advance: give inputs=, not a controller")
     feedback = feedback or "estimate"
     if feedback not in ("estimate", "truth"):
         raise ValueError(f"feedback must be 'estimate' or 'truth', got {feedback!r}")
@@ -259,6 +267,8 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
 
     estimator.reset()
     u_prev = np.zeros(nu) if U is None else U[0].copy()
+    if model.sampled and U is None:
+        U = np.zeros((T, nu))
     p = model.p
     next_change = 0
     with rec.running(model, estimator, ts, X, Y, Uk):
@@ -267,6 +277,8 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
             while next_change < len(changes) and t >= changes[next_change][0] - 1e-12:
                 p = params[next_change]
                 next_change += 1
+            if model.sampled:  # the input at this sample (held before, for "zoh" models)
+                u_prev = U[k]
             y = H(x, u_prev, p)[0] + V[k]
             if np.isinf(y).any():
                 raise FloatingPointError(f"the plant output became infinite at step {k} "
@@ -285,7 +297,8 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
                 u = u_prev
             Uk[k] = u
             rec.done = k + 1
-            x = F(x, u, p)[0] + W[k]
+            w = model.transition(u, U[min(k + 1, T - 1)]) if model.sampled else u
+            x = F(x, w, p)[0] + W[k]
             if clip:
                 x = np.minimum(np.maximum(x, model.lower), model.upper)
             if not np.isfinite(x).all():
@@ -307,7 +320,9 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
         Measurements, NaN where missing.
     u : (T, nu) array, optional
         ``u[k]`` is the input applied after sample ``k`` (so ``u[k-1]`` is
-        passed with ``y[k]``, as in :func:`simulate`); zero if omitted.
+        passed with ``y[k]``, as in :func:`simulate`); for a model with
+        ``hold="foh"`` the input's value at sample ``k`` (passed with ``y[k]``).
+        Zero if omitted.
     x : (T, nx) array, optional
         The true states, where known (for :func:`~estim.rmse` and plots).
     t : (T,) array, optional
@@ -343,7 +358,9 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     estimator.reset()
     with rec.running(model, estimator, ts, X, Y, U):
         for k in range(T):
-            x_hat = estimator.step(Y[k].copy(), U[k - 1] if k else np.zeros(model.nu))
+            # the input since the previous sample (held), or at this one (sampled models)
+            u = U[k] if model.sampled else U[k - 1] if k else np.zeros(model.nu)
+            x_hat = estimator.step(Y[k].copy(), u)
             rec.record(k, x_hat, estimator.info)
             rec.done = k + 1
     return rec.finish(model, estimator, ts, X, Y, U, warn)

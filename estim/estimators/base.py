@@ -172,10 +172,17 @@ class Estimator:
         self._k = 0
         self._info = StepInfo()
         self._u_zero = np.zeros(model.nu)
+        self._sampled = model.sampled
+        self._u_last = self._u_zero.copy()  # the previous input (sampled-input models)
 
     # -------------------------------------------------------------- protocol
     def step(self, y, u=None) -> np.ndarray:
-        """Process measurement ``y`` (ny,) after input ``u`` (nu,); return x̂ (nx,)."""
+        """Process measurement ``y`` (ny,) after input ``u`` (nu,); return x̂ (nx,).
+
+        ``u`` is the input that acted since the previous measurement, or, for a
+        model with ``hold="foh"``, the input's value at this measurement (the
+        transition then interpolates from the previous one).
+        """
         y = self._check_y(y)
         u = self._check_u(u)
         t0 = time.perf_counter()
@@ -186,7 +193,13 @@ class Estimator:
         self._info = info
         self._first = False
         self._k += 1
+        if self._sampled:
+            self._u_last = u.copy()
         return x_hat
+
+    def _transition(self, u: np.ndarray) -> np.ndarray:
+        """The input of the transition into this step (see :meth:`Model.transition`)."""
+        return self.model.transition(self._u_last, u) if self._sampled else u
 
     def reset(self, x0=None, P0=None) -> None:
         """Forget all data; optionally replace the initial guess and its covariance."""
@@ -197,6 +210,7 @@ class Estimator:
         self._first = True
         self._k = 0
         self._info = StepInfo()
+        self._u_last = self._u_zero.copy()
         self._reset()
 
     def set_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> None:

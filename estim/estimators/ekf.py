@@ -88,7 +88,7 @@ class EKF(Estimator):
         nx = model.nx
         # the filter state [x; vec(P)] lives where both compiled functions read it
         self._s = np.zeros(nx + nx * nx)
-        self._u = np.zeros(model.nu)
+        self._u = np.zeros(model.nw)  # the transition's input (both ends if sampled)
         self._y = np.zeros(model.ny)
         self._tun = np.zeros(nx * nx + model.ny ** 2)  # Q and R, read by both functions
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
@@ -103,7 +103,7 @@ class EKF(Estimator):
         nx, nu, ny = m.nx, m.nu, m.ny
         s = ca.SX.sym("s", nx + nx * nx)
         x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
-        u = ca.SX.sym("u", nu)
+        u = ca.SX.sym("u", m.nw)
         y = ca.SX.sym("y", ny)
         tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
         Q, R = (_matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
@@ -118,8 +118,9 @@ class EKF(Estimator):
         else:
             xb, Pb = x, P
         D = ca.diag(mask)
-        C = D @ m.H_x(xb, u, p)
-        e = ca.if_else(mask, y - m.H(xb, u, p), 0)
+        uy = u[nu:] if m.sampled else u  # the input at this measurement
+        C = D @ m.H_x(xb, uy, p)
+        e = ca.if_else(mask, y - m.H(xb, uy, p), 0)
         Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ Pb @ C.T + Rm
         S = 0.5 * (S + S.T)
@@ -184,7 +185,7 @@ class EKF(Estimator):
     def _step(self, y, u, first):
         self._y[:] = y
         if self._u.size:
-            self._u[:] = u
+            self._u[:] = self._transition(u)
         fun = self._update if first else self._predict_update
         s_new, e, flags, s_prior = fun.evaluate()
         if flags[3]:

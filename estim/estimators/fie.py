@@ -28,14 +28,14 @@ def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
 def _residual_map(model: Model, T: int) -> FastFunction:
     """Residuals of a trajectory in one call.
 
-    Inputs ``X (nx, T)``, ``U (nu, T)``, ``U_prev (nu, T)``, ``Y (ny, T)``, flat
+    Inputs ``X (nx, T)``, ``U (nw, T)`` (transitions), ``U_prev (nu, T)``, ``Y (ny, T)``, flat
     column-major (a C-ordered ``(T, nx)`` array raveled as it is); outputs
     ``w (nx, T-1) = X[:, 1:] - F(X[:, :-1], U[:, :-1])`` and
     ``v (ny, T) = Y - h(X, U_prev)``. Expanded to one SX graph when the model
     allows it.
     """
     nx, nu, ny, pm = model.nx, model.nu, model.ny, ca.DM(model.p)
-    X, U, Up, Y = (ca.MX.sym(n, k, T) for n, k in (("X", nx), ("U", nu), ("Up", nu),
+    X, U, Up, Y = (ca.MX.sym(n, k, T) for n, k in (("X", nx), ("U", model.nw), ("Up", nu),
                                                     ("Y", ny)))
     w = X[:, 1:] - model.F.map(T - 1)(X[:, :-1], U[:, :-1], pm) if T > 1 else ca.MX(nx, 0)
     fun = ca.Function("residuals", [X, U, Up, Y], [w, Y - model.H.map(T)(X, Up, pm)])
@@ -223,13 +223,16 @@ class FullInformation(Estimator):
             U = _numeric_array(U, "U")
             if U.ndim == 1 and m.nu == 1:
                 U = U[:, None]
-            if U.shape == (T - 1, m.nu):
+            if U.shape == (T - 1, m.nu) and not m.sampled:
                 U = np.vstack([U, np.zeros((1, m.nu))])
             if U.shape != (T, m.nu):
-                raise ValueError(f"U must have shape ({T - 1}, {m.nu}) or ({T}, {m.nu}), "
-                                 f"got {U.shape}")
+                expected = f"({T}, {m.nu}), the input at each sample (hold='foh')" \
+                    if m.sampled else f"({T - 1}, {m.nu}) or ({T}, {m.nu})"
+                raise ValueError(f"U must have shape {expected}, got {U.shape}")
             if not np.isfinite(U).all():
                 raise ValueError("U must be finite")
+        if m.sampled:  # inputs at the samples: transitions from each to the next
+            return Y, np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
         Uprev = np.empty_like(U)
         Uprev[0] = 0.0
         Uprev[1:] = U[:-1]
@@ -244,7 +247,8 @@ class FullInformation(Estimator):
             Measurements; NaN entries are missing outputs.
         U : (T-1, nu) or (T, nu) array, optional
             ``U[k]`` acts from sample k to k+1 (and is the held input when
-            ``y_{k+1}`` is taken). Zero if omitted.
+            ``y_{k+1}`` is taken). With ``hold="foh"``, ``(T, nu)``: the input at
+            each sample, linear in between. Zero if omitted.
         guess : (T, nx) array, optional
             Initial trajectory; default ``x0`` repeated (zeros without ``x0``).
         Q, R : optional
@@ -290,7 +294,7 @@ class FullInformation(Estimator):
         pad = C - T
         if pad:
             Y = np.vstack([np.full((pad, m.ny), np.nan), Y])
-            U = np.vstack([np.zeros((pad, m.nu)), U])
+            U = np.vstack([np.zeros((pad, m.nw)), U])
             Uprev = np.vstack([np.zeros((pad, m.nu)), Uprev])
             X0 = np.vstack([np.repeat(X0[:1], pad, axis=0), X0])
         nlp = self._problem(C, full=full and pad == 0)
@@ -329,8 +333,8 @@ class FullInformation(Estimator):
         for nlp in self._nlps.values():  # as if freshly built
             nlp.reset()
         self._Ys: list[np.ndarray] = []
-        self._Us: list[np.ndarray] = []
-        self._up0 = np.zeros(self.model.nu)  # input held when the record's first y was taken
+        self._Ws: list[np.ndarray] = []  # the transitions' inputs
+        self._Us: list[np.ndarray] = []  # the inputs of the samples' measurements
         self._X: np.ndarray | None = None
         self._start = (self.x0.copy(), self._W0)  # prior of the record's first sample
         # the last estimate (and covariance) of a step reported "ok" or "inexact":
@@ -343,8 +347,8 @@ class FullInformation(Estimator):
         chi-square degrees of freedom of its cost."""
         m, T = self.model, len(self._Ys)
         Y = np.array(self._Ys)
-        U = np.vstack([np.array(self._Us).reshape(T - 1, m.nu), np.zeros((1, m.nu))])
-        Uprev = np.vstack([self._up0[None, :], U[:-1]])
+        U = np.vstack([np.array(self._Ws).reshape(T - 1, m.nw), np.zeros((1, m.nw))])
+        Uprev = np.array(self._Us).reshape(T, m.nu)
         if self._X is None or len(self._X) != T - 1:
             guess = np.repeat(self._start[0][None, :], T, axis=0)
         else:
@@ -359,9 +363,8 @@ class FullInformation(Estimator):
     def _step(self, y, u, first):
         t0 = time.perf_counter()
         if self._Ys:
-            self._Us.append(u.copy())
-        else:
-            self._up0 = u.copy()
+            self._Ws.append(self._transition(u).copy())
+        self._Us.append(u.copy())
         self._Ys.append(y.copy())
         res, usable, dof = self._solve_record()
         check = consistency_status(res.cost, dof, "cost")
@@ -370,7 +373,7 @@ class FullInformation(Estimator):
             # restart the record at this sample, the last trusted estimate its prior
             failure = res.status if not usable else f"{res.status} at cost {res.cost:.3g}"
             x, P = self._anchor(*self._trusted)
-            self._Ys, self._Us, self._up0 = [y.copy()], [], u.copy()
+            self._Ys, self._Ws, self._Us = [y.copy()], [], [u.copy()]
             self._start = (x, None if P is None else weight_factor(P))
             self._X = None
             res, usable, dof = self._solve_record(robust=True)

@@ -201,7 +201,7 @@ class _StageFunctions:
         pm, eye = ca.DM(model.p), ca.DM.eye(nx)
         x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
         y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
-        u, up = ca.SX.sym("u", nu), ca.SX.sym("up", nu)
+        u, up = ca.SX.sym("u", model.nw), ca.SX.sym("up", nu)  # transition, measurement
         a, om, wq = ca.SX.sym("a"), ca.SX.sym("omega"), ca.SX.sym("wq", nx * nx)
         xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
         W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
@@ -275,7 +275,7 @@ class _StageFunctions:
         self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [_backward(Lj, vj - Vj @ dn)])
         inv = _sym_solve(Dj, ca.SX.eye(nx))
         self.inverse = ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
-        self.nx, self.nu, self.ny = nx, nu, ny
+        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
         self._fused: dict[tuple, ca.Function] = {}
 
     def fused(self, newton: bool, damped: bool, bounds=None) -> ca.Function:
@@ -310,7 +310,7 @@ class _StageFunctions:
             f_prev = sym("free_prev", nx)
             carry.append(f_prev)
         x, xn, y, wy = sym("x", nx), sym("x_next", nx), sym("y", ny), sym("wy", ny * ny)
-        up, a, u, om = sym("up", nu), sym("a"), sym("u", nu), sym("omega")
+        up, a, u, om = sym("up", nu), sym("a"), sym("u", self.nw), sym("omega")
         wq = sym("wq", nx * nx)
         link, xbar, w0, a0 = sym("link"), sym("xbar", nx), sym("w0", nx * nx), sym("A0", nx * nx)
         lam = sym("lam")
@@ -592,7 +592,7 @@ class StructuredGaussNewton:
         # complete data: one measurement weight for every slot (passed once, shared)
         WY = part["wr"] if complete else ca.reshape(part["wy"], ny * ny, N)
         q = {"Y": ca.reshape(part["y"], ny, N), "WY": WY, "WQ": part["wq"],
-             "U": ca.reshape(part["u"], nu, N), "Up": ca.reshape(part["up"], nu, N),
+             "U": ca.reshape(part["u"], m.nw, N), "Up": ca.reshape(part["up"], nu, N),
              "xbar": part["xbar"], "W0": part["w0"], "A0": ca.vec(W0.T @ W0)}
         if self.full:  # constants that fold away
             q["a"], q["omega"] = full_record_constants(N)
@@ -845,7 +845,7 @@ class _Chunked:
     def __init__(self, gn: StructuredGaussNewton, chunk: int, jit: bool):
         self.gn, self.st = gn, gn._stages
         m, N = gn.model, gn.N
-        self.nx, self.nu, self.ny, self.N = m.nx, m.nu, m.ny, N
+        self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, m.nw, N
         self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
         # transitions 0..N-2 in chunks, for the backward pass and the rollout
         self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
@@ -865,7 +865,8 @@ class _Chunked:
         self.views = {"y": p[sl["y"]], "wy": p[sl["wy"]], "u": p[sl["u"]], "up": p[sl["up"]],
                       "xbar": p[sl["xbar"]], "w0": p[sl["w0"]], "wq": p[sl["wq"]],
                       "wr": p[sl["wr"]]}
-        self.sizes = {"x": nx, "xn": nx, "y": ny, "wy": ny * ny, "up": nu, "a": 1, "u": nu,
+        self.sizes = {"x": nx, "xn": nx, "y": ny, "wy": ny * ny, "up": nu, "a": 1,
+                      "u": self.nw,
                       "om": 1, "link": 1}
 
     # ---------------------------------------------------------------- building
@@ -942,11 +943,11 @@ class _Chunked:
 
     def _roll_chunk(self, L):
         def build():
-            nx, nu, sym = self.nx, self.nu, ca.SX.sym
+            nx, sym = self.nx, ca.SX.sym
             xp0 = sym("xp0", nx)
             xp = xp0
             x, d, xn, dn = (sym(k, nx, L) for k in ("x", "d", "xn", "dn"))
-            u, om, alpha = sym("u", nu, L), sym("om", 1, L), sym("alpha")
+            u, om, alpha = sym("u", self.nw, L), sym("om", 1, L), sym("alpha")
             cols = []
             for j in range(L):
                 xp = self.st.roll(xp, x[:, j], d[:, j], xn[:, j], dn[:, j], u[:, j], om[j],
@@ -990,7 +991,7 @@ class _Chunked:
         wy = v["wr"] if complete else v["wy"][lo * ny * ny:hi * ny * ny]
         return [self.gn._xbuf[lo * nx:hi * nx], self.xnext[lo * nx:hi * nx],
                 v["y"][lo * ny:hi * ny], wy, v["up"][lo * nu:hi * nu], self.a[lo:hi],
-                v["u"][lo * nu:hi * nu], self.om[lo:hi], self.link[lo:hi]]
+                v["u"][lo * self.nw:hi * self.nw], self.om[lo:hi], self.link[lo:hi]]
 
 
 class _ChunkedIteration:
@@ -1109,7 +1110,7 @@ class _ChunkedRoll:
         self.out = [np.zeros(ch.N * ch.nx)]
 
     def evaluate(self):
-        ch, nx, nu = self.ch, self.ch.nx, self.ch.nu
+        ch, nx, nu = self.ch, self.ch.nx, self.ch.nw
         gn = ch.gn
         ch.prepare()
         x, d, alpha = gn._xbuf, gn._dbuf, gn._abuf

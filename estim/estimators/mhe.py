@@ -153,7 +153,7 @@ class MHE(Estimator):
         """EKF covariance step at x: update with the measured rows, then predict."""
         m = self.model
         nx, nu, ny = m.nx, m.nu, m.ny
-        x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("u_prev", nu)
+        x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", m.nw), ca.SX.sym("u_prev", nu)
         mask = ca.SX.sym("mask", ny)
         P = ca.SX.sym("P", nx, nx)
         Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)  # the tuning is data
@@ -175,7 +175,7 @@ class MHE(Estimator):
         m, N = self.model, self.horizon
         self._W0 = None if self.P0 is None else weight_factor(self.P0)  # reset may change P0
         self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
-        self._U = np.zeros((N, m.nu))             # _U[j]: input from slot j to j+1
+        self._U = np.zeros((N, m.nw))             # _U[j]: input from slot j to j+1
         self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
         self._X = np.tile(self.x0, (N, 1))        # current/previous window solution
         self._n = 0                               # measurements in the window
@@ -250,7 +250,7 @@ class MHE(Estimator):
         m, N = self.model, self.horizon
         t0 = time.perf_counter()
         if not first:
-            self._U[N - 1] = u  # input from the newest slot to the one arriving now
+            self._U[N - 1] = self._transition(u)  # from the newest slot to the one arriving
             if self._n == N:
                 self._slide(u)
             else:  # window still growing: shift the data one slot left

@@ -238,7 +238,7 @@ class LeastSquaresNLP:
         self.ubx = np.tile(upper, N)
         self.bounded = bool(np.isfinite(self.lbx).any() or np.isfinite(self.ubx).any())
         # parameter layout
-        sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * nu, "up": N * nu,
+        sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * model.nw, "up": N * nu,
                  "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx, "wq": nx * nx,
                  "wr": ny * ny}
         self._slices, start = {}, 0
@@ -250,7 +250,7 @@ class LeastSquaresNLP:
         p = ca.SX.sym("p", self.np)
         part = {k: p[s] for k, s in self._slices.items()}
         Y = ca.reshape(part["y"], ny, N)
-        U = ca.reshape(part["u"], nu, N)
+        U = ca.reshape(part["u"], model.nw, N)  # transitions' inputs
         Up = ca.reshape(part["up"], nu, N)
         a = part["a"]
         xbar = part["xbar"]

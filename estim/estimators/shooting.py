@@ -225,7 +225,7 @@ class ShootingObserver(Estimator):
         p = ca.DM(m.p)
         steps = self._span
         x0 = ca.SX.sym("xi0", nx)
-        U = ca.SX.sym("U", nu, max(steps, 1))
+        U = ca.SX.sym("U", m.nw, max(steps, 1))  # the transitions' inputs
         Y = ca.SX.sym("Y", ny, w)
         Yd = ca.SX.sym("Yd", ny, w)
         W2 = ca.SX.sym("W2")
@@ -245,11 +245,14 @@ class ShootingObserver(Estimator):
         if self.direction == "backward":
             traj = traj[::-1]
         xs = traj[::n]
-        # the held input at each sample: the one that acted just before it
+        # the input at each sample: held, the one that acted just before it; sampled,
+        # the end of the transition into it (the start of the first for the first)
         def u_at(i):
             if nu == 0 or steps == 0:
                 return ca.SX.zeros(nu, 1)
             k = min(max(i * n - 1, 0), steps - 1)
+            if m.sampled:
+                return U[:nu, 0] if i * n == 0 else U[nu:, k]
             return U[:, k]
         yhat = ca.horzcat(*[m.H(xs[i], u_at(i), p) for i in range(w)])
         E = Y - yhat
@@ -273,7 +276,7 @@ class ShootingObserver(Estimator):
         self._sens = FastFunction(ca.Function("sens", [x0, U, WY], [sens]))
         self._traj = FastFunction(ca.Function("traj", [x0, U], [ca.horzcat(*traj)]))
         if self.method == "gradient":
-            self._build_sensitivity_gradient(sign, steps, U, Y, Ws, p, args)
+            self._build_sensitivity_gradient(sign, steps, U, Y, Ws, p, args, u_at)
         if self.method == "ipopt":
             nlp = {"x": x0, "p": ca.vertcat(*[ca.vec(a) for a in args[1:]]), "f": J}
             try:
@@ -289,13 +292,13 @@ class ShootingObserver(Estimator):
         m = self.model
         if not m.continuous:
             return m.F
-        x, u = ca.SX.sym("x", m.nx), ca.SX.sym("u", m.nu)
+        x, w = ca.SX.sym("x", m.nx), ca.SX.sym("w", m.nw)
         p = ca.SX.sym("p", m.p.size)
         step = rk4_step if m.integrator != "euler" else euler_step
-        xn = step(m.f_c, x, u, p, sign * m.dt, m.substeps)
-        return ca.Function("F_dir", [x, u, p], [xn])
+        xn = step(m.f_c, x, m.input_path(w, reverse=sign < 0), p, sign * m.dt, m.substeps)
+        return ca.Function("F_dir", [x, w, p], [xn])
 
-    def _build_sensitivity_gradient(self, sign, steps, U, Y, Ws, p, args) -> None:
+    def _build_sensitivity_gradient(self, sign, steps, U, Y, Ws, p, args, u_at) -> None:
         r"""Gradient of the output term by the forward sensitivity equations.
 
         The pair :math:`(\xi_1, \xi_2)` with :math:`\dot\xi_1 = f(\xi_1)`,
@@ -309,7 +312,7 @@ class ShootingObserver(Estimator):
         if self.direction != "forward":
             raise ValueError("method='gradient' is implemented for direction='forward'")
         xi = ca.SX.sym("xi", nx + nx * nx)
-        u = ca.SX.sym("u", m.nu)
+        u = ca.SX.sym("u", m.nw)
         pp = ca.SX.sym("p", m.p.size)
 
         if m.continuous:
@@ -324,7 +327,7 @@ class ShootingObserver(Estimator):
 
         if m.continuous:
             step = rk4_step if m.integrator != "euler" else euler_step
-            zn = step(aug, xi, u, pp, sign * m.dt, m.substeps)
+            zn = step(aug, xi, m.input_path(u), pp, sign * m.dt, m.substeps)
         else:  # discrete model: the sensitivity map is the Jacobian of F
             x1 = xi[:nx]
             X2 = ca.reshape(xi[nx:], nx, nx)
@@ -339,8 +342,7 @@ class ShootingObserver(Estimator):
                 zs.append(z)
         grad = ca.SX.zeros(nx, 1)
         for i in range(w):
-            k = min(max(i * n - 1, 0), steps - 1) if steps else 0
-            ui = U[:, k] if (m.nu and steps) else ca.SX.zeros(m.nu, 1)
+            ui = u_at(i)
             xi_i = zs[i][:nx]
             Phi = ca.reshape(zs[i][nx:], nx, nx)
             e = Y[:, i] - m.H(xi_i, ui, p)
@@ -362,8 +364,9 @@ class ShootingObserver(Estimator):
         t0 = time.perf_counter()
         failure = None
         if not first:
-            self._us.append(u.copy())
-            x = self._F(self._x, u, self.model.p)[0]  # open-loop propagation
+            w = self._transition(u)
+            self._us.append(w.copy())
+            x = self._F(self._x, w, self.model.p)[0]  # open-loop propagation
             if np.isfinite(x).all():
                 self._x = x.copy()
             else:  # re-anchor on the last estimate, projected on the bounds
@@ -408,10 +411,10 @@ class ShootingObserver(Estimator):
                 Yd[:, c] = derivative_filter(ys[lo:j + 1], self.model.dt)
             else:
                 Yd[:, c] = np.nan
-        us = np.array(self._us).reshape(len(self._us), self.model.nu)
-        U = us[len(us) - span:].T if span else np.zeros((self.model.nu, 1))
+        us = np.array(self._us).reshape(len(self._us), self.model.nw)
+        U = us[len(us) - span:].T if span else np.zeros((self.model.nw, 1))
         if U.shape[1] == 0:
-            U = np.zeros((self.model.nu, 1))
+            U = np.zeros((self.model.nw, 1))
         return Y, Yd, U, WY
 
     def _optimise(self, t0):

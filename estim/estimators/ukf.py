@@ -95,7 +95,8 @@ class UKF(Estimator):
             ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
             error = None
         else:
-            error = self._guard(lambda: ukf.predict(u=u), "prediction F(x, u)")
+            w = self._transition(u)
+            error = self._guard(lambda: ukf.predict(u=w), "prediction F(x, u)")
         if error is None:
             prediction = (ukf.x.copy(), ukf.P.copy())
             update_error = self._update(y, u)
