@@ -19,11 +19,12 @@ from estim.estimators import (
     ShootingObserver,
     StepInfo,
 )
+from estim.estimators.base import EstimationWarning
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
 from estim.scenarios import Record, Scenario
-from estim.simulate import EstimationWarning, replay, simulate
+from estim.simulate import replay, simulate
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",

@@ -274,7 +274,8 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
         The trajectory: an estimate, a fit's starting guess, or the truth.
     U : (T, nu) or (T-1, nu) array, optional
         ``U[k]`` acts from sample k to k+1 and is the held input when ``y_{k+1}`` is
-        taken (the convention of ``FullInformation.fit``). Zero if omitted.
+        taken (the convention of ``FullInformation.fit``); for a model with
+        ``hold="foh"``, ``(T, nu)``: the input at each sample. Zero if omitted.
     names : sequence of str, optional
         The parameters to check (default: all of ``model.augmented``).
 
@@ -297,7 +298,7 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
         U = _numeric_array(U, "U")
         if U.ndim == 1 and model.nu == 1:
             U = U[:, None]
-        if U.shape == (T - 1, model.nu):
+        if U.shape == (T - 1, model.nu) and not model.sampled:
             U = np.vstack([U, np.zeros((1, model.nu))])
         if U.shape != (T, model.nu):
             raise ValueError(f"U must have shape ({T - 1}, {model.nu}) or ({T}, {model.nu}), "
@@ -306,7 +307,10 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
             raise ValueError("U must be finite")
     if not names:
         return []
-    U_prev = np.vstack([np.zeros((1, model.nu)), U[:-1]])
+    if model.sampled:  # inputs at the samples; transitions from each to the next
+        U_prev, U = U, np.hstack([U, np.vstack([U[1:], U[-1:]])])
+    else:
+        U_prev = np.vstack([np.zeros((1, model.nu)), U[:-1]])
     cols = [model.state_names.index(n) for n in names]
     rows = [i for i, n in enumerate(model.state_names) if n not in model.augmented]
     moves = _any_nonzero(model.H_x, X, U_prev, model.p, list(range(model.ny)), cols)

@@ -39,21 +39,13 @@ from estim._validate import (
     as_vector,
     check_keywords,
 )
-from estim.estimators.base import Estimator
+from estim.estimators.base import EstimationWarning, Estimator
 from estim.log import Log
 from estim.model import Model
 from estim.scenarios import Scenario, check_plant_changes
 
 #: :func:`simulate` and :func:`replay` warn when more than this fraction of the steps failed.
 FAILED_FRACTION = 0.02
-
-
-class EstimationWarning(UserWarning):
-    """Many steps of a run failed (the estimates are mostly predictions or re-anchors).
-
-    Silence it with ``warnings.simplefilter("ignore", estim.EstimationWarning)``, or pass
-    ``warn=False`` to :func:`simulate` / :func:`replay`.
-    """
 
 
 def _sqrt_psd(M: np.ndarray) -> np.ndarray:

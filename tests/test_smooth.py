@@ -510,11 +510,46 @@ def test_fit_with_a_threshold_inside_if_else():
     got = {}
     for switch in ("if_else", "step"):
         aug = _tank(switch, width=0.02).augment("h_crit", lower=0.1)
-        fie = estim.FullInformation(aug, Q=[1e-6, 1e-6, 1e-10], R=1e-4)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            got[switch] = fie.fit(Y, U, guess=guess).x[0, 2]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fie = estim.FullInformation(aug, Q=[1e-6, 1e-6, 1e-10], R=1e-4)
+            res = fie.fit(Y, U, guess=guess)
+        got[switch] = res.x[0, 2]
+        texts = [str(w.message) for w in caught if w.category is estim.EstimationWarning]
         expected = ["h_crit"] if switch == "if_else" else []
         assert zero_derivative_parameters(aug, guess, U) == expected
+        if switch == "if_else":
+            # at construction: the switch; after the fit: the parameter that never moved
+            assert len(texts) == 2 and texts[0].startswith("FullInformation on if_else:")
+            assert "estim.smooth.step(s, width)" in texts[0]
+            assert texts[1].startswith("FullInformation.fit on if_else:") and "h_crit" in texts[1]
+            assert res.status == ("inexact: h_crit has a zero derivative over the record "
+                                  "and kept the initial value")
+        else:
+            assert texts == [] and res.status == "ok"
     assert got["if_else"] == 1.2
     assert abs(got["step"] - 1.0) < 0.02
+
+
+@pytest.mark.parametrize("make", ["MHE", "FullInformation", "ShootingObserver"])
+def test_optimisation_estimators_warn_at_construction(make):
+    """The warning points at the user's line, names the switch and the smooth form."""
+    kwargs = {"MHE": dict(horizon=5, Q=1e-4, R=1e-4, x0=[1.0, 1.0], P0=1.0),
+              "FullInformation": dict(Q=1e-4, R=1e-4),
+              "ShootingObserver": dict(window=5, every=1, R=1e-4, x0=[1.0, 1.0])}[make]
+    with pytest.warns(estim.EstimationWarning,
+                      match=f"(?s)^{make} on fmin: .*fmin in the dynamics") as caught:
+        getattr(estim, make)(_tank("fmin"), **kwargs)
+    assert caught[0].filename == __file__
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        getattr(estim, make)(_tank("min"), **kwargs)   # the smooth rewrite is silent
+
+
+@pytest.mark.parametrize("name", ["lorenz", "van_der_pol", "batch_reactor",
+                                  "runaway", "satellite"])
+def test_library_models_raise_no_warning(name):
+    model = getattr(estim.models, name)()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        estim.FullInformation(model, Q=np.eye(model.nx) * 1e-3, R=np.eye(model.ny) * 1e-2)

@@ -46,12 +46,14 @@ A returned estimate is always finite.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
 from scipy.special import chdtri
 
+from estim._smoothness import advice, nonsmooth_operations
 from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
 from estim.model import Model
 
@@ -105,6 +107,16 @@ class StepInfo:
 
 _DEFAULTS = {f: getattr(StepInfo, f) for f in ("status", "success", "iterations", "solve_time",
                                                "P", "cost", "innovation", "nis")}
+
+class EstimationWarning(UserWarning):
+    """Something a user should know about a run or a model: many steps of a run failed
+    (the estimates are then mostly predictions or re-anchors), or the model has
+    switches that stall a gradient-based estimator.
+
+    Silence it with ``warnings.simplefilter("ignore", estim.EstimationWarning)``, or pass
+    ``warn=False`` to :func:`~estim.simulate` / :func:`~estim.replay`.
+    """
+
 
 #: A step whose normalised innovation squared (filters) or weighted least-squares cost
 #: (MHE, full information) lies beyond this tail probability of its chi-square
@@ -291,6 +303,14 @@ class Estimator:
             return consistency_status(nis, dof)
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
                 f"kept the prediction with P + P0")
+
+    def _warn_if_not_smooth(self) -> None:
+        """Warn (at construction) when the model has switches (``fmin``, ``if_else``,
+        ...) in what an optimisation-based estimator differentiates."""
+        text = advice(nonsmooth_operations(self.model))
+        if text:
+            warnings.warn(f"{type(self).__name__} on {self.model.name}: {text}",
+                          EstimationWarning, stacklevel=4)  # here, __init__, its check, caller
 
     def _anchor(self, x: np.ndarray, P: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray | None]:

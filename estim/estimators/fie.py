@@ -3,14 +3,16 @@ r"""Full-information estimation: the least-squares trajectory over a whole recor
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction
+from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_choice, as_record
-from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.base import EstimationWarning, Estimator, StepInfo, consistency_status
 from estim.estimators.nlp import (
     SOLVERS,
     LeastSquaresNLP,
@@ -180,6 +182,7 @@ class FullInformation(Estimator):
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._tuning_changed()
         self._reset()
+        self._warn_if_not_smooth()
 
     def _check_tuning(self, new: dict) -> None:
         if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:
@@ -275,7 +278,21 @@ class FullInformation(Estimator):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
             if not np.isfinite(X0).all():
                 raise ValueError("guess must be finite")
-        return self._solve(Y, U, Uprev, X0, T, full=True, weights=weights)[0]
+        res = self._solve(Y, U, Uprev, X0, T, full=True, weights=weights)[0]
+        frozen = zero_derivative_parameters(self.model, res.x, self._record_inputs(U, Uprev)) \
+            if self.model.augmented and res.success else []
+        if frozen:  # they kept their initial values: not an optimum in them
+            warnings.warn(f"FullInformation.fit on {self.model.name}: "
+                          f"{advice(nonsmooth_operations(self.model), frozen)}",
+                          EstimationWarning, stacklevel=3)
+            res = replace(res, success=True, status=f"inexact: {', '.join(frozen)} "
+                          f"{'has' if len(frozen) == 1 else 'have'} a zero derivative over "
+                          f"the record and kept the initial value")
+        return res
+
+    def _record_inputs(self, U, Uprev):
+        """The inputs of a record as :func:`zero_derivative_parameters` takes them."""
+        return U[:, :self.model.nu] if self.model.sampled else U
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
                robust: bool = False, weights=None) -> tuple[FitResult, bool]:

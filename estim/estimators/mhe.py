@@ -137,6 +137,7 @@ class MHE(Estimator):
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._tuning_changed()
         self._reset()
+        self._warn_if_not_smooth()
 
     def _check_tuning(self, new: dict) -> None:
         if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:

@@ -210,6 +210,7 @@ class ShootingObserver(Estimator):
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._build()
         self._reset()
+        self._warn_if_not_smooth()
 
     def _tuning_changed(self) -> None:
         """The output weights of the windows (``R`` is data: the graphs take them per
