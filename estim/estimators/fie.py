@@ -12,7 +12,7 @@ import numpy as np
 from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_choice, as_record
-from estim.estimators.base import EstimationWarning, Estimator, StepInfo, consistency_status
+from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.nlp import (
     SOLVERS,
     LeastSquaresNLP,
@@ -20,6 +20,7 @@ from estim.estimators.nlp import (
     is_diagonal,
     weight_factor,
 )
+from estim.estimators.robust import as_loss
 from estim.model import Model
 
 
@@ -63,7 +64,8 @@ class FitResult:
         Output residuals :math:`y_k - h(\\hat x_k)` (NaN where not measured);
         computed on first access.
     cost : float
-        Optimal cost (sum of weighted squares).
+        Optimal cost (sum of weighted squares; with a robust ``loss``, its measurement
+        part is the sum of the loss over the whitened components).
     iterations : int
     status : str
         ``"ok"`` or the solver's reason for stopping.
@@ -75,7 +77,12 @@ class FitResult:
         record length builds them; later ones reuse them).
     P_last : (nx, nx) array or None
         Laplace covariance of the last state (the Kalman filter's covariance on
-        a linear-Gaussian model with a prior); computed on first access.
+        a linear-Gaussian model with a prior); computed on first access. With a
+        robust loss, that of the final reweighted problem.
+    measurement_weights : (T, ny) array or None
+        With a robust ``loss``: the final weight of each whitened measurement
+        component, in (0, 1] (1: treated as Gaussian; small: an outlier). None for
+        least squares.
     _residuals, _covariance : callable or None
         Internal: compute ``(w, v)`` and ``P_last`` when first read.
     """
@@ -87,6 +94,7 @@ class FitResult:
     success: bool
     solve_time: float
     build_time: float = 0.0
+    measurement_weights: np.ndarray | None = None
     _residuals: object = field(default=None, repr=False, compare=False)
     _covariance: object = field(default=None, repr=False, compare=False)
 
@@ -149,6 +157,10 @@ class FullInformation(Estimator):
     solver : {"gauss-newton", "ipopt", "sqp", "fatrop"}
     solver_options : dict, optional
         As for :class:`~estim.MHE`.
+    loss, f_scale : optional
+        A robust measurement cost (``"huber"``, ``"soft_l1"``, ``"cauchy"``) and
+        its scale, as for :class:`~estim.MHE`; the fit then reports the final
+        weight of every measured value in ``FitResult.measurement_weights``.
 
     References
     ----------
@@ -162,8 +174,10 @@ class FullInformation(Estimator):
     _requires_P0 = False
 
     def __init__(self, model: Model, *, Q, R, x0=None, P0=None, lower=None, upper=None,
-                 solver: str = "gauss-newton", solver_options: dict | None = None):
+                 solver: str = "gauss-newton", solver_options: dict | None = None,
+                 loss: str = "squared", f_scale: float | None = None):
         solver = as_choice(solver, SOLVERS, "solver")
+        self._loss = as_loss(loss, f_scale)
         solver_options = check_solver_options(solver, solver_options)
         self._prior = x0 is not None and P0 is not None
         self._x0_given = x0 is not None
@@ -210,7 +224,8 @@ class FullInformation(Estimator):
         if (N, full) not in self._nlps:
             self._nlps[N, full] = LeastSquaresNLP(
                 self.model, N, self.lower, self.upper, self.solver, self.solver_options,
-                diagonal_Q=self._diagonal["Q"], diagonal_R=self._diagonal["R"], full=full)
+                diagonal_Q=self._diagonal["Q"], diagonal_R=self._diagonal["R"], full=full,
+                loss=self._loss)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
@@ -295,7 +310,8 @@ class FullInformation(Estimator):
         return U[:, :self.model.nu] if self.model.sampled else U
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
-               robust: bool = False, weights=None) -> tuple[FitResult, bool]:
+               robust: bool = False, weights=None, solution: bool = False
+               ) -> tuple[FitResult, bool]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
@@ -305,7 +321,8 @@ class FullInformation(Estimator):
         ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver;
         ``weights``: ``(W_Q, W_R, R)`` (default the estimator's).
         Returns the result and whether its trajectory is usable (see
-        :class:`~estim.estimators.nlp.Solution`).
+        :class:`~estim.estimators.nlp.Solution`), and with ``solution`` the solver's
+        :class:`~estim.estimators.nlp.Solution` too.
         """
         m, T, C = self.model, Y.shape[0], capacity
         pad = C - T
@@ -320,7 +337,8 @@ class FullInformation(Estimator):
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
         WQ, WR, R = (self._WQ, self._WR, self.R) if weights is None else weights
         sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
-        return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol.usable
+        res = self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad)
+        return (res, sol.usable, sol) if solution else (res, sol.usable)
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
         m, Xfull = self.model, sol.X
@@ -342,6 +360,8 @@ class FullInformation(Estimator):
         return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
                          success=sol.success, solve_time=sol.solve_time,
                          build_time=sol.build_time,
+                         measurement_weights=None if nlp.loss is None or nlp.weights is None
+                         else nlp.weights[pad:].copy(),
                          _residuals=residuals, _covariance=cov)
 
     # ------------------------------------------------------------ recursive
@@ -358,10 +378,10 @@ class FullInformation(Estimator):
         # where a failed step re-anchors
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
 
-    def _solve_record(self, robust: bool = False) -> tuple[FitResult, bool, int]:
+    def _solve_record(self, robust: bool = False) -> tuple[FitResult, bool, str]:
         """Solve the record held so far, warm-started from the previous trajectory plus
         the prediction of its last state; the result, whether it is usable, and the
-        chi-square degrees of freedom of its cost."""
+        consistency of its cost (``"ok"`` or ``"suspect: ..."``)."""
         m, T = self.model, len(self._Ys)
         Y = np.array(self._Ys)
         U = np.vstack([np.array(self._Ws).reshape(T - 1, m.nw), np.zeros((1, m.nw))])
@@ -372,10 +392,11 @@ class FullInformation(Estimator):
             pred = self._F(self._X[-1], U[-2], m.p)[0]
             guess = np.vstack([self._X, pred if np.isfinite(pred).all() else self._X[-1]])
         capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
-        res, usable = self._solve(Y, U, Uprev, guess, capacity, prior=self._start,
-                                  robust=robust)
-        dof = int(np.isfinite(Y).sum()) + (0 if self._start[1] is None else m.nx)
-        return res, usable, dof
+        res, usable, sol = self._solve(Y, U, Uprev, guess, capacity, prior=self._start,
+                                       robust=robust, solution=True)
+        measured = int(np.isfinite(Y).sum())
+        dof = measured + (0 if self._start[1] is None else m.nx)
+        return res, usable, sol.consistency(dof, measured)
 
     def _step(self, y, u, first):
         t0 = time.perf_counter()
@@ -383,8 +404,7 @@ class FullInformation(Estimator):
             self._Ws.append(self._transition(u).copy())
         self._Us.append(u.copy())
         self._Ys.append(y.copy())
-        res, usable, dof = self._solve_record()
-        check = consistency_status(res.cost, dof, "cost")
+        res, usable, check = self._solve_record()
         failure = None
         if not usable or (not res.success and check != "ok"):
             # restart the record at this sample, the last trusted estimate its prior
@@ -393,8 +413,7 @@ class FullInformation(Estimator):
             self._Ys, self._Ws, self._Us = [y.copy()], [], [u.copy()]
             self._start = (x, None if P is None else weight_factor(P))
             self._X = None
-            res, usable, dof = self._solve_record(robust=True)
-            check = consistency_status(res.cost, dof, "cost")
+            res, usable, check = self._solve_record(robust=True)
         x_hat = res.x[-1].copy() if usable else self._start[0].copy()
         self._X = res.x if usable else np.repeat(self._start[0][None, :], len(self._Ys), 0)
         P = res.P_last if usable else None

@@ -616,7 +616,7 @@ class StructuredGaussNewton:
         return cost
 
     # ------------------------------------------------------------------ solve
-    def solve(self, X0: np.ndarray, p: np.ndarray, complete: bool = False):
+    def solve(self, X0: np.ndarray, p: np.ndarray, complete: bool = False, reweight=None):
         r"""Minimise from ``X0`` (N, nx).
 
         Gauss-Newton iterations first (cheap: no second derivatives). When
@@ -645,13 +645,29 @@ class StructuredGaussNewton:
         construction (``p`` carries the same values); constant-weight graphs
         are used.
 
+        ``reweight(x)``: called at the start and at every accepted point; it may
+        change the measurement weights in :attr:`_pbuf` (a robust loss's
+        iteratively reweighted least squares, see :mod:`estim.estimators.robust`).
+        Each step then decreases the cost of the weights of its starting point,
+        and a negligible step is a stationary point of the robust cost (only the
+        step test then stops the iterations).
+
         Returns ``(x, success, status, iterations, cost, seconds)``, ``x`` flat.
         """
+        # far from the data the iterates may overflow: the line search rejects such
+        # points (inf and NaN fail its test) without a numpy warning
+        with np.errstate(over="ignore", invalid="ignore"):
+            return self._minimise(X0, p, complete, reweight)
+
+    def _minimise(self, X0, p, complete, reweight):
+        """:meth:`solve`'s iterations."""
         t0, b0 = time.perf_counter(), self.build_seconds
         proj, bounded, xtol = self._project, self._bounded, self.xtol
         x = proj(np.array(X0, dtype=float).ravel())
         self._complete = bool(complete)
-        self._pbuf[:] = p  # fixed for the whole solve: written once
+        self._pbuf[:] = p  # fixed for the whole solve (but for reweight): written once
+        if reweight is not None:
+            reweight(x)
         lam, newton, last_step, last_full, last_alpha = 0.0, self.newton, np.inf, np.inf, 0.0
         self._prefer_roll = False
         # two output buffers: the current point's, and the one a trial point writes
@@ -683,7 +699,10 @@ class StructuredGaussNewton:
             rest = min(size, rho * size / (1.0 - rho) if rho < 1.0 else np.inf)
             if rest <= xtol * (1.0 + xmax):
                 xmax = np.abs(x).max()
-            if rest <= xtol * (1.0 + xmax) or 0.0 <= decrease <= 1e-13 * abs(f):
+            # (reweighted: a small decrease of this iteration's weighted cost is no
+            # proof, IRLS converges linearly in directions the weights flatten)
+            if rest <= xtol * (1.0 + xmax) or (
+                    0.0 <= decrease <= 1e-13 * abs(f) and reweight is None):
                 status = "ok"
                 xn = x + move
                 self._xbuf[:] = xn
@@ -723,6 +742,9 @@ class StructuredGaussNewton:
                 evaluated, pair = None, self._iteration(newton, lam)
             if switch:
                 newton, evaluated, pair = True, None, self._iteration(True, lam)
+            if reweight is not None:  # new weights at the new point: evaluated afresh
+                reweight(x)
+                evaluated = None
             slot = 1 - slot  # the trial's buffer, or a new evaluation there
             f, g, dirs = evaluated if evaluated is not None else \
                 self._evaluate(pair[slot], x, lam)

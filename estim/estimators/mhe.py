@@ -9,7 +9,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_int
-from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.nlp import (
     SOLVERS,
     LeastSquaresNLP,
@@ -17,6 +17,7 @@ from estim.estimators.nlp import (
     is_diagonal,
     weight_factor,
 )
+from estim.estimators.robust import as_loss
 from estim.model import Model
 
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
@@ -91,6 +92,18 @@ class MHE(Estimator):
         compiler) and ``mode`` (``"unrolled"``: one expanded graph,
         ``"mapped"``: expanded chunks of slots called in a loop, or
         ``"auto"``: unrolled up to 4096 slots).
+    loss : {"squared", "huber", "soft_l1", "cauchy"}
+        The measurement cost. ``"squared"``: least squares, as above. The robust
+        losses replace :math:`\|y_k - h(x_k)\|^2_{R^{-1}}` by
+        :math:`\sum_i \rho(r_{k,i})` over the whitened residual components
+        :math:`r_k = W_R (y_k - h(x_k))` (:math:`W_R^\top W_R = R^{-1}`), so a few
+        gross outliers no longer pull the estimate; minimised by iteratively
+        reweighted least squares, inside the Gauss-Newton iterations (or by
+        reweighted solves for the NLP solvers). See :mod:`estim.estimators.robust`.
+    f_scale : float, optional
+        Where a robust loss leaves the quadratic, in standard deviations (default:
+        1.345 for huber and soft_l1, 2.385 for cauchy: 95 % efficiency on Gaussian
+        noise), as ``scipy.optimize.least_squares``'s.
 
     Attributes
     ----------
@@ -101,7 +114,11 @@ class MHE(Estimator):
         on a linear-Gaussian model with the filtering arrival cost; None where
         the window does not determine the state) and ``extra`` with
         ``window`` (the estimated trajectory, (n, nx)), ``arrival_mean`` and
-        ``arrival_covariance``.
+        ``arrival_covariance``; with a robust loss also ``measurement_weights``
+        ((n, ny): 1 for a value treated as Gaussian, small for an outlier) and
+        ``outliers`` (the number of measured values in the window beyond 6.1
+        standard deviations; they are left out of the ``"suspect"`` test unless
+        they are half the window's values or more).
 
     References
     ----------
@@ -115,8 +132,10 @@ class MHE(Estimator):
 
     def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
                  arrival_cost: str = "filtering", lower=None, upper=None,
-                 solver: str = "ipopt", solver_options: dict | None = None):
+                 solver: str = "ipopt", solver_options: dict | None = None,
+                 loss: str = "squared", f_scale: float | None = None):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
+        self._loss = as_loss(loss, f_scale)
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         horizon = as_int(horizon, "horizon", minimum=1)
@@ -132,7 +151,7 @@ class MHE(Estimator):
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlp = LeastSquaresNLP(model, self.horizon, self.lower, self.upper, solver,
                                     solver_options or {}, diagonal_Q=self._diagonal["Q"],
-                                    diagonal_R=self._diagonal["R"])
+                                    diagonal_R=self._diagonal["R"], loss=self._loss)
         self._cov_step = FastFunction(self._build_cov_step())
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._tuning_changed()
@@ -231,6 +250,10 @@ class MHE(Estimator):
                               weight, self._WQ, self._WR, self.R, robust=robust)
         return sol, self._nlp.degrees_of_freedom(self._Y, self._n, weight is not None)
 
+    def _measured(self) -> int:
+        """The number of measured values in the window."""
+        return int(np.isfinite(self._Y[self.horizon - self._n:]).sum())
+
     def _reanchor(self, y, u) -> None:
         """Restart the window after a failed solve: only this measurement, the arrival
         cost on the last trusted estimate with its covariance inflated by ``P0``."""
@@ -265,7 +288,7 @@ class MHE(Estimator):
         self._n += 1
         self._X[:N - self._n] = self._X[N - self._n]
         sol, dof = self._solve()
-        check = consistency_status(sol.cost, dof, "cost")
+        check = sol.consistency(dof, self._measured())
         failure = None
         # an unusable solve, or an early stop whose cost the data do not support: restart
         # from the last trusted estimate with this measurement
@@ -273,7 +296,7 @@ class MHE(Estimator):
             failure = sol.status if not sol.usable else f"{sol.status} at cost {sol.cost:.3g}"
             self._reanchor(y, u)
             sol, dof = self._solve(robust=True)
-            check = consistency_status(sol.cost, dof, "cost")
+            check = sol.consistency(dof, self._measured())
         s0 = N - self._n
         if sol.usable:
             self._X[:] = sol.X
@@ -296,4 +319,7 @@ class MHE(Estimator):
             solve_time=elapsed, P=P, cost=sol.cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
-                   "solver_time": sol.solve_time})
+                   "solver_time": sol.solve_time,
+                   **({} if self._loss is None or self._nlp.weights is None else
+                      {"measurement_weights": self._nlp.weights[s0:].copy(),
+                       "outliers": sol.outliers})})

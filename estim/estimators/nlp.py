@@ -30,13 +30,25 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+from scipy.special import chdtri
 
+from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
-from estim.estimators.base import chi2_limit
+from estim.estimators.base import SUSPECT_TAIL, chi2_limit, consistency_status
 from estim.estimators.gauss_newton import StructuredGaussNewton, full_record_constants
+from estim.estimators.robust import RobustLoss
 from estim.model import Model
 
 SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
+
+#: A robust fit's reweighted solves stop when no weight moves by more than
+#: ``IRLS_WTOL`` between two of them, or after ``IRLS_MAX`` solves.
+IRLS_WTOL = 1e-6
+IRLS_MAX = 100
+#: A whitened measurement component beyond this many standard deviations is an
+#: outlier for a robust loss: a Gaussian one goes beyond it with the probability
+#: ``SUSPECT_TAIL`` of the consistency test (6.1 at 1e-9).
+OUTLIER_SIGMA = float(np.sqrt(chdtri(1, SUSPECT_TAIL)))
 
 _IPOPT_DEFAULTS = {
     "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
@@ -189,9 +201,26 @@ class Solution:
     solve_time: float
     usable: bool = False
     build_time: float = 0.0
+    outliers: int = 0  # robust loss: measurement components beyond OUTLIER_SIGMA
+    outlier_cost: float = 0.0  # and their share of the cost
 
     def __post_init__(self):
         self.usable = self.usable or self.success
+
+    def consistency(self, dof: int, measured: int) -> str:
+        """:func:`~estim.estimators.base.consistency_status` of the cost with ``dof``
+        degrees of freedom, ``measured`` of them measurements. With a robust loss
+        the outliers are left out of the test (their number is reported
+        elsewhere), unless they are half the measurements or more: then the
+        estimate, not the data, is the likelier culprit (the breakdown point of a
+        robust fit)."""
+        if not self.outliers:
+            return consistency_status(self.cost, dof, "cost")
+        if 2 * self.outliers >= measured:
+            return (f"suspect: {self.outliers} of {measured} measured values beyond "
+                    f"{OUTLIER_SIGMA:.1f} standard deviations")
+        return consistency_status(self.cost - self.outlier_cost, dof - self.outliers,
+                                  "cost without the outliers")
 
 
 def _merge(defaults: dict, user: dict) -> dict:
@@ -225,11 +254,14 @@ class LeastSquaresNLP:
     full : bool
         Solved only with every slot holding data (``n == N``); the
         Gauss-Newton graph then treats the window bookkeeping as constants.
+    loss : RobustLoss, optional
+        A robust measurement cost, minimised by reweighted solves (see
+        :mod:`estim.estimators.robust`); least squares if omitted.
     """
 
     def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
                  solver: str, options: dict, diagonal_Q: bool = False,
-                 diagonal_R: bool = False, full: bool = False):
+                 diagonal_R: bool = False, full: bool = False, loss: RobustLoss | None = None):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -273,6 +305,10 @@ class LeastSquaresNLP:
                                         diagonal_Q=diagonal_Q, diagonal_R=diagonal_R,
                                         full=full, **gn_opts)
         self._wy_complete = None  # (W_R, its weights tiled over the slots)
+        self.loss = loss
+        self._whitened = None  # the measurement residuals, built on first use
+        #: (N, ny): the robust loss's weights of the last solve's measurements
+        self.weights: np.ndarray | None = None
         self._complete = False  # the last parameters: every slot holds every output
         if solver == "gauss-newton":
             self.reset()
@@ -426,10 +462,106 @@ class LeastSquaresNLP:
 
         ``robust``: with the structured Gauss-Newton solver whatever the solver chosen
         (a descent method from any finite start: the estimators' recovery solves).
+        With a robust ``loss``, the weighted problems of
+        :mod:`estim.estimators.robust` are solved until the weights settle; the
+        solution's ``weights`` are the final ones.
         """
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WQ, WR, R)
+        if self.loss is None:
+            return self._solve(X0, p, Y, n, W0 is not None, robust)
+        return self._solve_reweighted(X0, p, Y, n, W0 is not None, robust)
+
+    def _residuals(self, X: np.ndarray, p: np.ndarray, wy: np.ndarray) -> np.ndarray:
+        """Whitened measurement residuals :math:`W_{y,j}(y_j - h(x_j))`, (N, ny), for
+        the data in ``p`` and the weights ``wy`` (laid out as ``p``'s; zero rows where
+        not measured)."""
+        if self._whitened is None:
+            m, s = self.model, self._slices
+            x, y = ca.SX.sym("x", m.nx), ca.SX.sym("y", m.ny)
+            w, up = ca.SX.sym("wy", m.ny * m.ny), ca.SX.sym("up", m.nu)
+            e = y - m.H(x, up, ca.DM(m.p))
+            one = ca.Function("whitened", [x, y, w, up], [ca.reshape(w, m.ny, m.ny) @ e])
+            fun = FastFunction(one.map(self.N))
+            self._whitened = (fun, s["y"], s["up"])
+        fun, sy, sup = self._whitened
+        with np.errstate(invalid="ignore", over="ignore"):
+            r = fun(np.asarray(X, float).ravel(), p[sy], wy, p[sup])[0]
+        return r.reshape(self.N, self.model.ny)
+
+    def _solve_reweighted(self, X0, p, Y, n, arrival, robust) -> Solution:
+        """Iteratively reweighted least squares for the robust loss (see
+        :mod:`estim.estimators.robust`), from weights at ``X0``.
+
+        Gauss-Newton (and every ``robust`` solve): new weights at every accepted
+        iterate, inside the solver. The NLP solvers: a weighted solve, new weights at
+        its solution, until no weight moves by more than ``IRLS_WTOL`` (at most
+        ``IRLS_MAX`` solves)."""
+        loss, s, ny = self.loss, self._slices, self.model.ny
+        self._complete = False  # the weights differ between slots
+        base = p[s["wy"]].copy()
+
+        def weights(x):
+            r = self._residuals(x, p, base)
+            w = loss.weight(r)
+            return np.where(np.isfinite(w), w, 1.0)  # a non-finite residual stays so
+
+        def scaled(w):
+            return base * np.repeat(np.sqrt(w), ny, axis=0).ravel()
+
+        if self.solver_name == "gauss-newton" or robust:
+            used = []
+
+            def reweight(x):
+                used[:] = [weights(x)]
+                self.gn._pbuf[s["wy"]] = scaled(used[0])
+
+            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, False, reweight)
+            p[s["wy"]] = self.gn._pbuf[s["wy"]]  # the final weights (covariance)
+            sol = Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
+                           elapsed, bool(np.isfinite(cost) and np.isfinite(x).all()),
+                           self.gn.last_build)
+            return self._robust_summary(sol, p, base, used[0])
+        X = np.clip(np.asarray(X0, float).reshape(self.N, -1), self.lbx.reshape(self.N, -1),
+                    self.ubx.reshape(self.N, -1))
+        w = weights(X)
+        iters, elapsed, build, status = 0, 0.0, 0.0, None
+        for solves in range(1, IRLS_MAX + 1):
+            p[s["wy"]] = scaled(w)
+            sol = self._solve(X, p, Y, n, arrival, robust, same_window=solves > 1)
+            iters, elapsed = iters + sol.iterations, elapsed + sol.solve_time
+            build += sol.build_time
+            if not sol.usable:
+                return Solution(sol.X, False, sol.status, iters, sol.cost, elapsed, False,
+                                build)
+            X, w_used, w = sol.X, w, weights(sol.X)
+            if not sol.success:
+                status = sol.status
+                break
+            if np.max(np.abs(w - w_used), initial=0.0) <= IRLS_WTOL:
+                break
+        else:
+            status = f"robust weights not settled after {IRLS_MAX} reweighted solves"
+        sol = Solution(X, status is None, status or "ok", iters, sol.cost, elapsed, True, build)
+        return self._robust_summary(sol, p, base, w_used)
+
+    def _robust_summary(self, sol: Solution, p, base, w_used) -> Solution:
+        """The robust cost of a reweighted solve (its weighted cost, computed with the
+        weights ``w_used``, with the measurement part replaced by the loss), and its
+        outliers: the components beyond ``OUTLIER_SIGMA`` standard deviations."""
+        r = self._residuals(sol.X, p, base)
+        rho = self.loss.rho(r)
+        sol.cost = float(sol.cost - np.sum(w_used * r * r) + np.sum(rho))
+        far = np.abs(r) > OUTLIER_SIGMA
+        sol.outliers, sol.outlier_cost = int(far.sum()), float(rho[far].sum())
+        self.weights = self.loss.weight(r)
+        return sol
+
+    def _solve(self, X0, p, Y, n, arrival: bool, robust: bool, same_window: bool = False
+               ) -> Solution:
+        """One solve for the parameters ``p`` (``same_window``: a re-solve of the
+        window of the previous solve: its multipliers are not shifted)."""
         if self.solver_name != "gauss-newton" and not robust:
             x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
         if self.solver_name == "fatrop" and not robust:
@@ -438,7 +570,7 @@ class LeastSquaresNLP:
             # such windows, whose cost is beyond the chi-square limit of the suspect
             # test, go to the Gauss-Newton solver
             robust = not self.gn.cost(x0, p, self._complete) <= chi2_limit(
-                self.degrees_of_freedom(Y, n, W0 is not None))
+                self.degrees_of_freedom(Y, n, arrival))
         if self.solver_name == "gauss-newton" or robust:
             x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
             # the iterations only ever decrease the cost: a finite end point is usable
@@ -459,7 +591,7 @@ class LeastSquaresNLP:
             else:
                 args = {"x0": x0, "p": p, "lbx": self.lbx, "ubx": self.ubx}
                 if self._lam_x is not None and self.bounded:
-                    args["lam_x0"] = self._shifted(self._lam_x)
+                    args["lam_x0"] = self._lam_x if same_window else self._shifted(self._lam_x)
                 sol = self._solver(**args)
             stats = self._solver.stats()
         except RuntimeError as exc:  # solver crashed on NaN or similar
