@@ -208,3 +208,35 @@ def test_bad_arguments(cls):
         make(m, loss="cauchy", f_scale=np.inf, **kw)
     with pytest.raises(ValueError, match="f_scale applies to a robust loss"):
         make(m, f_scale=2.0, **kw)
+
+
+def test_multi_rate_record_is_the_kalman_smoother():
+    """The multi-rate example of docs/robust.md: position at 10 Hz, velocity at 1 Hz (NaN
+    between); full information equals filterpy's KF + RTS with each sample's measured
+    rows (the model is linear: RK4 of a linear ODE is a matrix)."""
+    from filterpy.kalman import KalmanFilter, rts_smoother
+
+    m = estim.Model(states=["p", "v"], outputs=["p_meas", "v_meas"],
+                    ode=lambda x, u, p: [x[1], -0.5 * x[0]], output=lambda x, u, p: x,
+                    dt=0.1, name="oscillator")
+    log = estim.simulate(m, estim.EKF(m, Q=1e-4, R=[1e-2, 1e-4], x0=[1, 0], P0=1.0),
+                         x0=[1.0, 0.0], n_steps=300, Q=1e-4, R=[1e-2, 1e-4], seed=0)
+    Y = log.y.copy()
+    Y[np.arange(len(Y)) % 10 != 0, 1] = np.nan
+    fit = estim.FullInformation(m, Q=1e-4, R=[1e-2, 1e-4], x0=[1, 0], P0=1.0).fit(Y)
+    A = np.asarray(m.F_x(np.zeros(2), [], m.p))
+    kf = KalmanFilter(dim_x=2, dim_z=2)
+    kf.x, kf.P, kf.F, kf.Q = np.array([1.0, 0.0]), np.eye(2), A, 1e-4 * np.eye(2)
+    R = np.diag([1e-2, 1e-4])
+    xs, Ps = [], []
+    for k, y in enumerate(Y):
+        if k:
+            kf.predict()
+        rows = np.flatnonzero(np.isfinite(y))
+        kf.update(y[rows], R=R[np.ix_(rows, rows)], H=np.eye(2)[rows])
+        xs.append(kf.x.copy())
+        Ps.append(kf.P.copy())
+    xs_s = rts_smoother(np.array(xs), np.array(Ps), np.repeat(A[None], len(Y), 0),
+                        np.repeat(kf.Q[None], len(Y), 0))[0]
+    np.testing.assert_allclose(fit.x, xs_s, atol=1e-8)
+    np.testing.assert_allclose(fit.P_last, Ps[-1], atol=1e-10)
