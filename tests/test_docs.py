@@ -155,3 +155,20 @@ def test_documented_parameters_exist():
     stale = [f"{label}({n})" for label, _, every, _, listed in _parameters()
              for n in sorted(listed - every)]
     assert not stale, "Parameters entries that the signature does not have: " + ", ".join(stale)
+
+
+def test_identification_recipe_runs(monkeypatch):
+    """The recipe of docs/identification.md, run as written (from the repository root),
+    gives what its last line says."""
+    import re
+
+    import numpy as np
+
+    text = (ROOT / "docs" / "identification.md").read_text()
+    code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
+    monkeypatch.chdir(ROOT)
+    ns: dict = {}
+    exec(compile(code, "identification.md", "exec"), ns)
+    res = ns["res"]
+    assert (res.status, res.iterations) == ("ok", 5)
+    np.testing.assert_allclose(res.x[0, 2:], [0.5225, 0.06721, 0.4965, 2.012, 5.387], rtol=5e-4)
