@@ -19,7 +19,7 @@ timings.)
 
 * (a) ``T = 100``: the median wall time of ``fie.fit(Y)`` with
   ``solver="gauss-newton"`` (``mode="auto"``, the default: one expanded SX
-  graph up to 4096 samples; the row "mapped" forces the graph of 64-sample
+  graph up to about 4200 samples; the row "mapped" forces the graph of 64-sample
   chunks that long records use) and ``solver="ipopt"``, against the
   baseline a CasADi user would write: one ``casadi.nlpsol("ipopt")`` over the
   stacked states with the measurements as parameters and the Lorenz map and
@@ -32,7 +32,7 @@ timings.)
   the Lorenz attractor stays bounded): gauss-newton only, plus the Ipopt
   baseline at ``T = 1000`` (skipped if one solve takes over 10 s), to show
   how the time grows with ``T``. ``T = 10000`` runs on the mapped graph
-  (``mode="auto"`` beyond 4096 samples).
+  (``mode="auto"`` beyond about 4200 samples of this model).
 * (a') the same problem by a plain Gauss-Newton with a generic sparse solve:
   the residual vector and the sparse normal equations :math:`J^\top J`,
   :math:`J^\top r` from CasADi (SX, built once), solved each iteration by

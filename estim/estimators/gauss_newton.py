@@ -75,9 +75,13 @@ SWITCH_RATIO = 0.8
 #: iteration function by (Newton, damped or with the ridge)
 _ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "newton",
                (True, True): "newton_lam"}
-#: ``mode="auto"`` expands graphs up to this many slots (about 60 MB per 1000 slots
-#: for a three-state model), and maps beyond.
-AUTO_UNROLL_SLOTS = 4096
+#: ``mode="auto"`` expands the graph while it has at most this many instructions (the
+#: slots times the instructions of one slot's forward step: about 4200 slots of the
+#: Lorenz model, 850 of the seven-state Silverbox one), and maps beyond. Building takes about 0.25
+#: microseconds per instruction (1 s at the limit), the mapped mode's a fixed 0.05-0.2 s;
+#: per evaluation the mapped mode pays a few microseconds per chunk, which matters for
+#: small models only (Lorenz: 3x the unrolled time at 4000 slots; a 7-state model: the same).
+AUTO_UNROLL_INSTRUCTIONS = 2_200_000
 #: ``mode="mapped"`` evaluates chunks of at least this many slots in a loop (with
 #: ``jit``: fewer, compiled in about two seconds instead of ten, and as fast), and at
 #: most :data:`MAX_CHUNKS` of them (longer chunks for longer records). The build time
@@ -412,8 +416,8 @@ class StructuredGaussNewton:
         chunk function in the mapped mode, far longer for an unrolled graph).
     mode : {"auto", "unrolled", "mapped"}
         One flat expanded graph, a loop over compiled chunks of slots, or
-        ``"auto"``: unrolled up to :data:`AUTO_UNROLL_SLOTS` slots (mapped with
-        ``jit``).
+        ``"auto"``: unrolled up to :data:`AUTO_UNROLL_INSTRUCTIONS` instructions
+        (mapped with ``jit``).
     diagonal_Q, diagonal_R : bool
         The process and measurement weights are diagonal (their graphs use the
         diagonals only). The weights themselves are parameters: changing the
@@ -447,10 +451,12 @@ class StructuredGaussNewton:
         self.max_iter, self.xtol = int(max_iter), float(xtol)
         self.newton, self.jit = bool(newton), bool(jit)
         self.full = bool(full)
-        if mode == "auto":  # compiled code: small chunks compile fast and run as fast
-            mode = "mapped" if self.jit or N > AUTO_UNROLL_SLOTS else "unrolled"
-        self.mode = mode
         self._stages = _StageFunctions(model, diagonal_Q, diagonal_R)
+        if mode == "auto":  # compiled code: small chunks compile fast and run as fast
+            per_slot = self._stages.fused(False, False).n_instructions()
+            mode = "mapped" if self.jit or N * per_slot > AUTO_UNROLL_INSTRUCTIONS \
+                else "unrolled"
+        self.mode = mode
         self._slots = _Slots()
         self._slices, self._n_params = slices, n_params
         # input buffers shared by every compiled function
