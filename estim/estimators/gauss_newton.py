@@ -91,6 +91,10 @@ AUTO_UNROLL_INSTRUCTIONS = 2_200_000
 CHUNK_SLOTS = 64
 JIT_CHUNK_SLOTS = 16
 MAX_CHUNKS = 1024
+#: A chunk function whose work memory over all chunks stays below this many bytes
+#: gets one buffer per chunk, its arguments bound once: a call is then about 1
+#: microsecond instead of about 12 (binding some twenty arguments each time).
+PREBIND_BYTES = 16 * 2**20
 
 
 def full_record_constants(N: int) -> tuple[ca.DM, ca.DM]:
@@ -861,6 +865,11 @@ class StructuredGaussNewton:
         return fun.evaluate()[0].reshape(nx, nx, order="F").copy()
 
 
+def _key(const) -> tuple | None:
+    """A hashable form of :meth:`_Chunked._constants`."""
+    return None if const is None else tuple(tuple(v.tolist()) for v in const.values())
+
+
 class _Chunked:
     """The iteration, cost, covariance and rollout functions of a long record, evaluated
     as a loop over chunks of slots.
@@ -899,6 +908,13 @@ class _Chunked:
         self.sizes = {"x": nx, "xn": nx, "y": ny, "wy": ny * ny, "up": nu, "a": 1,
                       "u": self.nw,
                       "om": 1, "link": 1}
+        # the last slot's solve S^{-1} z, bound once: (S, z, out, call)
+        S, z, dl = np.zeros(nx * nx), np.zeros(nx), np.zeros(nx)
+        b, ev = self.st.last.buffer()
+        for i, a in enumerate((S, z)):
+            b.set_arg(i, memoryview(a))
+        b.set_res(0, memoryview(dl))
+        self.last_buf = (S, z, dl, ev, b)
 
     # ---------------------------------------------------------------- building
     def _compiled(self, key, build):
@@ -919,7 +935,31 @@ class _Chunked:
             self._bufs[key] = fun.buffer()
         return self._bufs[key]
 
-    def _forward_chunk(self, step, L, n_carry, complete, damped):
+    def _constants(self, lo, hi):
+        """A full record's window bookkeeping of slots ``lo:hi`` (arrival weight ``a``,
+        ``om``, ``link``), constants of its chunk functions as in the unrolled graph
+        (they fold away); None for a window, where they are data."""
+        if not self.gn.full:
+            return None
+        a = np.zeros(hi - lo)
+        if lo == 0:
+            a[0] = 1.0
+        link = np.ones(hi - lo)
+        if hi == self.N:
+            link[-1] = 0.0
+        return {"a": a, "om": np.ones(hi - lo), "link": link}
+
+    def _fold(self, seq, const):
+        """``seq`` with the bookkeeping symbols replaced by ``const`` (if any); the
+        function keeps them as (unused) inputs, so every chunk is called alike."""
+        if const is None:
+            return seq
+        out = dict(seq)
+        for k, v in const.items():
+            out[k] = ca.DM(v).T
+        return out
+
+    def _forward_chunk(self, step, L, n_carry, complete, damped, const=None):
         """``L`` slots of the fused forward step (:meth:`_StageFunctions.fused`)."""
         def build():
             nx, sym = self.nx, ca.SX.sym
@@ -927,6 +967,8 @@ class _Chunked:
             seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
             if complete:
                 seq["wy"] = sym("wy", self.ny * self.ny)
+            inputs = list(seq.values())
+            seq = self._fold(seq, const)
             shared = [sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
                       sym("a0", nx * nx)] + ([sym("lam")] if damped else [])
             c, slots = carry, []
@@ -937,8 +979,8 @@ class _Chunked:
                            shared[0], seq["link"][j], *shared[1:])
                 c, slots = res[:n_carry], slots + [res[n_carry:]]
             outs = list(c) + [ca.horzcat(*col) for col in zip(*slots, strict=True)]
-            return ca.Function(f"fwd_chunk_{L}", carry + list(seq.values()) + shared, outs)
-        return self._compiled(("fwd", id(step), L, complete), build)
+            return ca.Function(f"fwd_chunk_{L}", carry + inputs + shared, outs)
+        return self._compiled(("fwd", id(step), L, complete, _key(const)), build)
 
     def _backward_chunk(self, L):
         """``L`` steps of the backward substitution, the last slot first."""
@@ -953,12 +995,14 @@ class _Chunked:
             return ca.Function(f"bwd_chunk_{L}", [dn, Vs, vs, Lm], [ca.horzcat(*out)])
         return self._compiled(("bwd", L), build)
 
-    def _cost_chunk(self, L, complete):
+    def _cost_chunk(self, L, complete, const=None):
         def build():
             nx, sym = self.nx, ca.SX.sym
             seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
             if complete:
                 seq["wy"] = sym("wy", self.ny * self.ny)
+            inputs = list(seq.values())
+            seq = self._fold(seq, const)
             wq, xbar, w0, a0 = (sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
                                 sym("a0", nx * nx))
             total = ca.SX(0)
@@ -968,9 +1012,8 @@ class _Chunked:
                                            seq["a"][j], xbar, w0, a0)
                 total += seq["link"][j] * self.st.trans_cost(
                     seq["x"][:, j], seq["xn"][:, j], seq["u"][:, j], seq["om"][j], wq)
-            return ca.Function(f"cost_chunk_{L}", list(seq.values()) + [wq, xbar, w0, a0],
-                               [total])
-        return self._compiled(("cost", L, complete), build)
+            return ca.Function(f"cost_chunk_{L}", inputs + [wq, xbar, w0, a0], [total])
+        return self._compiled(("cost", L, complete, _key(const)), build)
 
     def _roll_chunk(self, L):
         def build():
@@ -979,14 +1022,15 @@ class _Chunked:
             xp = xp0
             x, d, xn, dn = (sym(k, nx, L) for k in ("x", "d", "xn", "dn"))
             u, om, alpha = sym("u", self.nw, L), sym("om", 1, L), sym("alpha")
+            oms = ca.DM.ones(1, L) if self.gn.full else om  # a full record: every link
             cols = []
             for j in range(L):
-                xp = self.st.roll(xp, x[:, j], d[:, j], xn[:, j], dn[:, j], u[:, j], om[j],
+                xp = self.st.roll(xp, x[:, j], d[:, j], xn[:, j], dn[:, j], u[:, j], oms[j],
                                   alpha)
                 cols.append(xp)
             return ca.Function(f"roll_chunk_{L}", [xp0, x, d, xn, dn, u, om, alpha],
                                [ca.horzcat(*cols)])
-        return self._compiled(("roll", L), build)
+        return self._compiled(("roll", L, self.gn.full), build)
 
     # ---------------------------------------------------------------- calling
     @staticmethod
@@ -997,6 +1041,30 @@ class _Chunked:
         for i, r in enumerate(res):
             b.set_res(i, memoryview(r))
         ev()
+
+    def calls(self, jobs) -> list:
+        """One callable per ``(fun, args, res)`` of ``jobs`` (a chunk loop, in order).
+
+        The arrays must stay in place (they are views of the solver's buffers): each
+        chunk gets a buffer with its arguments bound once, unless the buffers' work
+        memory would exceed :data:`PREBIND_BYTES`; then one buffer per function is
+        rebound at every call."""
+        jobs = list(jobs)
+        work = sum(8 * fun.sz_w() for fun, _, _ in jobs)
+        out = []
+        for fun, args, res in jobs:
+            if work <= PREBIND_BYTES:
+                b, ev = fun.buffer()
+                for i, a in enumerate(args):
+                    b.set_arg(i, memoryview(a))
+                for i, r in enumerate(res):
+                    b.set_res(i, memoryview(r))
+                out.append((ev, (b, args, res)))  # the buffer and arrays kept alive
+            else:
+                buf = self._buffer(fun)
+                out.append((lambda buf=buf, args=args, res=res: self._call(buf, args, res),
+                            None))
+        return out
 
     def prepare(self):
         """The per-call data derived from the buffers (shifted states, window
@@ -1052,12 +1120,17 @@ class _ChunkedIteration:
         self.out = [np.zeros(1), np.zeros(N * nx)] + [np.zeros(N * nx)
                                                       for _ in range(self.chains)]
         self.lam = np.zeros(1)
+        self._shared = self.shared()
+        self._fwd_calls: list | None = None  # built on first use (see _Chunked.calls)
+        self._bwd_calls: list | None = None
 
     def twin(self) -> _ChunkedIteration:
-        """The same function with its own output buffers (the scratch is shared)."""
+        """The same function with its own output buffers (the scratch, and with it the
+        forward calls, is shared)."""
         other = copy.copy(self)
         other.out = [np.zeros_like(a) for a in self.out]
         other.d = [np.zeros_like(a) for a in self.d]
+        other._bwd_calls = None
         return other
 
     def shared(self):
@@ -1065,17 +1138,36 @@ class _ChunkedIteration:
         return [v["wq"], v["xbar"], v["w0"], self.ch.a0] + ([self.lam] if self.damped else [])
 
     def forward(self):
-        ch, shapes = self.ch, [len(a) // self.ch.N for a in self.slot_out]
+        ch = self.ch
+        if self._fwd_calls is None:
+            shapes = [len(a) // ch.N for a in self.slot_out]
+            self._fwd_calls = ch.calls(
+                (ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
+                                   self.damped, ch._constants(lo, hi)),
+                 self.carries[c] + ch._slot_args(lo, hi, self.complete) + self._shared,
+                 self.carries[c + 1] + [a[lo * n:hi * n] for a, n in
+                                        zip(self.slot_out, shapes, strict=True)])
+                for c, (lo, hi) in enumerate(ch.chunks))
         ch.prepare()
-        shared = self.shared()
-        for c, (lo, hi) in enumerate(ch.chunks):
-            fun = ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
-                                    self.damped)
-            res = self.carries[c + 1] + [a[lo * n:hi * n] for a, n in
-                                         zip(self.slot_out, shapes, strict=True)]
-            ch._call(ch._buffer(fun), self.carries[c] + ch._slot_args(lo, hi, self.complete)
-                     + shared, res)
+        for call, _ in self._fwd_calls:
+            call()
         return self.carries[-1]
+
+    def _backward_calls(self):
+        """Per chain, the backward chunks from the last: ``d_j`` from ``d_{j+1}`` and
+        slot ``j+1``'s factors."""
+        ch, nx = self.ch, self.ch.nx
+        calls = []
+        for c in range(self.chains):
+            Vs, vs, L = self.slot_out[3 * c:3 * c + 3]
+            d = self.d[c]
+            calls.append(ch.calls(
+                (ch._backward_chunk(hi - lo),
+                 [d[hi * nx:(hi + 1) * nx], Vs[(lo + 1) * nx * nx:(hi + 1) * nx * nx],
+                  vs[(lo + 1) * nx:(hi + 1) * nx], L[(lo + 1) * nx * nx:(hi + 1) * nx * nx]],
+                 [d[lo * nx:hi * nx]])
+                for lo, hi in reversed(ch.tchunks)))
+        return calls
 
     def evaluate(self):
         ch, nx = self.ch, self.ch.nx
@@ -1084,18 +1176,17 @@ class _ChunkedIteration:
         g, cost = self.slot_out[3 * self.chains], self.slot_out[3 * self.chains + 1]
         self.out[0][0] = cost.sum()
         self.out[1][:] = g
+        if self._bwd_calls is None:
+            self._bwd_calls = self._backward_calls()
         for c in range(self.chains):
-            Vs, vs, L = self.slot_out[3 * c:3 * c + 3]
             S, z = last[4 * c], last[4 * c + 1]
             d = self.d[c]
-            d[-nx:] = np.asarray(ch.st.last(S.reshape(nx, nx, order="F"), z)).ravel()
-            for lo, hi in reversed(ch.tchunks):  # d_j from d_{j+1} and slot j+1's factors
-                fun = ch._backward_chunk(hi - lo)
-                ch._call(ch._buffer(fun), [d[hi * nx:(hi + 1) * nx],
-                                           Vs[(lo + 1) * nx * nx:(hi + 1) * nx * nx],
-                                           vs[(lo + 1) * nx:(hi + 1) * nx],
-                                           L[(lo + 1) * nx * nx:(hi + 1) * nx * nx]],
-                         [d[lo * nx:hi * nx]])
+            ch.last_buf[0][:] = S
+            ch.last_buf[1][:] = z
+            ch.last_buf[3]()
+            d[-nx:] = ch.last_buf[2]
+            for call, _ in self._bwd_calls[c]:
+                call()
             if self.bounded:  # fixed variables: a step scaled by the Gauss-Newton diagonal
                 free, diag = self.slot_out[-2], self.slot_out[-1]
                 d = np.where(free > 0, d, -g / (diag + 1e-300))
@@ -1108,16 +1199,20 @@ class _ChunkedCost:
         self.ch, self.complete = ch, complete
         self.parts = np.zeros(len(ch.chunks))
         self.out = [np.zeros(1)]
+        self._calls: list | None = None
 
     def evaluate(self):
         ch = self.ch
+        if self._calls is None:
+            v = ch.views
+            shared = [v["wq"], v["xbar"], v["w0"], ch.a0]
+            self._calls = ch.calls(
+                (ch._cost_chunk(hi - lo, self.complete, ch._constants(lo, hi)),
+                 ch._slot_args(lo, hi, self.complete) + shared, [self.parts[c:c + 1]])
+                for c, (lo, hi) in enumerate(ch.chunks))
         ch.prepare()
-        v = ch.views
-        shared = [v["wq"], v["xbar"], v["w0"], ch.a0]
-        for c, (lo, hi) in enumerate(ch.chunks):
-            fun = ch._cost_chunk(hi - lo, self.complete)
-            ch._call(ch._buffer(fun), ch._slot_args(lo, hi, self.complete) + shared,
-                     [self.parts[c:c + 1]])
+        for call, _ in self._calls:
+            call()
         self.out[0][0] = self.parts.sum()
         return self.out
 
@@ -1139,20 +1234,24 @@ class _ChunkedRoll:
     def __init__(self, ch: _Chunked):
         self.ch = ch
         self.out = [np.zeros(ch.N * ch.nx)]
+        self._calls: list | None = None
 
     def evaluate(self):
         ch, nx, nu = self.ch, self.ch.nx, self.ch.nw
         gn = ch.gn
-        ch.prepare()
         x, d, alpha = gn._xbuf, gn._dbuf, gn._abuf
         out = self.out[0]
+        if self._calls is None:
+            u = ch.views["u"]
+            self._calls = ch.calls(
+                (ch._roll_chunk(hi - lo),
+                 [out[lo * nx:(lo + 1) * nx], x[lo * nx:hi * nx], d[lo * nx:hi * nx],
+                  x[(lo + 1) * nx:(hi + 1) * nx], d[(lo + 1) * nx:(hi + 1) * nx],
+                  u[lo * nu:hi * nu], ch.om[lo:hi], alpha],
+                 [out[(lo + 1) * nx:(hi + 1) * nx]])
+                for lo, hi in ch.tchunks)
+        ch.prepare()
         out[:nx] = x[:nx] + alpha[0] * d[:nx]
-        u = ch.views["u"]
-        for lo, hi in ch.tchunks:
-            fun = ch._roll_chunk(hi - lo)
-            ch._call(ch._buffer(fun), [out[lo * nx:(lo + 1) * nx], x[lo * nx:hi * nx],
-                                       d[lo * nx:hi * nx], x[(lo + 1) * nx:(hi + 1) * nx],
-                                       d[(lo + 1) * nx:(hi + 1) * nx], u[lo * nu:hi * nu],
-                                       ch.om[lo:hi], alpha],
-                     [out[(lo + 1) * nx:(hi + 1) * nx]])
+        for call, _ in self._calls:
+            call()
         return self.out
