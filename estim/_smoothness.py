@@ -233,24 +233,32 @@ def nonsmooth_operations(model) -> list[NonSmoothOperation]:
 
 # ------------------------------------------------------------ zero derivatives
 _CHUNK = 1 << 18  # Jacobian entries per mapped call (bounds the memory on long records)
+_HEAD = 32  # samples looked at first
 
 
 def _any_nonzero(jac: ca.Function, X: np.ndarray, U: np.ndarray, p: np.ndarray,
                  rows: list[int], cols: list[int]) -> np.ndarray:
-    """For each column in ``cols``: is ``jac[rows, col]`` nonzero at any sample?"""
+    """For each column in ``cols``: is ``jac[rows, col]`` nonzero at any sample?
+
+    The first few samples are looked at first, then the rest in chunks, until every
+    column has been seen nonzero (a parameter that matters usually does from the start).
+    """
     T, nx = X.shape
     n_rows = jac.size1_out(0)
     per_call = int(np.clip(_CHUNK // max(n_rows * nx, 1), 1, T))
     mapped = {}
     hit = np.zeros(len(cols), dtype=bool)
-    for start in range(0, T, per_call):
-        stop = start + per_call if start + per_call < T else T
+    head = min(_HEAD, per_call, T)
+    bounds = [(0, head)] + [(a, min(a + per_call, T)) for a in range(head, T, per_call)]
+    for start, stop in bounds:
         size = stop - start
         if size not in mapped:
             mapped[size] = jac.map(size)
         J = mapped[size](X[start:stop].T, U[start:stop].T, p).full()
         J = J.reshape(n_rows, size, nx)[np.ix_(rows, range(size), cols)]
         hit |= (J != 0).any(axis=(0, 1))
+        if hit.all():
+            break
     return hit
 
 
@@ -313,9 +321,13 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
         U_prev = np.vstack([np.zeros((1, model.nu)), U[:-1]])
     cols = [model.state_names.index(n) for n in names]
     rows = [i for i, n in enumerate(model.state_names) if n not in model.augmented]
-    moves = _any_nonzero(model.H_x, X, U_prev, model.p, list(range(model.ny)), cols)
-    if T > 1:
-        moves |= _any_nonzero(model.F_x, X[:-1], U[:-1], model.p, rows, cols)
+    # the dynamics first: parameters usually enter them, and a head of samples shows it
+    moves = _any_nonzero(model.F_x, X[:-1], U[:-1], model.p, rows, cols) if T > 1 \
+        else np.zeros(len(cols), dtype=bool)
+    rest = [c for c, m in zip(cols, moves, strict=True) if not m]
+    if rest:
+        moves[~moves] = _any_nonzero(model.H_x, X, U_prev, model.p, list(range(model.ny)),
+                                     rest)
     return [n for n, m in zip(names, moves, strict=True) if not m]
 
 

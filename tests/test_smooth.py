@@ -498,8 +498,26 @@ def test_zero_derivative_is_chunked_not_per_sample(monkeypatch):
     monkeypatch.setattr(mod, "_CHUNK", 4 * 4 * 64)
     monkeypatch.setattr(ca.Function, "map", counting_map)
     assert zero_derivative_parameters(aug, Xa, U) == ["h_crit"]
-    # dh/dx (2 x 4) over 200 samples: 128 + 72; dF/dx (4 x 4) over 199: 3 x 64 + 7
-    assert sorted(calls) == [7, 64, 72, 128]
+    # dF/dx (4 x 4) over 199 samples: a head of 32, then 64 + 64 + 39 (one map of each
+    # size); dh/dx (2 x 4) for h_crit, still zero, over 200: 32, then 128 + 40
+    assert sorted(calls) == [32, 32, 39, 40, 64, 128]
+
+
+def test_zero_derivative_stops_when_every_parameter_moved(monkeypatch):
+    """A parameter that matters is seen at the first samples: the rest is not evaluated."""
+    import estim._smoothness as mod
+
+    aug, Xa, U, _ = _augmented_record("step")   # smooth: h_crit moves everywhere
+    calls = []
+    real = ca.Function.map
+
+    def counting_map(self, *args):
+        calls.append(args[0])
+        return real(self, *args)
+
+    monkeypatch.setattr(ca.Function, "map", counting_map)
+    assert zero_derivative_parameters(aug, Xa, U) == []
+    assert calls == [mod._HEAD]
 
 
 def test_fit_with_a_threshold_inside_if_else():

@@ -886,7 +886,13 @@ class _Chunked:
         self.gn, self.st = gn, gn._stages
         m, N = gn.model, gn.N
         self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, m.nw, N
-        self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
+        if gn.full and N > 2:
+            # the first and last slots alone (the arrival term, the missing link): the
+            # chunks between are alike, one function for all of them
+            self.chunks = [(0, 1)] + [(lo, min(lo + chunk, N - 1))
+                                      for lo in range(1, N - 1, chunk)] + [(N - 1, N)]
+        else:
+            self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
         # transitions 0..N-2 in chunks, for the backward pass and the rollout
         self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
         self.opts = jit_options() if jit else {}
