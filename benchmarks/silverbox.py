@@ -97,13 +97,13 @@ Measured (2-CPU x86_64, casadi 3.8.2, scipy 1.17), q = 1e-8, q_θ = 1e-14, the
   but not quite its FOH one (1.003 mV against 0.96; see the parametrisation
   above: 0.971 needs a sixth parameter). 6 (FOH) / 8-9 (ZOH) evaluations;
   trf and lm give the same optimum to 1e-15.
-* FOH, N = 10 000: estim 5 iterations, first fit 0.70 s (build 0.14 s),
-  second 0.42 s, 208 MB; least_squares trf 0.75 s, lm 0.36 s, 192 MB.
-  N = 40 000: estim 4 iterations, 1.36 s (build 0.13 s), second 1.05 s,
-  268 MB; trf 2.69 s, lm 1.99 s, 354 MB. The parameters agree to 1.8e-5 and
+* FOH, N = 10 000: estim 5 iterations, first fit 0.35 s (build 0.12 s),
+  second 0.14 s, 224 MB; least_squares trf 0.37 s, lm 0.35 s, 192 MB.
+  N = 40 000: estim 4 iterations, 0.88 s (build 0.18 s), second 0.46 s,
+  282 MB; trf 1.90 s, lm 1.82 s, 354 MB. The parameters agree to 1.8e-5 and
   5.1e-5 (relative), the arrow RMSE to the last digit.
-* ZOH (R = (13.4 mV)²): 10 and 11 iterations; 2.1 s (10 000, trf 1.0 s) and
-  2.9 s (40 000, trf 3.4 s); parameters within 3e-6 and 1.6e-5.
+* ZOH (R = (13.4 mV)²): 10 and 11 iterations; 1.06 s (10 000, trf 0.48 s)
+  and 1.65 s (40 000, trf 2.38 s); parameters within 3e-6 and 1.6e-5.
 * q = 1e-6 is a different estimator: the states absorb model error (a3
   11-13 % off, arrow 2.2 mV with FOH); Ipopt reaches the same optimum there.
 * Starts: "simulated" converges like "measured" at every q (5-6

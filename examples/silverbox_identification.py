@@ -40,12 +40,12 @@ time, CasADi Functions built included; one 2-CPU x86_64 machine, casadi
 =====  =============  =============  ==========  ====  ======  ======  ======  =====  =====
 hold   arrow RMSE mV  train RMSE mV  iterations  s     b       a1      a0      a3     u0 mV
 =====  =============  =============  ==========  ====  ======  ======  ======  =====  =====
-ZOH    13.35          13.38          11          0.54  0.517   0.0702  0.514   2.20   5.31
-FOH    1.00           0.96           5           0.40  0.523   0.0672  0.497   2.01   5.38
+ZOH    13.35          13.38          11          0.40  0.517   0.0702  0.514   2.20   5.31
+FOH    1.00           0.96           5           0.33  0.523   0.0672  0.497   2.01   5.38
 =====  =============  =============  ==========  ====  ======  ======  ======  =====  =====
 
 least_squares reaches the same parameters (within 2.7e-6 with ZOH, 1.4e-5
-with FOH, relative) in 0.28 and 0.21 s: at this length the simulation-error
+with FOH, relative) in 0.29 and 0.21 s: at this length the simulation-error
 fit is the cheaper one; at 40 000 samples estim takes half of its time (see
 ``docs/identification.md``).
 
