@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from estim._validate import _numeric_array, as_record
+from estim._validate import as_inputs, as_record
 
 # CasADi operation -> (name in reports, kind). "kink": continuous, derivative jumps;
 # "jump": the value jumps, derivative zero elsewhere; "switch": ``if_else``, whose
@@ -300,19 +300,7 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
                          f"{augmented}, got {unknown}")
     X = as_record(X, model.nx, "X", missing=False)
     T = X.shape[0]
-    if U is None:
-        U = np.zeros((T, model.nu))
-    else:
-        U = _numeric_array(U, "U")
-        if U.ndim == 1 and model.nu == 1:
-            U = U[:, None]
-        if U.shape == (T - 1, model.nu) and not model.sampled:
-            U = np.vstack([U, np.zeros((1, model.nu))])
-        if U.shape != (T, model.nu):
-            raise ValueError(f"U must have shape ({T - 1}, {model.nu}) or ({T}, {model.nu}), "
-                             f"got {U.shape}")
-        if not np.isfinite(U).all():
-            raise ValueError("U must be finite")
+    U = as_inputs(U, T, model)
     if not names:
         return []
     if model.sampled:  # inputs at the samples; transitions from each to the next

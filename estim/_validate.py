@@ -213,6 +213,28 @@ def as_record(value, n: int, name: str, *, missing: bool = True) -> np.ndarray:
     return arr
 
 
+def as_inputs(value, T: int, model, name: str = "U") -> np.ndarray:
+    """The inputs of a ``T``-sample record as a ``(T, nu)`` float array (zero if
+    ``value`` is None). ``(T-1, nu)`` is accepted for a held input (``U[k]`` acts from
+    sample k to k+1; the last row, never used, is zero); a model with ``hold="foh"``
+    takes ``(T, nu)``, the input at each sample. Non-finite inputs are refused."""
+    nu = model.nu
+    if value is None:
+        return np.zeros((T, nu))
+    U = _numeric_array(value, name)
+    if U.ndim == 1 and nu == 1:
+        U = U[:, None]
+    if U.shape == (T - 1, nu) and not model.sampled:
+        U = np.vstack([U, np.zeros((1, nu))])
+    if U.shape != (T, nu):
+        expected = f"({T}, {nu}), the input at each sample (hold='foh')" \
+            if model.sampled else f"({T - 1}, {nu}) or ({T}, {nu})"
+        raise ValueError(f"{name} must have shape {expected}, got {U.shape}")
+    if not np.isfinite(U).all():
+        raise ValueError(f"{name} must be finite")
+    return U
+
+
 def as_bool(value, name: str, *, allow_none: bool = False) -> bool | None:
     """``value`` if it is a bool (Python or numpy), else ``TypeError`` naming ``name``.
 

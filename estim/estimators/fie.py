@@ -11,7 +11,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
-from estim._validate import _numeric_array, as_choice, as_record
+from estim._validate import _numeric_array, as_choice, as_inputs, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.nlp import (
     SOLVERS,
@@ -236,20 +236,7 @@ class FullInformation(Estimator):
         T = Y.shape[0]
         if np.isnan(Y).all():
             raise ValueError("Y has no measured value")
-        if U is None:
-            U = np.zeros((T, m.nu))
-        else:
-            U = _numeric_array(U, "U")
-            if U.ndim == 1 and m.nu == 1:
-                U = U[:, None]
-            if U.shape == (T - 1, m.nu) and not m.sampled:
-                U = np.vstack([U, np.zeros((1, m.nu))])
-            if U.shape != (T, m.nu):
-                expected = f"({T}, {m.nu}), the input at each sample (hold='foh')" \
-                    if m.sampled else f"({T - 1}, {m.nu}) or ({T}, {m.nu})"
-                raise ValueError(f"U must have shape {expected}, got {U.shape}")
-            if not np.isfinite(U).all():
-                raise ValueError("U must be finite")
+        U = as_inputs(U, T, m)
         if m.sampled:  # inputs at the samples: transitions from each to the next
             return Y, np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
         Uprev = np.empty_like(U)
