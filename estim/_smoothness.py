@@ -307,6 +307,8 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
         U_prev, U = U, np.hstack([U, np.vstack([U[1:], U[-1:]])])
     else:
         U_prev = np.vstack([np.zeros((1, model.nu)), U[:-1]])
+    if model.variable_dt:  # at the model's interval: a zero derivative does not hinge on it
+        U = np.hstack([U, np.full((T, 1), model.dt)])
     cols = [model.state_names.index(n) for n in names]
     rows = [i for i, n in enumerate(model.state_names) if n not in model.augmented]
     # the dynamics first: parameters usually enter them, and a head of samples shows it

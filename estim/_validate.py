@@ -235,6 +235,33 @@ def as_inputs(value, T: int, model, name: str = "U") -> np.ndarray:
     return U
 
 
+def as_intervals(t, T: int, model, name: str = "t") -> np.ndarray | None:
+    """The intervals ``t[k+1] - t[k]`` (``(T-1,)``) of sample times ``t`` for a model
+    built with ``variable_dt=True`` (None when ``t`` is None). A continuous model with
+    a fixed ``dt`` takes time stamps only at that spacing (to 1e-6 of it): anything
+    else would be integrated over the wrong intervals, so it is refused, naming
+    ``variable_dt``. A discrete model takes any increasing times (labels only)."""
+    if t is None:
+        return None
+    ts = _numeric_array(t, name)
+    if ts.shape != (T,):
+        raise ValueError(f"{name} must have shape ({T},), got {ts.shape}")
+    if not np.isfinite(ts).all():
+        raise ValueError(f"{name} must be finite")
+    dts = np.diff(ts)
+    if len(dts) and not (dts > 0).all():
+        k = int(np.flatnonzero(dts <= 0)[0]) + 1
+        raise ValueError(f"{name} must be strictly increasing: {name}[{k}] = {ts[k]:g}, "
+                         f"{name}[{k - 1}] = {ts[k - 1]:g}")
+    if model.variable_dt:
+        return dts
+    if model.continuous and len(dts) and np.abs(dts - model.dt).max() > 1e-6 * model.dt:
+        raise ValueError(f"{name} has intervals from {dts.min():g} to {dts.max():g}, but "
+                         f"{model.name} integrates over a fixed dt = {model.dt:g}: build the "
+                         f"model with variable_dt=True to integrate over each interval")
+    return None
+
+
 def as_bool(value, name: str, *, allow_none: bool = False) -> bool | None:
     """``value`` if it is a bool (Python or numpy), else ``TypeError`` naming ``name``.
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._validate import (
+    as_bool,
     as_bounds,
     as_choice,
     as_float,
@@ -168,6 +169,14 @@ class Model:
         any ``"foh"`` input makes the model take inputs at the samples. Needs
         ``ode=``, and known inputs (not a feedback controller) in
         :func:`~estim.simulate`.
+    variable_dt : bool
+        The sample interval is data: each transition integrates over its own
+        interval (irregular time stamps), given to ``est.step(y, u, dt=...)``,
+        or as time stamps ``t`` to :func:`~estim.replay` and
+        ``FullInformation.fit``; ``dt`` is the default interval. The transition's
+        input ``w`` then ends with the interval (``nw`` is one more; see
+        :meth:`transition`). Needs ``ode=``; the shooting observer does not take
+        such a model.
     name : str
         Label for reprs and plots.
 
@@ -214,6 +223,7 @@ class Model:
         upper=None,
         name: str = "model",
         hold: str | Mapping[str, str] = "zoh",
+        variable_dt: bool = False,
     ):
         self.state_names = as_names(states, "states", "x")
         self.output_names = as_names(outputs, "outputs", "y")
@@ -263,6 +273,10 @@ class Model:
         if self.sampled and ode is None:
             raise ValueError("hold='foh' needs a continuous model (ode=): a discrete map "
                              "(dynamics=) already says what happens between samples")
+        self.variable_dt = as_bool(variable_dt, "variable_dt")
+        if self.variable_dt and ode is None:
+            raise ValueError("variable_dt=True needs a continuous model (ode=): a discrete "
+                             "map (dynamics=) has no sample interval to vary")
         self._build()
 
     def _holds(self, hold) -> dict[str, str]:
@@ -289,8 +303,9 @@ class Model:
     @property
     def nw(self) -> int:
         """Length of a transition's input ``w`` (``F(x, w, p)``): ``nu``, or ``2 nu``
-        (the values at both ends of the sample) for a sampled-input model."""
-        return 2 * self.nu if self.sampled else self.nu
+        (the values at both ends of the sample) for a sampled-input model, plus one
+        (the interval) with ``variable_dt``."""
+        return (2 * self.nu if self.sampled else self.nu) + int(self.variable_dt)
 
     def input_path(self, w, reverse: bool = False):
         """The input along a transition whose input is ``w``: ``w`` itself (held), or
@@ -308,10 +323,20 @@ class Model:
             return held + ramp * (u0 + s * (u1 - u0) - held)
         return u_of
 
-    def transition(self, u_prev, u) -> np.ndarray:
+    def transition(self, u_prev, u, dt: float | None = None) -> np.ndarray:
         """The input ``w`` of the transition into the sample whose input is ``u``, the
-        previous sample's being ``u_prev``: ``u`` (held), or ``[u_prev; u]``."""
-        return np.concatenate([u_prev, u]) if self.sampled else u
+        previous sample's being ``u_prev``: ``u`` (held), or ``[u_prev; u]``; with
+        ``variable_dt``, followed by the interval ``dt`` (default the model's)."""
+        w = np.concatenate([u_prev, u]) if self.sampled else u
+        if self.variable_dt:
+            w = np.append(w, self.dt if dt is None else dt)
+        return w
+
+    def measurement_input(self, w) -> np.ndarray:
+        """The input at the end of a transition whose input is ``w`` (what ``h`` sees
+        at the next sample)."""
+        nu = self.nu
+        return w[nu:2 * nu] if self.sampled else w[:nu]
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
@@ -319,7 +344,9 @@ class Model:
         x = ca.SX.sym("x", nx)
         u = ca.SX.sym("u", nu)
         w = ca.SX.sym("w", nw)  # a transition's input (the two ends for a sampled model)
-        u_of = self.input_path(w)
+        # the interval: the last entry of w with variable_dt, else the model's
+        h = w[nw - 1] if self.variable_dt else self.dt
+        u_of = self.input_path(w[:nw - 1] if self.variable_dt else w)
         psym = [ca.SX.sym(n) for n in self.param_names]
         p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
         pdict = dict(zip(self.param_names, psym, strict=True))
@@ -332,14 +359,14 @@ class Model:
             _check_constants(xdot, self.state_names, "ode")
             self.f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
             if self.integrator == "cvodes":
-                self.F = self._cvodes(x, w, p, u_of)
+                self.F = self._cvodes(x, w, p, u_of, h)
                 xm, wm, pm = ca.MX.sym("x", nx), ca.MX.sym("w", nw), ca.MX.sym("p", p.numel())
                 xn = self.F(xm, wm, pm)
                 self.F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)],
                                        ["x", "u", "p"], ["A"])
             else:
                 step = rk4_step if self.integrator == "rk4" else euler_step
-                xn = step(self.f_c, x, u_of, p, self.dt, self.substeps)
+                xn = step(self.f_c, x, u_of, p, h, self.substeps)
                 self.F = ca.Function("F", [x, w, p], [xn], ["x", "u", "p"], ["x_next"])
                 self.F_x = ca.Function("F_x", [x, w, p], [ca.jacobian(xn, x)],
                                        ["x", "u", "p"], ["A"])
@@ -353,11 +380,17 @@ class Model:
         self.H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
         self._local = threading.local()
 
-    def _cvodes(self, x, w, p, u_of) -> ca.Function:
+    def _cvodes(self, x, w, p, u_of, h) -> ca.Function:
         t = ca.SX.sym("t")
-        u = u_of(t / self.dt) if callable(u_of) else u_of
-        dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": self.f_c(x, u, p)}
-        integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, self.dt,
+        if self.variable_dt:  # in the fraction s = t / h of the interval: dx/ds = h f
+            u = u_of(t) if callable(u_of) else u_of
+            dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": h * self.f_c(x, u, p)}
+            tf = 1.0
+        else:
+            u = u_of(t / self.dt) if callable(u_of) else u_of
+            dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": self.f_c(x, u, p)}
+            tf = self.dt
+        integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, tf,
                               {"abstol": 1e-10, "reltol": 1e-10})
         xm = ca.MX.sym("x", self.nx)
         wm = ca.MX.sym("w", self.nw)
@@ -408,34 +441,41 @@ class Model:
             setattr(self._local, key, fun)
         return fun
 
-    def _w(self, u, u_next) -> np.ndarray:
-        """A transition's input from the sample's input and (sampled models) the next
-        one's (default: the same)."""
-        if not self.sampled:
-            return u
-        return np.concatenate([u, u if u_next is None else as_vector(u_next, self.nu,
-                                                                       "u_next")])
+    def _w(self, u, u_next, dt=None) -> np.ndarray:
+        """A transition's input from the sample's input, (sampled models) the next
+        one's (default: the same) and (``variable_dt``) the interval."""
+        if dt is not None:
+            if not self.variable_dt:
+                raise ValueError(f"dt is given but {self.name} integrates over its fixed "
+                                 f"dt = {self.dt:g}; build it with variable_dt=True")
+            dt = as_float(dt, "dt", positive=True)
+        nxt = u if u_next is None or not self.sampled else as_vector(u_next, self.nu,
+                                                                     "u_next")
+        return self.transition(u, nxt, dt) if self.sampled else self.transition(None, u, dt)
 
-    def f(self, x, u=None, u_next=None) -> np.ndarray:
+    def f(self, x, u=None, u_next=None, dt: float | None = None) -> np.ndarray:
         """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input).
 
         For a sampled-input model (``hold="foh"``) ``u`` is the input at this
-        sample and ``u_next`` at the next one (default: ``u``). Safe to call from
-        several threads at once.
+        sample and ``u_next`` at the next one (default: ``u``); with
+        ``variable_dt``, ``dt`` is the interval (default the model's). Safe to call
+        from several threads at once.
         """
         x, u = self._xu(x, u)
-        return self._fast("F")(x, self._w(u, u_next), self.p)[0].copy()
+        return self._fast("F")(x, self._w(u, u_next, dt), self.p)[0].copy()
 
     def h(self, x, u=None) -> np.ndarray:
         """Output ``h(x, u; p)`` as a (ny,) array (safe from several threads)."""
         x, u = self._xu(x, u)
         return self._fast("H")(x, u, self.p)[0].copy()
 
-    def jacobians(self, x, u=None, u_next=None) -> tuple[np.ndarray, np.ndarray]:
+    def jacobians(self, x, u=None, u_next=None, dt: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays
-        (``u_next`` as for :meth:`f`)."""
+        (``u_next``, ``dt`` as for :meth:`f`)."""
         x, u = self._xu(x, u)
-        return self.F_x(x, self._w(u, u_next), self.p).full(), self.H_x(x, u, self.p).full()
+        return (self.F_x(x, self._w(u, u_next, dt), self.p).full(),
+                self.H_x(x, u, self.p).full())
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """Project ``x`` onto ``[lower, upper]``."""
@@ -529,6 +569,7 @@ class Model:
             upper=np.concatenate([self.upper, new_upper]),
             name=self.name,
             hold=self.hold,
+            variable_dt=self.variable_dt,
             **kwargs,
         )
         model.augmented = {**self.augmented, **{n: values[n] for n in names}}
@@ -537,7 +578,8 @@ class Model:
     def __repr__(self) -> str:
         kind = f"ode, {self.integrator}" if self.continuous else "discrete"
         return (f"Model({self.name!r}: nx={self.nx} {self.state_names}, ny={self.ny} "
-                f"{self.output_names}, nu={self.nu}, {kind}, dt={self.dt:g})")
+                f"{self.output_names}, nu={self.nu}, {kind}, "
+                f"dt={self.dt:g}{' (variable)' if self.variable_dt else ''})")
 
     def __getstate__(self):
         state = dict(self.__dict__)
@@ -547,4 +589,5 @@ class Model:
 
     def __setstate__(self, state):
         self.__dict__.update(state)
+        self.__dict__.setdefault("variable_dt", False)
         self._build()

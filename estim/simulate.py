@@ -34,6 +34,7 @@ from estim._validate import (
     as_covariance,
     as_float,
     as_int,
+    as_intervals,
     as_record,
     as_seed,
     as_vector,
@@ -289,7 +290,8 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
                 u = u_prev
             Uk[k] = u
             rec.done = k + 1
-            w = model.transition(u, U[min(k + 1, T - 1)]) if model.sampled else u
+            w = model.transition(u, U[min(k + 1, T - 1)]) if model.sampled else \
+                model.transition(None, u)
             x = F(x, w, p)[0] + W[k]
             if clip:
                 x = np.minimum(np.maximum(x, model.lower), model.upper)
@@ -318,7 +320,9 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     x : (T, nx) array, optional
         The true states, where known (for :func:`~estim.rmse` and plots).
     t : (T,) array, optional
-        Sample times (default ``k * model.dt``).
+        Sample times (default ``k * model.dt``). A model built with
+        ``variable_dt=True`` integrates over each interval ``t[k] - t[k-1]``; a
+        continuous model with a fixed ``dt`` refuses times at another spacing.
     warn : bool
         Emit an :class:`EstimationWarning` when more than 2 % of the steps failed.
 
@@ -346,13 +350,15 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
     if ts.shape != (T,):
         raise ValueError(f"t must have shape ({T},), got {ts.shape}")
+    dts = as_intervals(t, T, model)  # each step's interval (variable_dt), else None
     rec = _Recorder(T, model.nx)
     estimator.reset()
     with rec.running(model, estimator, ts, X, Y, U):
         for k in range(T):
             # the input since the previous sample (held), or at this one (sampled models)
             u = U[k] if model.sampled else U[k - 1] if k else np.zeros(model.nu)
-            x_hat = estimator.step(Y[k].copy(), u)
+            dt = None if dts is None or k == 0 else float(dts[k - 1])
+            x_hat = estimator.step(Y[k].copy(), u, dt=dt)
             rec.record(k, x_hat, estimator.info)
             rec.done = k + 1
     return rec.finish(model, estimator, ts, X, Y, U, warn)

@@ -185,18 +185,23 @@ class Estimator:
         self._info = StepInfo()
         self._u_zero = np.zeros(model.nu)
         self._sampled = model.sampled
+        self._plain = not (model.sampled or model.variable_dt)  # the transition is u
         self._u_last = self._u_zero.copy()  # the previous input (sampled-input models)
+        self._dt: float | None = None  # the interval of the current step (variable_dt)
 
     # -------------------------------------------------------------- protocol
-    def step(self, y, u=None) -> np.ndarray:
+    def step(self, y, u=None, dt: float | None = None) -> np.ndarray:
         """Process measurement ``y`` (ny,) after input ``u`` (nu,); return x̂ (nx,).
 
         ``u`` is the input that acted since the previous measurement, or, for a
         model with ``hold="foh"``, the input's value at this measurement (the
-        transition then interpolates from the previous one).
+        transition then interpolates from the previous one). ``dt``: the time since
+        the previous measurement, for a model built with ``variable_dt=True``
+        (default the model's ``dt``); refused by other models.
         """
         y = self._check_y(y)
         u = self._check_u(u)
+        self._dt = self._check_dt(dt)
         t0 = time.perf_counter()
         x_hat, info = self._step(y, u, self._first)
         elapsed = time.perf_counter() - t0
@@ -210,8 +215,21 @@ class Estimator:
         return x_hat
 
     def _transition(self, u: np.ndarray) -> np.ndarray:
-        """The input of the transition into this step (see :meth:`Model.transition`)."""
-        return self.model.transition(self._u_last, u) if self._sampled else u
+        """The input of the transition into this step (see :meth:`Model.transition`):
+        the held input, both ends of a sampled one, and with ``variable_dt`` the
+        interval given to :meth:`step`."""
+        if self._plain:
+            return u
+        return self.model.transition(self._u_last, u, self._dt)
+
+    def _check_dt(self, dt) -> float | None:
+        if dt is None:
+            return None
+        if not self.model.variable_dt:
+            raise ValueError(f"dt is given but {self.model.name} integrates over its fixed "
+                             f"dt = {self.model.dt:g}: build the model with "
+                             f"variable_dt=True for irregular time stamps")
+        return as_float(dt, "dt", positive=True)
 
     def reset(self, x0=None, P0=None) -> None:
         """Forget all data; optionally replace the initial guess and its covariance."""

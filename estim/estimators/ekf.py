@@ -100,7 +100,7 @@ class EKF(Estimator):
 
     def _build(self, predict: bool) -> ca.Function:
         m = self.model
-        nx, nu, ny = m.nx, m.nu, m.ny
+        nx, ny = m.nx, m.ny
         s = ca.SX.sym("s", nx + nx * nx)
         x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
         u = ca.SX.sym("u", m.nw)
@@ -118,7 +118,7 @@ class EKF(Estimator):
         else:
             xb, Pb = x, P
         D = ca.diag(mask)
-        uy = u[nu:] if m.sampled else u  # the input at this measurement
+        uy = m.measurement_input(u)  # the input at this measurement
         C = D @ m.H_x(xb, uy, p)
         e = ca.if_else(mask, y - m.H(xb, uy, p), 0)
         Rm = D @ R @ D + ca.diag(1 - mask)

@@ -11,7 +11,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
-from estim._validate import _numeric_array, as_choice, as_inputs, as_record
+from estim._validate import _numeric_array, as_choice, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.nlp import (
     SOLVERS,
@@ -230,21 +230,30 @@ class FullInformation(Estimator):
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
-    def _record(self, Y, U):
+    def _record(self, Y, U, t=None):
+        """``Y``, the transitions' inputs ``W (T, nw)`` (the last row unused) and the
+        measurements' inputs ``(T, nu)`` of a record."""
         m = self.model
         Y = as_record(Y, m.ny, "Y")
         T = Y.shape[0]
         if np.isnan(Y).all():
             raise ValueError("Y has no measured value")
         U = as_inputs(U, T, m)
+        dts = as_intervals(t, T, m)
         if m.sampled:  # inputs at the samples: transitions from each to the next
-            return Y, np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
-        Uprev = np.empty_like(U)
-        Uprev[0] = 0.0
-        Uprev[1:] = U[:-1]
-        return Y, U, Uprev
+            W, Uy = np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
+        else:
+            Uy = np.empty_like(U)
+            Uy[0] = 0.0
+            Uy[1:] = U[:-1]
+            W = U
+        if m.variable_dt:  # each transition's interval (the model's dt without t)
+            W = np.hstack([W, np.full((T, 1), m.dt)])
+            if dts is not None:
+                W[:-1, -1] = dts
+        return Y, W, Uy
 
-    def fit(self, Y, U=None, guess=None, *, Q=None, R=None) -> FitResult:
+    def fit(self, Y, U=None, guess=None, *, Q=None, R=None, t=None) -> FitResult:
         """Solve over the whole record.
 
         Parameters
@@ -260,6 +269,10 @@ class FullInformation(Estimator):
         Q, R : optional
             Covariances for this fit only (default: the estimator's, see
             :meth:`set_tuning`); nothing is rebuilt.
+        t : (T,) array, optional
+            Sample times: a model built with ``variable_dt=True`` integrates from
+            each sample to the next over ``t[k+1] - t[k]`` (default: the model's
+            ``dt``); a continuous model with a fixed ``dt`` refuses other spacings.
 
         Returns
         -------
@@ -270,7 +283,7 @@ class FullInformation(Estimator):
             new = self._validated_tuning(Q=Q, R=R)
             Qf, Rf = new.get("Q", self.Q), new.get("R", self.R)
             weights = (weight_factor(Qf), weight_factor(Rf), Rf)
-        Y, U, Uprev = self._record(Y, U)
+        Y, U, Uprev = self._record(Y, U, t)
         T, nx = Y.shape[0], self.model.nx
         if guess is None:
             X0 = np.empty((T, nx))
@@ -295,7 +308,7 @@ class FullInformation(Estimator):
 
     def _record_inputs(self, U, Uprev):
         """The inputs of a record as :func:`zero_derivative_parameters` takes them."""
-        return U[:, :self.model.nu] if self.model.sampled else U
+        return U[:, :self.model.nu]
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
                robust: bool = False, weights=None, solution: bool = False

@@ -179,6 +179,10 @@ class ShootingObserver(Estimator):
                  max_iter: int = 100, tol: float = 1e-3, resolution: float | None = None,
                  history_length: int | None = 1000):
         super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
+        if model.variable_dt:
+            raise ValueError("ShootingObserver needs samples at the model's fixed dt (its "
+                             "buffer and derivative term are built on that grid); model "
+                             f"{model.name} was built with variable_dt=True")
         for name, val, least in (("window", window, 1), ("every", every, 1),
                                  ("derivative_samples", derivative_samples, 3),
                                  ("max_iter", max_iter, 1)):
