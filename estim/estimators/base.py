@@ -201,7 +201,7 @@ class Estimator:
         """
         y = self._check_y(y)
         u = self._check_u(u)
-        self._dt = self._check_dt(dt)
+        self._dt = None if dt is None else self._check_dt(dt)
         t0 = time.perf_counter()
         x_hat, info = self._step(y, u, self._first)
         elapsed = time.perf_counter() - t0
