@@ -225,3 +225,60 @@ def test_simulate_with_a_variable_dt_model_uses_its_dt():
                        x0=X0, n_steps=30, Q=Q, R=R, seed=4, inputs=lambda t: [np.sin(t)])
     np.testing.assert_allclose(a.x, b.x, atol=1e-14)
     np.testing.assert_allclose(a.x_hat, b.x_hat, atol=1e-12)
+
+
+# ------------------------------------------------------- late measurements (MHE)
+@pytest.mark.parametrize("solver, arrival", [("gauss-newton", "filtering"),
+                                             ("gauss-newton", "smoothing"),
+                                             ("gauss-newton", "fixed"),
+                                             ("ipopt", "filtering"), ("sqp", "none")])
+def test_a_late_measurement_gives_the_estimates_of_an_on_time_one(solver, arrival):
+    """van der Pol: y_30 (one output of it) is missing at step 30 and arrives at step 34;
+    from then on the MHE's estimates are those of the run that had it on time, to the
+    last bit (the MHE goes back and runs the steps again)."""
+    sc = estim.scenarios.van_der_pol(n_steps=60)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2)
+    Y = log.y.copy()
+    Y[12, 1] = np.nan                       # missing for good in both runs
+    late = Y.copy()
+    late[30, 0] = np.nan
+
+    def mhe():
+        return estim.MHE(sc.model, horizon=10, solver=solver, arrival_cost=arrival,
+                         max_lag=6, **sc.tuning)
+
+    on_time = estim.replay(mhe(), Y)
+    est = mhe()
+    got = []
+    for k, y in enumerate(late):
+        x = est.step(y)
+        if k == 34:
+            x = est.insert([Y[30, 0], np.nan], lag=4)
+            assert est.info.status == on_time.status[k]
+        got.append(x)
+    got = np.array(got)
+    np.testing.assert_array_equal(got[34:], on_time.x_hat[34:])
+    assert np.abs(got[30:34] - on_time.x_hat[30:34]).max() > 0   # before it arrived
+    # the value replaced nothing measured: the second output of step 30 stays
+    np.testing.assert_array_equal(est._past[-1][1], Y[59])
+
+
+def test_late_measurement_arguments():
+    sc = estim.scenarios.van_der_pol(n_steps=10)
+    est = estim.MHE(sc.model, horizon=5, solver="gauss-newton", max_lag=3, **sc.tuning)
+    with pytest.raises(ValueError, match=r"lag must be below the number of steps kept \(0"):
+        est.insert([0.0, 0.0], lag=0)
+    for y in np.random.default_rng(0).standard_normal((5, 2)):
+        last = est.step(y)
+    with pytest.raises(ValueError, match=r"lag must be below .*max_lag=3"):
+        est.insert([0.0, 0.0], lag=3)
+    with pytest.raises(ValueError, match="lag must be"):
+        est.insert([0.0, 0.0], lag=-1)
+    with pytest.raises(ValueError, match="y must"):
+        est.insert([0.0, np.inf], lag=1)
+    x = est.insert([np.nan, np.nan], lag=2)     # nothing new: the same estimate again
+    np.testing.assert_array_equal(x, last)
+    plain = estim.MHE(sc.model, horizon=5, solver="gauss-newton", **sc.tuning)
+    plain.step([0.0, 0.0])
+    with pytest.raises(ValueError, match="max_lag=0"):
+        plain.insert([0.0, 0.0], lag=0)

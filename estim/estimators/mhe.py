@@ -3,6 +3,7 @@ r"""Moving horizon estimation: a least-squares trajectory fit over the last N sa
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import casadi as ca
 import numpy as np
@@ -105,6 +106,9 @@ class MHE(Estimator):
         Where a robust loss leaves the quadratic, in standard deviations (default:
         1.345 for huber and soft_l1, 2.385 for cauchy: 95 % efficiency on Gaussian
         noise), as ``scipy.optimize.least_squares``'s.
+    max_lag : int
+        How many of the latest steps a late (out-of-sequence) measurement may
+        belong to (0: none are kept). See :meth:`insert`.
 
     Attributes
     ----------
@@ -134,9 +138,10 @@ class MHE(Estimator):
     def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
                  arrival_cost: str = "filtering", lower=None, upper=None,
                  solver: str = "ipopt", solver_options: dict | None = None,
-                 loss: str = "squared", f_scale: float | None = None):
+                 loss: str = "squared", f_scale: float | None = None, max_lag: int = 0):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self._loss = as_loss(loss, f_scale)
+        self.max_lag = as_int(max_lag, "max_lag", minimum=0)
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         horizon = as_int(horizon, "horizon", minimum=1)
@@ -207,6 +212,56 @@ class MHE(Estimator):
         # where a failed step re-anchors
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
         self._nlp.reset()
+        # the state before each of the last max_lag steps, with the step's data
+        self._past: deque = deque(maxlen=self.max_lag)
+
+    # ------------------------------------------------------- late measurements
+    def _state(self) -> dict:
+        """Everything a step reads and changes (copies of what it changes in place)."""
+        nlp = self._nlp
+        return {"_Y": self._Y.copy(), "_U": self._U.copy(), "_Uprev": self._Uprev.copy(),
+                "_X": self._X.copy(), "_n": self._n, "_xbar": self._xbar.copy(),
+                "_Pbar": None if self._Pbar is None else self._Pbar.copy(),
+                "_history": list(self._history), "_trusted": self._trusted,
+                "_first": self._first, "_k": self._k, "_u_last": self._u_last.copy(),
+                "_info": self._info,
+                "nlp": (nlp._lam_x, nlp.gn._ridge, nlp.weights)}
+
+    def _restore(self, state: dict) -> None:
+        state = dict(state)
+        self._nlp._lam_x, self._nlp.gn._ridge, self._nlp.weights = state.pop("nlp")
+        for key, value in state.items():
+            setattr(self, key, value.copy() if isinstance(value, np.ndarray) else value)
+        self._history = list(self._history)
+
+    def insert(self, y, lag: int) -> np.ndarray:
+        """Add a measurement that arrived late and return the new current estimate.
+
+        ``y`` (ny,) was taken at the step ``lag`` steps before the latest one
+        (``lag = 0``: the latest step itself); its finite entries replace that
+        step's values (NaN entries leave them as they were: typically a sensor
+        whose value was missing then). The MHE goes back to its state before that
+        step and runs that step and every later one again with their own data, so
+        the estimate, ``info`` and everything that follows are exactly those of a run
+        that had the measurement on time. Needs ``max_lag > lag``; costs ``lag + 1``
+        steps.
+        """
+        lag = as_int(lag, "lag", minimum=0)
+        if lag >= len(self._past):
+            kept = len(self._past)
+            raise ValueError(f"lag must be below the number of steps kept ({kept}: "
+                             f"max_lag={self.max_lag}, {self._k} steps so far), got {lag}")
+        y = np.asarray(self._check_y(y), dtype=float)
+        entries = list(self._past)
+        i = len(entries) - 1 - lag
+        state, y_old, u, dt = entries[i]
+        merged = np.where(np.isfinite(y), y, y_old)
+        self._restore(state)
+        self._past = deque(entries[:i], maxlen=self.max_lag)
+        x_hat = self.step(merged, u, dt=dt)
+        for _, y_k, u_k, dt_k in entries[i + 1:]:
+            x_hat = self.step(y_k, u_k, dt=dt_k)
+        return x_hat
 
     # ------------------------------------------------------------------- step
     def _slide(self, u: np.ndarray) -> None:
@@ -274,6 +329,8 @@ class MHE(Estimator):
     def _step(self, y, u, first):
         m, N = self.model, self.horizon
         t0 = time.perf_counter()
+        if self.max_lag:  # the state before this step, for a late measurement
+            self._past.append((self._state(), y.copy(), u.copy(), self._dt))
         if not first:
             self._U[N - 1] = self._transition(u)  # from the newest slot to the one arriving
             if self._n == N:
