@@ -219,6 +219,13 @@ def input_pairs(u: np.ndarray) -> np.ndarray:
     return np.vstack([u[:-1], u[1:]])
 
 
+def rollout(F, x0, U, theta):
+    """The states ``(2, N)`` from ``x0`` through the steps ``F`` driven by the columns
+    ``U (2, N-1)`` (see :func:`input_pairs`), ``theta`` fixed: symbolic or numeric."""
+    n = U.shape[1]
+    return ca.horzcat(x0, F.mapaccum(n)(x0, U, ca.repmat(theta, 1, n)))
+
+
 _SIMULATORS: dict[tuple[str, int], ca.Function] = {}
 
 
@@ -229,8 +236,7 @@ def simulate(theta, u: np.ndarray, hold: str, x0) -> np.ndarray:
     if key not in _SIMULATORS:
         F = duffing_model(hold)
         th, x0s, U = ca.MX.sym("theta", 5), ca.MX.sym("x0", 2), ca.MX.sym("U", 2, N - 1)
-        X = F.mapaccum(N - 1)(x0s, U, ca.repmat(th, 1, N - 1))
-        _SIMULATORS[key] = ca.Function("sim", [th, x0s, U], [ca.horzcat(x0s[0], X[0, :])])
+        _SIMULATORS[key] = ca.Function("sim", [th, x0s, U], [rollout(F, x0s, U, th)[0, :]])
     y = _SIMULATORS[key](np.asarray(theta, float), np.asarray(x0, float), input_pairs(u))
     return np.asarray(y).ravel()
 
@@ -283,12 +289,10 @@ class LeastSquaresFit:
 
 def residual_functions(u: np.ndarray, y: np.ndarray, hold: str) -> tuple[ca.Function, ...]:
     """``r(z)`` and ``J(z) = dr/dz``, ``z = (theta, x0)``: the simulation error as Functions."""
-    N = len(y)
     F = duffing_model(hold)
     z = ca.MX.sym("z", 7)
     th, x0 = z[:5], z[5:]
-    X = F.mapaccum(N - 1)(x0, ca.DM(input_pairs(u)), ca.repmat(th, 1, N - 1))
-    r = ca.horzcat(x0[0], X[0, :]).T - ca.DM(np.asarray(y, float))
+    r = rollout(F, x0, ca.DM(input_pairs(u)), th)[0, :].T - ca.DM(np.asarray(y, float))
     return ca.Function("r", [z], [r]), ca.Function("J", [z], [ca.jacobian(r, z)])
 
 
@@ -373,17 +377,16 @@ def estim_guess(u: np.ndarray, y: np.ndarray, hold: str, kind: str = "measured")
     ``"constant"``: None, i.e. estim's default guess, ``x0 = (0, 0, theta_ARX)``
     repeated (what ``FullInformation(..., x0=...).fit(Y, U)`` does).
     """
-    theta0, x0 = initial_guess(u, y)
+    if kind not in GUESSES:
+        raise ValueError(f"guess must be one of {GUESSES}, got {kind!r}")
     if kind == "constant":
         return None
+    theta0, x0 = initial_guess(u, y)
     P = np.repeat(theta0[None, :], len(y), 0)
     if kind == "measured":
         return np.column_stack([y, np.gradient(y), P])
-    if kind == "simulated":
-        F = duffing_model(hold)
-        X = F.mapaccum(len(y) - 1)(x0, input_pairs(u), np.repeat(theta0[:, None], len(y) - 1, 1))
-        return np.column_stack([np.column_stack([x0, np.asarray(X)]).T, P])
-    raise ValueError(f"guess must be one of {GUESSES}, got {kind!r}")
+    X = rollout(duffing_model(hold), ca.DM(x0), ca.DM(input_pairs(u)), ca.DM(theta0))
+    return np.column_stack([np.asarray(X).T, P])
 
 
 @dataclass

@@ -213,6 +213,19 @@ def as_record(value, n: int, name: str, *, missing: bool = True) -> np.ndarray:
     return arr
 
 
+def as_input_table(value, T: int, nu: int, name: str = "inputs") -> np.ndarray:
+    """An input signal given as a table, ``(T, nu)`` float (``(T,)`` when ``nu == 1``),
+    finite: one row per step of a simulation."""
+    U = _numeric_array(value, name)
+    if U.ndim == 1 and nu == 1:
+        U = U[:, None]
+    if U.shape != (T, nu):
+        raise ValueError(f"{name} must have shape ({T}, {nu}) = (n_steps, nu), got {U.shape}")
+    if not np.isfinite(U).all():
+        raise ValueError(f"{name} must be finite")
+    return U
+
+
 def as_inputs(value, T: int, model, name: str = "U") -> np.ndarray:
     """The inputs of a ``T``-sample record as a ``(T, nu)`` float array (zero if
     ``value`` is None). ``(T-1, nu)`` is accepted for a held input (``U[k]`` acts from

@@ -185,14 +185,14 @@ class Log:
 
     def problems(self) -> str:
         """One line on the failed and flagged steps ("" when every step was ok)."""
-        parts = []
-        if self.failures:
+        parts, failures, flagged = [], self.failures, self.flagged
+        if failures:
             first = int(np.flatnonzero(~self.success)[0])
-            parts.append(f"{self.failures} of {len(self)} steps failed (first at step {first}: "
+            parts.append(f"{failures} of {len(self)} steps failed (first at step {first}: "
                          f"{self.status[first]})")
-        if self.flagged:
+        if flagged:
             kinds = sorted({str(s).split(":")[0] for s in self.status[self.success]} - {"ok"})
-            parts.append(f"{self.flagged} flagged ({', '.join(kinds)})")
+            parts.append(f"{flagged} flagged ({', '.join(kinds)})")
         return "; ".join(parts)
 
     def diagnostic(self, key: str) -> np.ndarray:
@@ -257,8 +257,9 @@ class Log:
             from estim.metrics import rmse
 
             extra = f"<p>RMSE {rmse(self)!r}</p>"
-        if self.problems():
-            extra += f"<p><b>Warning</b>: {html.escape(self.problems())}</p>"
+        problems = self.problems()
+        if problems:
+            extra += f"<p><b>Warning</b>: {html.escape(problems)}</p>"
         return (f"<p><b>{title}</b>: T = {len(self)}</p>{extra}"
                 f"<table><tr><th>series</th><th>shape</th></tr>{rows}</table>")
 
@@ -267,5 +268,5 @@ class Log:
                            if getattr(self, k).ndim > 1 or k == "t")
         who = f" {self.estimator}" if self.estimator else ""
         on = f" on {self.model_name}" if self.model_name else ""
-        problems = f"; {self.problems()}" if self.problems() else ""
-        return f"<Log{who}{on}: T={len(self)}; {fields}{problems}>"
+        problems = self.problems()
+        return f"<Log{who}{on}: T={len(self)}; {fields}{'; ' + problems if problems else ''}>"

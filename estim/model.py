@@ -382,14 +382,10 @@ class Model:
 
     def _cvodes(self, x, w, p, u_of, h) -> ca.Function:
         t = ca.SX.sym("t")
-        if self.variable_dt:  # in the fraction s = t / h of the interval: dx/ds = h f
-            u = u_of(t) if callable(u_of) else u_of
-            dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": h * self.f_c(x, u, p)}
-            tf = 1.0
-        else:
-            u = u_of(t / self.dt) if callable(u_of) else u_of
-            dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": self.f_c(x, u, p)}
-            tf = self.dt
+        # variable_dt: over the fraction s = t of the interval h, dx/ds = h f
+        tf = 1.0 if self.variable_dt else self.dt
+        ode = self.f_c(x, _input_at(u_of, t / tf), p)
+        dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": h * ode if self.variable_dt else ode}
         integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, tf,
                               {"abstol": 1e-10, "reltol": 1e-10})
         xm = ca.MX.sym("x", self.nx)
@@ -451,7 +447,7 @@ class Model:
             dt = as_float(dt, "dt", positive=True)
         nxt = u if u_next is None or not self.sampled else as_vector(u_next, self.nu,
                                                                      "u_next")
-        return self.transition(u, nxt, dt) if self.sampled else self.transition(None, u, dt)
+        return self.transition(u, nxt, dt)
 
     def f(self, x, u=None, u_next=None, dt: float | None = None) -> np.ndarray:
         """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input).
@@ -589,5 +585,6 @@ class Model:
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        self.__dict__.setdefault("variable_dt", False)
+        self.__dict__.setdefault("variable_dt", False)  # models pickled before these
+        self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
         self._build()

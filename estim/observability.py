@@ -55,6 +55,7 @@ from estim._validate import (
     as_choice,
     as_covariance,
     as_float,
+    as_input_table,
     as_int,
     as_seed,
     as_vector,
@@ -608,13 +609,8 @@ def window(model: Model, x0, n_steps: int, inputs=None, R=None, every: int = 1,
     rtol = as_float(rtol, "rtol", positive=True, expected="a number in (0, 1)")
     if rtol >= 1:
         raise ValueError(f"rtol must be a number in (0, 1), got {rtol!r}")
-    U = np.zeros((n_steps, model.nu)) if inputs is None else _numeric_array(inputs, "inputs")
-    if U.ndim == 1 and model.nu == 1 and len(U) == n_steps:
-        U = U[:, None]
-    if U.shape != (n_steps, model.nu):
-        raise ValueError(f"inputs must have shape ({n_steps}, {model.nu}), got {U.shape}")
-    if not np.isfinite(U).all():
-        raise ValueError("inputs must be finite")
+    U = np.zeros((n_steps, model.nu)) if inputs is None else \
+        as_input_table(inputs, n_steps, model.nu)
     Rm = None if R is None else as_covariance(R, model.ny, "R")
     x = ca.SX.sym("x", model.nx)
     p = ca.DM(model.p)

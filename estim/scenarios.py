@@ -15,11 +15,11 @@ import numpy as np
 
 from estim import models
 from estim._validate import (
-    _numeric_array,
     as_bool,
     as_choice,
     as_covariance,
     as_float,
+    as_input_table,
     as_int,
     as_vector,
     check_call,
@@ -127,14 +127,7 @@ class Scenario:
         if self.inputs is not None and self.controller is not None:
             raise ValueError("give inputs= or controller=, not both")
         if self.inputs is not None and not callable(self.inputs):
-            U = _numeric_array(self.inputs, "inputs")
-            if U.ndim == 1 and m.nu == 1:
-                U = U[:, None]
-            if U.shape != (self.n_steps, m.nu):
-                raise ValueError(f"inputs must have shape ({self.n_steps}, {m.nu}) = "
-                                 f"(n_steps, nu), got {U.shape}")
-            if not np.isfinite(U).all():
-                raise ValueError("inputs must be finite")
+            as_input_table(self.inputs, self.n_steps, m.nu)
         self.plant_changes = check_plant_changes(self.plant_changes, m)
 
     def replace(self, **changes) -> Scenario:

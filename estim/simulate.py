@@ -29,10 +29,10 @@ import numpy as np
 from estim._fast import FastFunction
 from estim._validate import (
     _numeric_array,
-    _show,
     as_bool,
     as_covariance,
     as_float,
+    as_input_table,
     as_int,
     as_intervals,
     as_record,
@@ -340,17 +340,12 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     if not isinstance(estimator, Estimator):
         raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
     model = estimator.model
-    Y = _check_replay(model, y, u, x, t)
+    Y, dts = _check_replay(model, y, u, x, t)  # dts: each interval (variable_dt) or None
     warn = as_bool(warn, "warn")
     T = Y.shape[0]
     U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model.nu, model.dt)
     X = np.full((T, model.nx), np.nan) if x is None else np.asarray(x, dtype=float)
-    if X.shape != (T, model.nx):
-        raise ValueError(f"x must have shape ({T}, {model.nx}), got {X.shape}")
     ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
-    if ts.shape != (T,):
-        raise ValueError(f"t must have shape ({T},), got {ts.shape}")
-    dts = as_intervals(t, T, model)  # each step's interval (variable_dt), else None
     rec = _Recorder(T, model.nx)
     estimator.reset()
     with rec.running(model, estimator, ts, X, Y, U):
@@ -370,14 +365,7 @@ def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:
     if callable(inputs):
         return np.array([as_vector(inputs(k * dt), nu, "inputs(t)") for k in range(T)]
                         ).reshape(T, nu)
-    U = np.asarray(inputs, dtype=float)
-    if U.ndim == 1 and nu == 1:
-        U = U[:, None]
-    if U.shape != (T, nu):
-        raise ValueError(f"inputs must have shape ({T}, {nu}) = (n_steps, nu), got {U.shape}")
-    if not np.isfinite(U).all():
-        raise ValueError("inputs must be finite")
-    return U
+    return as_input_table(inputs, T, nu)
 
 
 def _missing(missing, T: int, ny: int, seed) -> np.ndarray | None:
@@ -405,8 +393,6 @@ def _check_simulate(model: Model, n_steps, seed, clip, inputs, controller, missi
     if controller is not None and not callable(controller):
         raise TypeError(f"controller must be callable (t, x) -> u, "
                         f"got {type(controller).__name__}")
-    if inputs is not None and not callable(inputs):
-        _numeric_array(inputs, "inputs")
     if missing is not None:
         if isinstance(missing, bool | np.bool_) or np.ndim(missing) == 0:
             as_float(missing, "missing", expected="a probability in [0, 1) or a bool mask")
@@ -419,8 +405,9 @@ def _check_simulate(model: Model, n_steps, seed, clip, inputs, controller, missi
     return n_steps, seed, clip, check_plant_changes(plant_changes, model)
 
 
-def _check_replay(model: Model, y, u, x, t) -> np.ndarray:
-    """Check every array of :func:`replay` before the first step; return ``y`` as (T, ny)."""
+def _check_replay(model: Model, y, u, x, t) -> tuple[np.ndarray, np.ndarray | None]:
+    """Check every array of :func:`replay` before the first step; return ``y`` as (T, ny)
+    and the intervals of ``t`` for a ``variable_dt`` model (see :func:`as_intervals`)."""
     Y = as_record(y, model.ny, "y")
     T = Y.shape[0]
     if u is not None and not callable(u):
@@ -433,15 +420,4 @@ def _check_replay(model: Model, y, u, x, t) -> np.ndarray:
             raise ValueError(f"x must have shape ({T}, {model.nx}), got {X.shape}")
         if np.isinf(X).any():
             raise ValueError("x must not contain inf (use NaN where the state is unknown)")
-    if t is not None:
-        ts = _numeric_array(t, "t")
-        if ts.shape != (T,):
-            raise ValueError(f"t must have shape ({T},), got {ts.shape}")
-        if not np.isfinite(ts).all():
-            raise ValueError(f"t must be finite, got {_show(ts)}")
-        steps = np.flatnonzero(np.diff(ts) <= 0)
-        if len(steps):
-            k = steps[0]
-            raise ValueError(f"t must be strictly increasing: t[{k}] = {ts[k]:g}, "
-                             f"t[{k + 1}] = {ts[k + 1]:g}")
-    return Y
+    return Y, as_intervals(t, T, model)

@@ -222,9 +222,7 @@ class Estimator:
             return u
         return self.model.transition(self._u_last, u, self._dt)
 
-    def _check_dt(self, dt) -> float | None:
-        if dt is None:
-            return None
+    def _check_dt(self, dt) -> float:
         if not self.model.variable_dt:
             raise ValueError(f"dt is given but {self.model.name} integrates over its fixed "
                              f"dt = {self.model.dt:g}: build the model with "
@@ -329,6 +327,25 @@ class Estimator:
         if text:
             warnings.warn(f"{type(self).__name__} on {self.model.name}: {text}",
                           EstimationWarning, stacklevel=4)  # here, __init__, its check, caller
+
+    @staticmethod
+    def _failure(usable: bool, status: str, cost: float) -> str:
+        """Why an optimisation-based step failed: an unusable solve, or an early stop at
+        a cost the data do not support."""
+        return status if not usable else f"{status} at cost {cost:.3g}"
+
+    @staticmethod
+    def _solve_status(failure: str | None, usable: bool, success: bool, status: str,
+                      check: str, what: str) -> str:
+        """The status of an optimisation-based step (MHE, full information): failed and
+        re-anchored on its ``what`` (window, record), inexact, or the consistency
+        ``check`` (``"ok"`` or ``"suspect: ..."``) of a converged solve."""
+        if failure is not None:
+            return f"failed: {failure}; re-anchored on the last trusted estimate" + (
+                "" if usable else f" (no update: the restarted {what} failed too)")
+        if success:
+            return check
+        return f"inexact: {status}" + ("" if check == "ok" else f"; {check}")
 
     def _anchor(self, x: np.ndarray, P: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray | None]:

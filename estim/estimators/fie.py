@@ -16,6 +16,7 @@ from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.nlp import (
     SOLVERS,
     LeastSquaresNLP,
+    Solution,
     check_solver_options,
     is_diagonal,
     weight_factor,
@@ -295,7 +296,8 @@ class FullInformation(Estimator):
             if not np.isfinite(X0).all():
                 raise ValueError("guess must be finite")
         res = self._solve(Y, U, Uprev, X0, T, full=True, weights=weights)[0]
-        frozen = zero_derivative_parameters(self.model, res.x, self._record_inputs(U, Uprev)) \
+        # (the first nu columns of the transitions' inputs: the input at each sample)
+        frozen = zero_derivative_parameters(self.model, res.x, U[:, :self.model.nu]) \
             if self.model.augmented and res.success else []
         if frozen:  # they kept their initial values: not an optimum in them
             warnings.warn(f"FullInformation.fit on {self.model.name}: "
@@ -306,13 +308,8 @@ class FullInformation(Estimator):
                           f"the record and kept the initial value")
         return res
 
-    def _record_inputs(self, U, Uprev):
-        """The inputs of a record as :func:`zero_derivative_parameters` takes them."""
-        return U[:, :self.model.nu]
-
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
-               robust: bool = False, weights=None, solution: bool = False
-               ) -> tuple[FitResult, bool]:
+               robust: bool = False, weights=None) -> tuple[FitResult, Solution]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
@@ -321,9 +318,8 @@ class FullInformation(Estimator):
         ``prior``: ``(mean, weight factor or None)`` of the first sample (default
         ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver;
         ``weights``: ``(W_Q, W_R, R)`` (default the estimator's).
-        Returns the result and whether its trajectory is usable (see
-        :class:`~estim.estimators.nlp.Solution`), and with ``solution`` the solver's
-        :class:`~estim.estimators.nlp.Solution` too.
+        Returns the result and the solver's :class:`~estim.estimators.nlp.Solution`
+        (whether the trajectory is usable, the outliers of a robust loss).
         """
         m, T, C = self.model, Y.shape[0], capacity
         pad = C - T
@@ -338,8 +334,7 @@ class FullInformation(Estimator):
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
         WQ, WR, R = (self._WQ, self._WR, self.R) if weights is None else weights
         sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
-        res = self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad)
-        return (res, sol.usable, sol) if solution else (res, sol.usable)
+        return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol
 
     def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
         m, Xfull = self.model, sol.X
@@ -393,11 +388,10 @@ class FullInformation(Estimator):
             pred = self._F(self._X[-1], U[-2], m.p)[0]
             guess = np.vstack([self._X, pred if np.isfinite(pred).all() else self._X[-1]])
         capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
-        res, usable, sol = self._solve(Y, U, Uprev, guess, capacity, prior=self._start,
-                                       robust=robust, solution=True)
+        res, sol = self._solve(Y, U, Uprev, guess, capacity, prior=self._start, robust=robust)
         measured = int(np.isfinite(Y).sum())
         dof = measured + (0 if self._start[1] is None else m.nx)
-        return res, usable, sol.consistency(dof, measured)
+        return res, sol.usable, sol.consistency(dof, measured)
 
     def _step(self, y, u, first):
         t0 = time.perf_counter()
@@ -409,7 +403,7 @@ class FullInformation(Estimator):
         failure = None
         if not usable or (not res.success and check != "ok"):
             # restart the record at this sample, the last trusted estimate its prior
-            failure = res.status if not usable else f"{res.status} at cost {res.cost:.3g}"
+            failure = self._failure(usable, res.status, res.cost)
             x, P = self._anchor(*self._trusted)
             self._Ys, self._Ws, self._Us = [y.copy()], [], [u.copy()]
             self._start = (x, None if P is None else weight_factor(P))
@@ -418,14 +412,9 @@ class FullInformation(Estimator):
         x_hat = res.x[-1].copy() if usable else self._start[0].copy()
         self._X = res.x if usable else np.repeat(self._start[0][None, :], len(self._Ys), 0)
         P = res.P_last if usable else None
-        if failure is not None:
-            status = f"failed: {failure}; re-anchored on the last trusted estimate" + (
-                "" if usable else " (no update: the restarted record failed too)")
-        else:
-            status = check if res.success else \
-                f"inexact: {res.status}" + ("" if check == "ok" else f"; {check}")
-            if check == "ok":
-                self._trusted = (x_hat.copy(), P)
+        status = self._solve_status(failure, usable, res.success, res.status, check, "record")
+        if failure is None and check == "ok":
+            self._trusted = (x_hat.copy(), P)
         return x_hat, StepInfo(
             status=status, success=failure is None, iterations=res.iterations,
             solve_time=time.perf_counter() - t0, P=P, cost=res.cost,

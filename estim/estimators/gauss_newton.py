@@ -79,8 +79,9 @@ _ITERATIONS = {(False, False): "gn", (False, True): "gn_lam", (True, False): "ne
 #: slots times the instructions of one slot's forward step: about 4200 slots of the
 #: Lorenz model, 850 of the seven-state Silverbox one), and maps beyond. Building takes about 0.25
 #: microseconds per instruction (1 s at the limit), the mapped mode's a fixed 0.05-0.2 s;
-#: per evaluation the mapped mode pays a few microseconds per chunk, which matters for
-#: small models only (Lorenz: 3x the unrolled time at 4000 slots; a 7-state model: the same).
+#: per evaluation the mapped mode pays about a microsecond per chunk call, which matters
+#: for small models only (Lorenz: 1.3x the unrolled time at 4000 slots, 0.7x at 10 000;
+#: a 7-state model at 4000: 0.7x).
 AUTO_UNROLL_INSTRUCTIONS = 2_200_000
 #: ``mode="mapped"`` evaluates chunks of at least this many slots in a loop (with
 #: ``jit``: fewer, compiled in about two seconds instead of ten, and as fast), and at

@@ -300,15 +300,13 @@ class MHE(Estimator):
 
     def _solve(self, robust: bool = False):
         """Solve the current window (``robust``: by Gauss-Newton, see
-        :meth:`LeastSquaresNLP.solve`); the arrival weight and its chi-square degrees."""
-        weight = self._arrival_weight()
-        sol = self._nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
-                              weight, self._WQ, self._WR, self.R, robust=robust)
-        return sol, self._nlp.degrees_of_freedom(self._Y, self._n, weight is not None)
-
-    def _measured(self) -> int:
-        """The number of measured values in the window."""
-        return int(np.isfinite(self._Y[self.horizon - self._n:]).sum())
+        :meth:`LeastSquaresNLP.solve`); the solution and the consistency of its cost."""
+        nlp, weight = self._nlp, self._arrival_weight()
+        sol = nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
+                        weight, self._WQ, self._WR, self.R, robust=robust)
+        measured = nlp.measured(self._Y, self._n)
+        dof = measured + (self.model.nx if weight is not None else 0)
+        return sol, sol.consistency(dof, measured)
 
     def _reanchor(self, y, u) -> None:
         """Restart the window after a failed solve: only this measurement, the arrival
@@ -345,16 +343,14 @@ class MHE(Estimator):
         self._Uprev[N - 1] = u
         self._n += 1
         self._X[:N - self._n] = self._X[N - self._n]
-        sol, dof = self._solve()
-        check = sol.consistency(dof, self._measured())
+        sol, check = self._solve()
         failure = None
         # an unusable solve, or an early stop whose cost the data do not support: restart
         # from the last trusted estimate with this measurement
         if not sol.usable or (not sol.success and check != "ok"):
-            failure = sol.status if not sol.usable else f"{sol.status} at cost {sol.cost:.3g}"
+            failure = self._failure(sol.usable, sol.status, sol.cost)
             self._reanchor(y, u)
-            sol, dof = self._solve(robust=True)
-            check = sol.consistency(dof, self._measured())
+            sol, check = self._solve(robust=True)
         s0 = N - self._n
         if sol.usable:
             self._X[:] = sol.X
@@ -363,14 +359,10 @@ class MHE(Estimator):
             x_hat = self._X[-1].copy()  # the anchor itself
         elapsed = time.perf_counter() - t0  # the estimate; its covariance is extra
         P = self._nlp.covariance(self._X) if sol.usable else None
-        if failure is not None:
-            status = f"failed: {failure}; re-anchored on the last trusted estimate" + (
-                "" if sol.usable else " (no update: the restarted window failed too)")
-        else:
-            status = check if sol.success else \
-                f"inexact: {sol.status}" + ("" if check == "ok" else f"; {check}")
-            if check == "ok":
-                self._trusted = (x_hat.copy(), P)
+        status = self._solve_status(failure, sol.usable, sol.success, sol.status, check,
+                                    "window")
+        if failure is None and check == "ok":
+            self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
         return x_hat.copy(), StepInfo(
             status=status, success=failure is None, iterations=sol.iterations,

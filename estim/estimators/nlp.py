@@ -184,6 +184,19 @@ def weight_factor(cov: np.ndarray) -> np.ndarray:
     return L.T
 
 
+def measurement_weights(mask: np.ndarray, R: np.ndarray, WR: np.ndarray) -> np.ndarray:
+    """``(T, ny, ny)``: the weight factor of each sample's measured outputs (``mask``
+    (T, ny)): ``WR`` where every output is measured, the factor of the marginal of
+    ``R`` over the measured rows (zero elsewhere) where some are, zero where none."""
+    wy = np.zeros((len(mask), len(R), len(R)))
+    full = mask.all(axis=1)
+    wy[full] = WR
+    for j in np.flatnonzero(~full & mask.any(axis=1)):
+        rows = np.flatnonzero(mask[j])
+        wy[j][np.ix_(rows, rows)] = weight_factor(R[np.ix_(rows, rows)])
+    return wy
+
+
 @dataclass
 class Solution:
     """One solve: trajectory ``X (N, nx)``, status and statistics.
@@ -290,16 +303,8 @@ class LeastSquaresNLP:
         WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
             ca.reshape(part["wq"], nx, nx)
         pm = ca.DM(model.p)
-        gn_keys = ("max_iter", "xtol", "newton", "jit", "mode")
-        gn_opts = {k: options[k] for k in gn_keys if k in options} \
-            if solver == "gauss-newton" else {}
-        if solver == "gauss-newton" and set(options) - set(gn_opts):
-            raise ValueError(f"solver_options for gauss-newton are {gn_keys}, got "
-                             f"{sorted(options)}")
-        only_gn = sorted(set(options) & {"xtol", "newton", "mode"})
-        if solver != "gauss-newton" and only_gn:
-            raise ValueError(f"solver_options {only_gn} apply to solver='gauss-newton' only "
-                             f"(solver is {solver!r})")
+        # (the estimators check the options by check_solver_options first)
+        gn_opts = options if solver == "gauss-newton" else {}
         self.full = bool(full)
         self.gn = StructuredGaussNewton(model, N, self.lbx, self.ubx, self._slices, self.np,
                                         diagonal_Q=diagonal_Q, diagonal_R=diagonal_R,
@@ -408,7 +413,7 @@ class LeastSquaresNLP:
         and measurement weight factors ``WQ``, ``WR`` and ``R`` (for the weights of
         partly measured samples)."""
         m, N = self.model, self.N
-        nx, ny = m.nx, m.ny
+        nx = m.nx
         p, s = self._p, self._slices
         p[s["wq"]] = WQ.ravel(order="F")
         p[s["wr"]] = WR.ravel(order="F")
@@ -430,15 +435,9 @@ class LeastSquaresNLP:
             p[s["w0"]] = 0.0 if W0 is None else W0.ravel(order="F")
             return p
         p[s["y"]] = np.where(mask, Y, 0.0).ravel()          # column-major (ny, N)
-        wy = np.zeros((N, ny, ny))
-        full = mask.all(axis=1)
-        full[:s0] = False
-        wy[full] = WR
-        partial = np.flatnonzero(~full & mask.any(axis=1))
-        for j in partial[partial >= s0]:
-            rows = np.flatnonzero(mask[j])
-            Wsub = np.linalg.cholesky(np.linalg.inv(R[np.ix_(rows, rows)])).T
-            wy[j][np.ix_(rows, rows)] = Wsub
+        used = mask.copy()
+        used[:s0] = False  # the unused slots weigh nothing
+        wy = measurement_weights(used, R, WR)
         p[s["wy"]] = wy.transpose(0, 2, 1).ravel()            # each block column-major
         if s0:  # the unused slots evaluate the model at the inputs of the first used one
             U, Uprev = U.copy(), Uprev.copy()  # (stale ones may make it non-finite, and
@@ -517,11 +516,8 @@ class LeastSquaresNLP:
                 used[:] = [weights(x)]
                 self.gn._pbuf[s["wy"]] = scaled(used[0])
 
-            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, False, reweight)
+            sol = self._solve_gn(X0, p, reweight)
             p[s["wy"]] = self.gn._pbuf[s["wy"]]  # the final weights (covariance)
-            sol = Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
-                           elapsed, bool(np.isfinite(cost) and np.isfinite(x).all()),
-                           self.gn.last_build)
             return self._robust_summary(sol, p, base, used[0])
         X = np.clip(np.asarray(X0, float).reshape(self.N, -1), self.lbx.reshape(self.N, -1),
                     self.ubx.reshape(self.N, -1))
@@ -572,11 +568,7 @@ class LeastSquaresNLP:
             robust = not self.gn.cost(x0, p, self._complete) <= chi2_limit(
                 self.degrees_of_freedom(Y, n, arrival))
         if self.solver_name == "gauss-newton" or robust:
-            x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete)
-            # the iterations only ever decrease the cost: a finite end point is usable
-            usable = bool(np.isfinite(cost) and np.isfinite(x).all())
-            return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
-                            elapsed, usable, self.gn.last_build)
+            return self._solve_gn(X0, p)
         t0 = time.perf_counter()
         # not started where the model is not finite (the solvers would spend their
         # iterations on it, or crash)
@@ -619,12 +611,23 @@ class LeastSquaresNLP:
             usable = bool(np.isfinite(cost) and not cost > start)
         return Solution(X, ok, status, iters, cost, elapsed, usable)
 
+    def _solve_gn(self, X0, p, reweight=None) -> Solution:
+        """The structured Gauss-Newton solve (see :meth:`StructuredGaussNewton.solve`)."""
+        x, ok, status, iters, cost, elapsed = self.gn.solve(X0, p, self._complete, reweight)
+        # the iterations only ever decrease the cost: a finite end point is usable
+        usable = bool(np.isfinite(cost) and np.isfinite(x).all())
+        return Solution(x.reshape(self.N, -1), ok, "ok" if ok else status, iters, cost,
+                        elapsed, usable, self.gn.last_build)
+
+    def measured(self, Y: np.ndarray, n: int) -> int:
+        """The number of measured values in the last ``n`` slots of ``Y``."""
+        return n * self.model.ny if self._complete else int(np.isfinite(Y[self.N - n:]).sum())
+
     def degrees_of_freedom(self, Y: np.ndarray, n: int, arrival: bool) -> int:
         """Chi-square degrees of freedom of the cost of a window of ``n`` measured slots
         (its measured outputs, and ``nx`` for an arrival term), for the consistency test
         of :func:`~estim.estimators.base.consistency_status`."""
-        measured = n * self.model.ny if self._complete else int(np.isfinite(Y[self.N - n:]).sum())
-        return measured + (self.model.nx if arrival else 0)
+        return self.measured(Y, n) + (self.model.nx if arrival else 0)
 
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the

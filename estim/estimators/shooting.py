@@ -35,7 +35,7 @@ from scipy import optimize
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_float, as_int
 from estim.estimators.base import Estimator, StepInfo, consistency_status
-from estim.estimators.nlp import _casadi_reason
+from estim.estimators.nlp import _casadi_reason, measurement_weights, weight_factor
 from estim.model import Model, euler_step, rk4_step
 
 METHODS = ("bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient")
@@ -219,8 +219,7 @@ class ShootingObserver(Estimator):
     def _tuning_changed(self) -> None:
         """The output weights of the windows (``R`` is data: the graphs take them per
         window)."""
-        self._Rinv = np.linalg.inv(self.R)
-        self._WR = np.linalg.cholesky(self._Rinv).T  # W^T W = R^-1
+        self._WR = weight_factor(self.R)  # W^T W = R^-1
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
@@ -397,15 +396,8 @@ class ShootingObserver(Estimator):
         n, w, span = self.every, self.window, self._span
         idx = [len(ys) - 1 - span + i * n for i in range(w)]
         Y = ys[idx].T
-        WY = np.zeros((self.model.ny, self.model.ny, w))
-        for c in range(w):
-            rows = np.flatnonzero(np.isfinite(Y[:, c]))
-            if len(rows) == len(Y):
-                WY[:, :, c] = self._WR
-            elif len(rows):
-                sub = np.linalg.cholesky(np.linalg.inv(self.R[np.ix_(rows, rows)])).T
-                WY[np.ix_(rows, rows, [c])] = sub[:, :, None]
-        WY = WY.reshape(-1, w, order="F")
+        WY = measurement_weights(np.isfinite(Y.T), self.R, self._WR)  # (w, ny, ny)
+        WY = WY.transpose(1, 2, 0).reshape(-1, w, order="F")
         self._measured = int(np.isfinite(Y).sum())  # outputs in the window
         Y = np.where(np.isfinite(Y), Y, 0.0)
         Yd = np.zeros_like(Y)
@@ -509,14 +501,14 @@ class ShootingObserver(Estimator):
         does not determine (its estimate is noise, :math:`|\xi^{GN}_i| \sim \sigma_i`)
         keeps the small scale, and so its start. Other absolute scales were rejected:
         :math:`1/\sqrt{H_{ii}}` makes every relative error about 1 whatever the window
-        holds, and bounds give a range, not a magnitude. Without ``g`` (or ``H``) the
+        holds, and bounds give a range, not a magnitude. With a non-finite ``g`` the
         start's scale is returned.
         """
         D = np.abs(start)
         D = np.maximum(D, 1e-3 * float(D.max()))
         if self.P0 is not None:
             D = np.maximum(D, np.sqrt(np.diag(self.P0)))
-        if H is None or g is None or not np.isfinite(g).all():
+        if not np.isfinite(g).all():
             return D
         h = np.maximum(np.diag(H), 0.0)
         tiny = D * D * h < 2.0  # the start is within its own standard error of 0
@@ -536,7 +528,7 @@ class ShootingObserver(Estimator):
         D[use] = np.maximum(D[use], target[use])
         return D
 
-    def _subspace(self, H, start, g=None):
+    def _subspace(self, H, start, g):
         r"""Coordinates ``xi = start + T z`` spanning the directions this window determines.
 
         In relative coordinates (``xi_i = start_i + D_i e_i``, with the magnitudes
@@ -600,7 +592,7 @@ class ShootingObserver(Estimator):
         if self.method == "gradient":
             return self._gradient_descent(start, args)
         gtol = np.sqrt(2.0 * self.tol)
-        H = self._hessian(start, args)
+        H = None if self.method == "ipopt" else self._hessian(start, args)  # ipopt: its own
         n = len(start)
         try:
             if self.method == "ipopt":
