@@ -20,6 +20,7 @@ import html
 import importlib.util
 import os
 import sys
+import textwrap
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -28,7 +29,7 @@ import numpy as np
 from estim._validate import as_bool, as_int, check_keywords
 from estim.estimators.base import Estimator
 from estim.log import Log
-from estim.metrics import nees, rmse
+from estim.metrics import nees, rmse, startup_samples
 from estim.model import Model
 from estim.scenarios import Scenario
 from estim.simulate import FAILED_FRACTION, simulate
@@ -49,7 +50,11 @@ class ComparisonRow:
     ``flagged``: successful steps whose status was not ``"ok"`` (``"inexact"``,
     ``"suspect"``); ``steps``: steps of the completed runs. ``runs``: runs that
     completed; ``errors``: ``{seed: "ExceptionType: message"}`` of the runs that
-    raised (the statistics are over the completed runs).
+    raised (the statistics are over the completed runs). ``nees_se``: standard
+    error of ``nees_mean`` over seeds; ``largest_error``: the largest absolute
+    error of any state, where and when; ``kind``: the estimator's class name;
+    ``caveat``: a known limitation of its configuration
+    (:attr:`Estimator.caveat`).
     """
 
     name: str
@@ -65,6 +70,10 @@ class ComparisonRow:
     flagged: int = 0
     steps: int = 0
     errors: dict[int, str] = field(default_factory=dict)
+    nees_se: float = float("nan")
+    largest_error: str = ""
+    kind: str = ""
+    caveat: str = ""
 
     def notes(self) -> list[str]:
         """What went wrong in these runs, a line each (empty when nothing did)."""
@@ -101,6 +110,9 @@ class Comparison:
     logs : dict of str -> list of Log
         Every run's log (with ``keep_logs=True``); a run that raised has the log of
         the steps it completed, or None.
+    remarks : dict of str -> str
+        The scenario's :attr:`~estim.Scenario.remarks` (what is known about an
+        estimator class on it), used by :meth:`notes`.
     """
 
     scenario: str
@@ -108,6 +120,50 @@ class Comparison:
     rows: list[ComparisonRow]
     rmse: dict[str, np.ndarray]
     logs: dict[str, list[Log]] = field(default_factory=dict)
+    remarks: dict[str, str] = field(default_factory=dict)
+
+    #: What the columns mean, printed under the table.
+    LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
+              "normalised estimation error squared per state, averaged over time and seeds; "
+              "1 when the reported covariance matches the errors, above 1 overconfident, "
+              "below 1 pessimistic. cons.: NEES/n within two standard errors (over the "
+              "seeds) of 1; '-' without a covariance. step: wall time per step. failed: "
+              "steps that failed and were re-anchored; flagged: inexact or suspect steps.")
+
+    def notes(self) -> list[str]:
+        r"""Why a row looks the way it does, a line per estimator that needs one.
+
+        A row gets a note when a run raised, steps failed or were flagged
+        (:meth:`ComparisonRow.notes`), when it is inconsistent (how far its
+        errors are from the :math:`\sigma` it reports: :math:`\sqrt{NEES/n}`
+        times), or when its RMSE is more than three times the best row's (with
+        its largest error). The estimator's :attr:`~estim.Estimator.caveat` and
+        the scenario's remark about its class follow, when there are such.
+        """
+        finite = [r for r in self.rows if np.isfinite(r.rmse_mean)]
+        best = min(finite, key=lambda r: r.rmse_mean) if finite else None
+        out: list[str] = []
+        explained: dict[str, list[str]] = {}
+        for r in self.rows:
+            parts = []
+            if r.consistent is False and np.isfinite(r.nees_mean) and r.nees_mean > 0:
+                ratio = float(np.sqrt(r.nees_mean))
+                side = ("overconfident: its errors are" if r.nees_mean > 1 else
+                        "pessimistic: its errors are only")
+                parts.append(f"inconsistent, NEES/n {r.nees_mean:.3g} ± {2 * r.nees_se:.2g} "
+                             f"({side} {ratio:.2g}× the σ it reports)")
+            if best is not None and r is not best and r.rmse_mean > 3 * best.rmse_mean:
+                parts.append(f"RMSE {r.rmse_mean / best.rmse_mean:.0f}× the best "
+                             f"({best.name}); after the start-up its largest error is "
+                             f"{r.largest_error}")
+            if parts:
+                out.append(f"{r.name}: " + "; ".join(parts))
+                why = r.caveat or self.remarks.get(r.kind, "")
+                if why:
+                    explained.setdefault(why, []).append(r.name)
+            out += r.notes()
+        out += [f"{', '.join(names)}: {why}" for why, names in explained.items()]
+        return out
 
     def table(self) -> str:
         """Plain-text table."""
@@ -120,10 +176,55 @@ class Comparison:
             lines.append(f"{r.name:<{w}}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
                          f"{r.nees_mean:>9.3g}{cons:>7}{_fmt_time(r.step_median):>11}"
                          f"{_fmt_time(r.step_p90):>11}{r.failures:>8}{r.flagged:>9}")
-        notes = [n for r in self.rows for n in r.notes()]
+        lines += [""] + textwrap.wrap(self.LEGEND, width=len(head))
+        notes = self.notes()
         if notes:
-            lines += ["", "Notes:"] + [f"  {n}" for n in notes]
+            lines += ["", "Notes:"]
+            for n in notes:
+                lines += textwrap.wrap(n, width=len(head), initial_indent="  ",
+                                       subsequent_indent="    ")
         return "\n".join(lines)
+
+    def plot(self, path=None, *, kind: str = "overview", seed_index: int = 0):
+        r"""Figures of the kept logs (needs ``compare(..., keep_logs=True)`` and matplotlib).
+
+        Parameters
+        ----------
+        path : str or Path, optional
+            Write the figure there (PNG by extension).
+        kind : {"overview", "errors", "times"}
+            ``"overview"``: truth and every estimator's estimate per state for
+            one seed, and the RMSE of every seed as box plots
+            (:func:`estim.plotting.plot_comparison`); ``"errors"``: the
+            estimation error per state with the :math:`\pm 2\sigma` bands
+            of the estimators that report a covariance
+            (:func:`estim.plotting.plot_errors`); ``"times"``: the wall time of
+            every step (:func:`estim.plotting.plot_solve_times`).
+        seed_index : int
+            Which seed to draw, as an index into :attr:`seeds`.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+        """
+        from estim import plotting
+
+        kinds = ("overview", "errors", "times")
+        if kind not in kinds:
+            raise ValueError(f"kind must be one of {kinds}, got {kind!r}")
+        seed_index = as_int(seed_index, "seed_index")
+        if not self.logs:
+            raise ValueError("Comparison.plot needs the logs: run compare(..., keep_logs=True)")
+        if not -len(self.seeds) <= seed_index < len(self.seeds):
+            raise ValueError(f"seed_index {seed_index} is out of range for "
+                             f"{len(self.seeds)} seed(s)")
+        if kind == "overview":
+            return plotting.plot_comparison(self, path, seed_index=seed_index)
+        logs = {name: logs[seed_index] for name, logs in self.logs.items()
+                if logs[seed_index] is not None}
+        if kind == "errors":
+            return plotting.plot_errors(logs, path)
+        return plotting.plot_solve_times(logs, path)
 
     def to_pandas(self):
         """The rows as a DataFrame indexed by estimator (needs pandas)."""
@@ -146,9 +247,10 @@ class Comparison:
             f"<td>{r.rmse_std:.2g}</td><td>{r.nees_mean:.3g}</td><td>{r.consistent}</td>"
             f"<td>{_fmt_time(r.step_median)}</td><td>{_fmt_time(r.step_p90)}</td>"
             f"<td>{r.failures}</td><td>{r.flagged}</td></tr>" for r in self.rows)
-        notes = "".join(f"<li>{html.escape(n)}</li>" for r in self.rows for n in r.notes())
+        notes = "".join(f"<li>{html.escape(n)}</li>" for n in self.notes())
         return (f"<p><b>{self.scenario}</b>: {len(self.seeds)} seed(s)</p>"
                 f"<table><tr>{head}</tr>{body}</table>"
+                f"<p><small>{html.escape(self.LEGEND)}</small></p>"
                 + (f"<p><b>Notes</b></p><ul>{notes}</ul>" if notes else ""))
 
 
@@ -185,6 +287,7 @@ def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_lo
     except Exception as exc:  # noqa: BLE001 - every seed of this estimator fails alike
         return [{"seed": s, "error": _error(exc), "log": None} for s in seeds]
     out = []
+    kind, caveat = type(est).__name__, est.caveat
     for s in seeds:
         try:
             log = simulate(scenario, est, seed=s, warn=False)
@@ -200,8 +303,21 @@ def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_lo
             "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
             "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
             "steps": len(log), "log": log if keep_logs else None,
+            "peak": _peak(log, s), "kind": kind, "caveat": caveat,
         })
     return out
+
+
+def _peak(log: Log, seed: int) -> tuple[float, str]:
+    """The largest absolute estimation error of a run after the start-up transient (the
+    first 10 % of the samples, as the error plots shade it), and where:
+    ``"0.67 in C_C at t = 12.5 (seed 0)"``."""
+    err = np.abs(log.x_hat - log.x)
+    err[:startup_samples(len(err))] = np.nan
+    if not np.isfinite(err).any():
+        return float("nan"), ""
+    k, j = np.unravel_index(int(np.nanargmax(err)), err.shape)
+    return float(err[k, j]), f"in {log.state_names[j]} at t = {log.t[k]:g} (seed {seed})"
 
 
 def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
@@ -216,10 +332,11 @@ def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
                              runs=0, errors=errors)
     errs = np.array([r["rmse"] for r in done])
     ne = np.array([r["nees"] for r in done])
-    consistent = None
+    consistent, se = None, float("nan")
     if np.isfinite(ne).all():
-        se = np.std(ne, ddof=1) / np.sqrt(len(ne)) if len(ne) > 1 else np.inf
+        se = float(np.std(ne, ddof=1) / np.sqrt(len(ne))) if len(ne) > 1 else np.inf
         consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
+    size, where = max((r["peak"] for r in done), key=lambda p: -np.inf if p[0] != p[0] else p[0])
     t = np.concatenate([r["times"] for r in done])
     return ComparisonRow(
         name=name, rmse_mean=float(errs.mean()),
@@ -230,7 +347,9 @@ def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
         consistent=consistent, step_median=float(np.median(t)),
         step_p90=float(np.percentile(t, 90)), failures=sum(r["failures"] for r in done),
         runs=len(done), flagged=sum(r["flagged"] for r in done),
-        steps=sum(r["steps"] for r in done), errors=errors)
+        steps=sum(r["steps"] for r in done), errors=errors, nees_se=se,
+        largest_error=f"{size:.3g} {where}" if where else "", kind=done[0]["kind"],
+        caveat=done[0]["caveat"])
 
 
 def _chunks(seeds: list[int], n: int) -> list[list[int]]:
@@ -318,7 +437,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         all_rmse[name] = np.array([r.get("rmse", np.nan) for r in runs])
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
-    return Comparison(scenario.name, seeds, rows, all_rmse, logs)
+    return Comparison(scenario.name, seeds, rows, all_rmse, logs, remarks=scenario.remarks)
 
 
 class _NoBar:

@@ -49,18 +49,22 @@ class Log:
         directly (drawn on that state's axes by :meth:`plot`).
     model_name : str
         Name of the model (for reprs and titles).
+    time_unit : str
+        Unit of ``t`` (the model's :attr:`~estim.Model.time_unit`; empty when unknown).
     """
 
     @check_keywords(owner="Log")
     def __init__(self, state_names: Sequence[str] | None = None,
                  output_names: Sequence[str] | None = None,
                  input_names: Sequence[str] | None = None, dt: float | None = None,
-                 estimator: str = "", output_state: dict | None = None, model_name: str = ""):
+                 estimator: str = "", output_state: dict | None = None, model_name: str = "",
+                 time_unit: str = ""):
         self.state_names = as_names(state_names, "state_names", "x")
         self.output_names = as_names(output_names, "output_names", "y")
         self.input_names = as_names(input_names, "input_names", "u")
         self.dt = as_float(dt, "dt", positive=True, allow_none=True)
-        for name, value in (("estimator", estimator), ("model_name", model_name)):
+        for name, value in (("estimator", estimator), ("model_name", model_name),
+                            ("time_unit", time_unit)):
             if not isinstance(value, str):
                 raise TypeError(f"{name} must be a string, got {type(value).__name__}")
         if output_state is not None and not isinstance(output_state, dict):
@@ -68,6 +72,7 @@ class Log:
                             f"got {type(output_state).__name__}")
         self.estimator = estimator
         self.model_name = model_name
+        self.time_unit = time_unit
         self.output_state = dict(output_state or {})
         self._series: dict[str, list] = {}
         self._arrays: dict[str, np.ndarray] = {}

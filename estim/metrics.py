@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import stats
 
 from estim._validate import as_bool, as_float, as_int
 from estim.log import Log
@@ -43,6 +42,12 @@ class RMSE(float):
 
     def __reduce__(self):
         return (RMSE, (float(self), self.per_state))
+
+
+def startup_samples(n: int) -> int:
+    """Samples counted as the start-up transient of an ``n``-sample record: 10 %, at
+    least one and at most ``n - 1`` (what comparison notes and error plots set apart)."""
+    return min(max(1, n // 10), max(n - 1, 0))
 
 
 def _select(log, burn_in: int, states: Sequence[str] | None,
@@ -166,6 +171,8 @@ def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     confidence = as_float(confidence, "confidence", expected="a probability in (0, 1)")
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"confidence must be a probability in (0, 1), got {confidence!r}")
+    from scipy import stats  # ~0.3 s to import: on first use, not with estim
+
     alpha = 1.0 - confidence
     lo = stats.chi2.ppf(alpha / 2, dof * n) / n
     hi = stats.chi2.ppf(1 - alpha / 2, dof * n) / n

@@ -179,6 +179,9 @@ class Model:
         such a model.
     name : str
         Label for reprs and plots.
+    time_unit : str
+        Unit of time, for the time axes of plots (``"s"``, ``"min"``,
+        ``"dimensionless"``; empty when unknown).
 
     Attributes
     ----------
@@ -224,6 +227,7 @@ class Model:
         name: str = "model",
         hold: str | Mapping[str, str] = "zoh",
         variable_dt: bool = False,
+        time_unit: str = "",
     ):
         self.state_names = as_names(states, "states", "x")
         self.output_names = as_names(outputs, "outputs", "y")
@@ -258,6 +262,9 @@ class Model:
             raise ValueError(f"params and states share names {sorted(clash)}")
 
         self.name = name
+        if not isinstance(time_unit, str):
+            raise TypeError(f"time_unit must be a string, got {type(time_unit).__name__}")
+        self.time_unit = time_unit
         self.dt = float(dt)
         self.integrator = integrator
         self.substeps = int(substeps)
@@ -566,6 +573,7 @@ class Model:
             name=self.name,
             hold=self.hold,
             variable_dt=self.variable_dt,
+            time_unit=self.time_unit,
             **kwargs,
         )
         model.augmented = {**self.augmented, **{n: values[n] for n in names}}
@@ -586,5 +594,6 @@ class Model:
     def __setstate__(self, state):
         self.__dict__.update(state)
         self.__dict__.setdefault("variable_dt", False)  # models pickled before these
+        self.__dict__.setdefault("time_unit", "")
         self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
         self._build()

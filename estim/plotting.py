@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from estim.metrics import startup_samples
+
 
 def _pyplot():
     try:
@@ -13,6 +15,48 @@ def _pyplot():
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError("plotting needs matplotlib: pip install 'estim[plot]'") from exc
     return plt
+
+
+#: Line styles cycled with the colours, so overlapping estimates stay distinguishable
+#: (a dashed line over a solid one shows both).
+_LINESTYLES = ("-", "--", "-.", ":")
+
+
+def _style(k: int) -> dict:
+    """Colour and line style of the k-th estimator of a figure."""
+    return {"color": f"C{k}", "ls": _LINESTYLES[k % len(_LINESTYLES)],
+            "lw": 1.6 if k % len(_LINESTYLES) == 0 else 1.3}
+
+
+def _time_label(log) -> str:
+    """``"time [s]"`` from the log's unit; says so when the unit is not known."""
+    unit = getattr(log, "time_unit", "") or ""
+    if unit == "dimensionless":
+        return "time (dimensionless)"
+    if unit:
+        return f"time [{unit}]"
+    dt = getattr(log, "dt", None)
+    return "time (unit not given" + (f"; sample time {dt:g})" if dt else ")")
+
+
+def _settled_limit(values: list[np.ndarray]) -> float:
+    """Half-height of an error axis: what the estimators' errors (and bands) settle to.
+
+    ``values`` holds each estimator's absolute errors (and band widths) after the
+    start-up transient. Each contributes its 98th percentile; an estimator more than
+    ten times the median of the others does not set the scale (it leaves the axis,
+    and the figure says so). Returns 0 when there is nothing finite.
+    """
+    scales = []
+    for v in values:
+        v = v[np.isfinite(v)]
+        if v.size:
+            scales.append(float(np.percentile(v, 98)))
+    if not scales:
+        return 0.0
+    med = float(np.median(scales))
+    kept = [s for s in scales if s <= 10 * med] or scales
+    return 1.3 * max(kept)
 
 
 def plot_log(log, path=None, states: Sequence[str] | None = None, sigma: bool = True):
@@ -38,7 +82,7 @@ def plot_log(log, path=None, states: Sequence[str] | None = None, sigma: bool = 
         ax.set_ylabel(names[j])
         ax.grid(alpha=0.3)
     axes[0, 0].legend(loc="best", fontsize=8)
-    axes[-1, 0].set_xlabel("time")
+    axes[-1, 0].set_xlabel(_time_label(log))
     fig.tight_layout()
     if path is not None:
         fig.savefig(path, dpi=120)
@@ -50,13 +94,31 @@ def plot_comparison(result, path=None, seed_index: int = 0):
 
     The state axes are limited to the truth's range widened by its span, so a
     wild transient of one estimator does not flatten the others (it leaves
-    the axes instead).
+    the axes instead). Lines differ in colour and style; the known caveat of
+    an estimator's configuration (:attr:`~estim.Estimator.caveat`, e.g. a
+    clipped filter) is written under the figure.
+
+    Parameters
+    ----------
+    result : Comparison
+        From ``compare(..., keep_logs=True)``.
+    path : str or Path, optional
+        Write the figure there.
+    seed_index : int
+        Which seed to draw, as an index into ``result.seeds``.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
     """
     plt = _pyplot()
     if not result.logs:
         raise ValueError("plot_comparison needs the logs: run compare(..., keep_logs=True)")
     names = list(result.logs)
-    first = result.logs[names[0]][seed_index]
+    first = next((logs[seed_index] for logs in result.logs.values()
+                  if logs[seed_index] is not None), None)
+    if first is None:
+        raise ValueError(f"no run of seed {result.seeds[seed_index]} kept a log")
     nx = first.x.shape[1]
     fig, axes = plt.subplots(nx + 1, 1, figsize=(8, 1.8 * nx + 2.6), squeeze=False)
     axes = axes[:, 0]
@@ -66,8 +128,9 @@ def plot_comparison(result, path=None, seed_index: int = 0):
         truth = first.x[:, j]
         ax.plot(t, truth, "k-", lw=1.6, label="truth")
         for i, name in enumerate(names):
-            ax.plot(t, result.logs[name][seed_index].x_hat[:, j], "-", lw=1.0,
-                    color=f"C{i}", label=name)
+            log = result.logs[name][seed_index]
+            if log is not None:
+                ax.plot(log.t, log.x_hat[:, j], label=name, **_style(i))
         lo, hi = float(truth.min()), float(truth.max())
         span = max(hi - lo, 1e-3 * max(abs(lo), abs(hi), 1.0))
         ax.set_ylim(lo - span, hi + span)
@@ -75,15 +138,28 @@ def plot_comparison(result, path=None, seed_index: int = 0):
         ax.grid(alpha=0.3)
         if j < nx - 1:
             ax.tick_params(labelbottom=False)
-    axes[nx - 1].set_xlabel("time")
+    axes[nx - 1].set_xlabel(_time_label(first))
     axes[0].legend(loc="upper right", fontsize=8, ncol=min(4, len(names) + 1))
     axes[0].set_title(f"{result.scenario}: seed {result.seeds[seed_index]}")
     box = axes[nx]
-    box.boxplot([result.rmse[n] for n in names], tick_labels=names)
+    box.boxplot([np.asarray(result.rmse[n])[np.isfinite(result.rmse[n])] for n in names],
+                tick_labels=names)
     box.set_ylabel(f"RMSE ({len(result.seeds)} seeds)")
     box.set_yscale("log")
     box.grid(alpha=0.3)
-    fig.tight_layout()
+    caveats = [f"{r.name}: {r.caveat}" for r in getattr(result, "rows", []) if r.caveat]
+    if caveats:
+        # the explanation of a configuration's known behaviour goes where it is seen
+        import textwrap
+
+        text = "\n".join(textwrap.fill(c, 125) for c in caveats)
+        lines = text.count("\n") + 1
+        height = fig.get_figheight() + 0.16 * lines + 0.1
+        fig.set_figheight(height)
+        fig.text(0.01, 0.01, text, fontsize=7, color="0.25", va="bottom", ha="left")
+        fig.tight_layout(rect=(0, (0.16 * lines + 0.15) / height, 1, 1))
+    else:
+        fig.tight_layout()
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
@@ -120,9 +196,9 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
                              constrained_layout=True, squeeze=False)
     for i, (ax, name) in enumerate(zip(axes[:, 0], names, strict=True)):
         ax.plot(truth.t, truth.x[:, i], color="black", lw=2, label="truth")
-        for key, log in logs.items():
-            ax.plot(log.t, log.x_hat[:, i], lw=1.2, label=labels.get(key, key),
-                    **styles.get(key, {}))
+        for k, (key, log) in enumerate(logs.items()):
+            ax.plot(log.t, log.x_hat[:, i], label=labels.get(key, key),
+                    **{**_style(k), **styles.get(key, {})})
         if symlog is not None:
             ax.axhline(0.0, color="0.6", lw=0.6)
             ax.set_yscale("symlog", linthresh=symlog)
@@ -133,7 +209,7 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
     axes[0, 0].legend(loc="upper right", ncol=min(4, len(logs) + 1), fontsize="small")
     if title:
         axes[0, 0].set_title(title, fontsize="medium")
-    axes[-1, 0].set_xlabel("time")
+    axes[-1, 0].set_xlabel(_time_label(truth))
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
@@ -141,6 +217,14 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
 
 def plot_errors(logs, path=None, sigma: float = 2.0):
     """Estimation error per state with ``±sigma`` standard-deviation bands where ``P`` exists.
+
+    The error axes are scaled to what the errors settle to after the start-up
+    transient (the first 10 % of the record, shaded): each estimator's 98th
+    percentile of :math:`|\\hat x - x|` and of its band there, an estimator ten
+    times worse than the median not setting the scale. Whatever leaves the
+    axes (the transient, a diverging estimator, the wide band of a window
+    estimator with too few samples at start-up) is named in the axes' corner
+    with its peak, so nothing is hidden without a word.
 
     Parameters
     ----------
@@ -163,22 +247,51 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
     names = first.state_names or [f"x{i + 1}" for i in range(first.x.shape[1])]
     fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 2.2 * len(names)),
                              constrained_layout=True, squeeze=False)
+    settled: list[list[np.ndarray]] = [[] for _ in names]
+    peaks: list[list[tuple[float, str, float]]] = [[] for _ in names]
     for k, (label, log) in enumerate(logs.items()):
         err = log.x_hat - log.x
+        k0 = startup_samples(len(err))
         for i, ax in enumerate(axes[:, 0]):
-            ax.plot(log.t, err[:, i], lw=1.0, color=f"C{k}", label=label)
+            ax.plot(log.t, err[:, i], label=label, **_style(k))
             sd = np.sqrt(np.maximum(log.P[:, i, i], 0.0)) if "P" in log else None
-            if sd is not None and np.isfinite(sd).any():
-                ax.fill_between(log.t, -sigma * sd, sigma * sd, color=f"C{k}", alpha=0.15,
+            band = sd is not None and np.isfinite(sd).any()
+            if band:
+                ax.fill_between(log.t, -sigma * sd, sigma * sd, color=f"C{k}", alpha=0.1,
                                 lw=0)
+            settled[i].append(np.abs(err[k0:, i]))
+            if band:
+                settled[i].append(sigma * sd[k0:])
+            size = np.abs(err[:, i])
+            if np.isfinite(size).any():
+                j = int(np.nanargmax(size))
+                peaks[i].append((float(size[j]), label, float(log.t[j])))
+            if band and np.isfinite(sd).any():
+                j = int(np.nanargmax(sd))
+                peaks[i].append((float(sigma * sd[j]), f"{label} band", float(log.t[j])))
+    t = first.t
+    k0 = startup_samples(len(t))
     for i, ax in enumerate(axes[:, 0]):
         ax.axhline(0.0, color="0.5", lw=0.6)
+        if len(t) > 1:
+            ax.axvspan(t[0], t[k0], color="0.92", lw=0, zorder=0,
+                       label="start-up" if i == 0 else None)
+        lim = _settled_limit(settled[i])
+        if lim > 0:
+            ax.set_ylim(-lim, lim)
+            off = sorted((p for p in peaks[i] if p[0] > lim), reverse=True)
+            if off:
+                text = "beyond the axis: " + "; ".join(
+                    f"{who} {size:.3g} at t = {when:g}" for size, who, when in off[:4])
+                ax.text(0.01, 0.03, text, transform=ax.transAxes, fontsize=7, color="0.25",
+                        va="bottom", ha="left",
+                        bbox={"facecolor": "white", "alpha": 0.8, "lw": 0, "pad": 1.5})
         ax.set_ylabel(f"error {names[i]}")
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc="upper right", fontsize="small")
-    axes[0, 0].set_title(f"estimation error, ±{sigma:g}σ bands where a covariance exists",
-                         fontsize="medium")
-    axes[-1, 0].set_xlabel("time")
+    axes[0, 0].legend(loc="upper right", fontsize="small", ncol=min(3, len(logs) + 1))
+    axes[0, 0].set_title(f"estimation error, ±{sigma:g}σ bands where a covariance exists; "
+                         f"axes scaled to the settled errors", fontsize="medium")
+    axes[-1, 0].set_xlabel(_time_label(first))
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
@@ -198,7 +311,7 @@ def plot_solve_times(logs, path=None):
         log = log[0] if isinstance(log, list) else log
         ax.semilogy(log.t, np.maximum(log.solve_time, 1e-9), ".", ms=2, color=f"C{k}",
                     label=f"{label} (median {np.median(log.solve_time) * 1e3:.3g} ms)")
-    ax.set_xlabel("time")
+    ax.set_xlabel(_time_label(log))
     ax.set_ylabel("solve time per step [s]")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize="small")

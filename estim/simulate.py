@@ -91,7 +91,8 @@ class _Recorder:
         n = self.done
         log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
                   estimator=getattr(estimator, "name", type(estimator).__name__),
-                  output_state=output_state_map(model), model_name=model.name)
+                  output_state=output_state_map(model), model_name=model.name,
+                  time_unit=model.time_unit)
         for key, arr in (("t", t), ("x", x), ("y", y), ("u", u), ("x_hat", self.x_hat),
                          ("P", self.P), ("solve_time", self.solve_time),
                          ("status", self.status.astype(str)), ("iterations", self.iterations),

@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
-from scipy.special import chdtri
 
 from estim._smoothness import advice, nonsmooth_operations
 from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
@@ -130,6 +129,8 @@ SUSPECT_TAIL = 1e-9
 def chi2_limit(dof: int, tail: float = SUSPECT_TAIL) -> float:
     """The value that a chi-square variable with ``dof`` degrees of freedom exceeds
     with probability ``tail`` (inf without any degree of freedom)."""
+    from scipy.special import chdtri  # imported on first use, not with estim
+
     return float(chdtri(dof, tail)) if dof > 0 else float("inf")
 
 
@@ -280,6 +281,21 @@ class Estimator:
                                  f"only (build it with a full {name} to tune correlations)")
         self._check_tuning(new)
         return new
+
+    @property
+    def caveat(self) -> str:
+        """A known limitation of this configuration, for comparison tables (empty if none).
+
+        A filter with ``clip=True`` projects its estimate onto the bounds after each
+        update and leaves the covariance as it was: the gain no longer matches the
+        estimate, so a clipped state can swing far off before the data pull it back.
+        """
+        if getattr(self, "clip", False):
+            return ("clip=True projects each estimate onto the bounds but leaves the "
+                    "covariance as it was, so gain and covariance no longer match the "
+                    "estimate: a clipped state can swing far off before the data pull it "
+                    "back, and its NEES and NIS are meaningless until then (docs/ekf.md)")
+        return ""
 
     @property
     def info(self) -> StepInfo:

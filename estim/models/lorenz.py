@@ -32,4 +32,5 @@ def lorenz(sigma: float = 10.0, rho: float = 28.0, beta: float = 8.0 / 3.0,
 
     return Model(states=["x1", "x2", "x3"], outputs=["y1", "y2", "y3"], ode=ode,
                  output=output, dt=dt, integrator=integrator,
-                 params={"sigma": sigma, "rho": rho, "beta": beta}, name="lorenz")
+                 params={"sigma": sigma, "rho": rho, "beta": beta}, name="lorenz",
+                 time_unit="dimensionless")

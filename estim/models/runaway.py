@@ -37,6 +37,6 @@ def runaway(gamma: float = 0.5, gamma1: float = 2.5, nu: float = 0.5, source: fl
 
     return Model(states=["x1", "x2"], outputs=["y"], ode=ode,
                  output=lambda x, u, p: x[1], dt=dt, integrator=integrator,
-                 lower=0.0, name="runaway",
+                 lower=0.0, name="runaway", time_unit="s",
                  params={"gamma": gamma, "gamma1": gamma1, "nu": nu, "source": source,
                          "S": S, "W_t": W_t, "eps": eps})

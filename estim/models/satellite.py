@@ -102,7 +102,7 @@ def satellite(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
         outputs=["gyro_x", "gyro_y", "gyro_z"],
         inputs=["tau_x", "tau_y", "tau_z"],
         ode=ode, output=lambda x, u, p: x[4:7], dt=dt, integrator=integrator,
-        params={"I1": I1, "I2": I2, "I3": I3, "mu": mu, "r": r}, name="satellite",
+        params={"I1": I1, "I2": I2, "I3": I3, "mu": mu, "r": r}, name="satellite", time_unit="s",
     )
 
 
@@ -133,6 +133,7 @@ def satellite_rates(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
         inputs=["tau_x", "tau_y", "tau_z", "nadir_x", "nadir_y", "nadir_z"],
         ode=ode, output=lambda x, u, p: x, dt=dt, integrator=integrator,
         params={"I1": I1, "I2": I2, "I3": I3, "mu": mu, "r": r}, name="satellite_rates",
+        time_unit="s",
     )
 
 

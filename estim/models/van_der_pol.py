@@ -24,4 +24,4 @@ def van_der_pol(mu: float = 1.0, dt: float = 0.1, integrator: str = "rk4") -> Mo
 
     return Model(states=["x1", "x2"], outputs=["y1", "y2"], ode=ode,
                  output=lambda x, u, p: x, dt=dt, integrator=integrator,
-                 params={"mu": mu}, name="van_der_pol")
+                 params={"mu": mu}, name="van_der_pol", time_unit="dimensionless")
