@@ -18,10 +18,9 @@ from pathlib import Path
 from estim import scenarios
 from estim._validate import unknown_keywords_message
 from estim.compare import compare
-from estim.estimators import ESTIMATORS
 
 DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf",
-                      "mhe-25=mhe:horizon=25,arrival_cost=none,upper=10.0,solver=gauss-newton")
+                      "mhe-25=mhe:horizon=25,arrival_cost=none,upper=10.0")
 
 
 _TRUE = ("true", "yes", "on", "1")
@@ -78,6 +77,8 @@ def parse_estimator(spec: str):
     ``TypeError`` naming the option. The label (default: the whole spec) names
     the row of the table.
     """
+    from estim.estimators import ESTIMATORS
+
     if not isinstance(spec, str):
         raise TypeError(f"spec must be a string, got {type(spec).__name__}")
     head, _, rest = spec.partition(":")
@@ -114,6 +115,8 @@ def _factory(cls, kwargs):
 
 
 def _cmd_list(args) -> int:
+    from estim.estimators import ESTIMATORS
+
     print("scenarios:")
     for name, fn in scenarios.SCENARIOS.items():
         sc = fn()

@@ -225,3 +225,40 @@ def test_bad_input():
     estim.MHE(sc.model, horizon=5, arrival_cost="none", Q=0.01, R=1.0, x0=[0, 0])
     with pytest.raises(TypeError, match="unknown option"):
         estim.MHE(sc.model, horizon=5, window=3, **sc.tuning)
+
+
+def test_default_solver_is_the_fastest_and_is_recorded():
+    """``solver="auto"`` (the default) is the structured Gauss-Newton solver for MHE and
+    full information; it reaches Ipopt's optimum, and the choice is recorded."""
+    from estim.cli import parse_estimator
+
+    sc = estim.scenarios.van_der_pol()
+    sc = sc.replace(n_steps=40)
+    auto = estim.MHE(sc.model, horizon=15, **sc.tuning)
+    ipopt = estim.MHE(sc.model, horizon=15, solver="ipopt", **sc.tuning)
+    assert auto.solver == "gauss-newton" and ipopt.solver == "ipopt"
+    la, li = estim.simulate(sc, auto, seed=1), estim.simulate(sc, ipopt, seed=1)
+    assert auto.info.extra["solver"] == "gauss-newton"
+    assert ipopt.info.extra["solver"] == "ipopt"
+    assert (la.status == "ok").all() and (li.status == "ok").all()
+    np.testing.assert_allclose(la.x_hat, li.x_hat, atol=1e-6)
+    # full information: the same choice, recorded in the fit and the step
+    fie = estim.FullInformation(sc.model, **sc.tuning)
+    res = fie.fit(la.y)
+    assert fie.solver == res.solver == "gauss-newton"
+    fie.step(la.y[0])
+    assert fie.info.extra["solver"] == "gauss-newton"
+    # the command line follows the same default
+    _, cls, kwargs = parse_estimator("mhe:horizon=15")
+    assert cls(sc.model, **kwargs, **sc.tuning).solver == "gauss-newton"
+
+
+def test_auto_solver_refuses_another_solvers_options():
+    sc = estim.scenarios.van_der_pol()
+    with pytest.raises(ValueError, match=r"solver='auto'.*'ipopt.tol'.*solver='ipopt'"):
+        estim.MHE(sc.model, horizon=5, solver_options={"ipopt.tol": 1e-8}, **sc.tuning)
+    with pytest.raises(ValueError, match=r"solver must be one of"):
+        estim.FullInformation(sc.model, solver="newton", **sc.tuning)
+    # Gauss-Newton's own options are fine with "auto"
+    mhe = estim.MHE(sc.model, horizon=5, solver_options={"max_iter": 5}, **sc.tuning)
+    assert mhe.solver == "gauss-newton"

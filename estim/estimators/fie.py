@@ -11,14 +11,14 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
-from estim._validate import _numeric_array, as_choice, as_inputs, as_intervals, as_record
+from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.nlp import (
-    SOLVERS,
     LeastSquaresNLP,
     Solution,
     check_solver_options,
     is_diagonal,
+    resolve_solver,
     weight_factor,
 )
 from estim.estimators.robust import as_loss
@@ -76,6 +76,8 @@ class FitResult:
     build_time : float
         Seconds spent building compiled graphs during this fit (the first fit of a
         record length builds them; later ones reuse them).
+    solver : str
+        The solver that ran (what ``solver="auto"`` chose, or the one named).
     P_last : (nx, nx) array or None
         Laplace covariance of the last state (the Kalman filter's covariance on
         a linear-Gaussian model with a prior); computed on first access. With a
@@ -96,6 +98,7 @@ class FitResult:
     solve_time: float
     build_time: float = 0.0
     measurement_weights: np.ndarray | None = None
+    solver: str = ""
     _residuals: object = field(default=None, repr=False, compare=False)
     _covariance: object = field(default=None, repr=False, compare=False)
 
@@ -134,7 +137,7 @@ class FullInformation(Estimator):
     linear-Gaussian model with a prior the solution is the Rauch-Tung-Striebel
     smoother.
 
-    The default solver is the structure-exploiting projected Gauss-Newton/
+    The default solver (``"auto"``) is the structure-exploiting projected Gauss-Newton/
     Newton method of :mod:`estim.estimators.gauss_newton`: each iteration is
     a block-tridiagonal solve (a Riccati recursion on the linearised model),
     :math:`O(T n_x^3)`, evaluated by one expanded SX graph (longer records: about
@@ -156,7 +159,10 @@ class FullInformation(Estimator):
     lower, upper : optional
         State bounds (default: the model's); handled by projection in
         Gauss-Newton, as constraints by the NLP solvers.
-    solver : {"gauss-newton", "ipopt", "sqp", "fatrop"}
+    solver : {"auto", "gauss-newton", "ipopt", "sqp", "fatrop"}
+        As for :class:`~estim.MHE`: ``"auto"`` is ``"gauss-newton"`` for these
+        problems; the choice is :attr:`solver`, ``FitResult.solver`` and
+        ``info.extra["solver"]``.
     solver_options : dict, optional
         As for :class:`~estim.MHE`.
     loss, f_scale : optional
@@ -176,9 +182,9 @@ class FullInformation(Estimator):
     _requires_P0 = False
 
     def __init__(self, model: Model, *, Q, R, x0=None, P0=None, lower=None, upper=None,
-                 solver: str = "gauss-newton", solver_options: dict | None = None,
+                 solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None):
-        solver = as_choice(solver, SOLVERS, "solver")
+        solver = resolve_solver(solver, solver_options)
         self._loss = as_loss(loss, f_scale)
         solver_options = check_solver_options(solver, solver_options)
         self._prior = x0 is not None and P0 is not None
@@ -355,7 +361,7 @@ class FullInformation(Estimator):
             if sol.success else None
         return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
                          success=sol.success, solve_time=sol.solve_time,
-                         build_time=sol.build_time,
+                         build_time=sol.build_time, solver=self.solver,
                          measurement_weights=None if nlp.loss is None or nlp.weights is None
                          else nlp.weights[pad:].copy(),
                          _residuals=residuals, _covariance=cov)
@@ -418,4 +424,4 @@ class FullInformation(Estimator):
         return x_hat, StepInfo(
             status=status, success=failure is None, iterations=res.iterations,
             solve_time=time.perf_counter() - t0, P=P, cost=res.cost,
-            extra={"trajectory": self._X})
+            extra={"trajectory": self._X, "solver": self.solver})

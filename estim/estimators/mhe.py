@@ -12,10 +12,10 @@ from estim._fast import FastFunction
 from estim._validate import as_choice, as_int
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.nlp import (
-    SOLVERS,
     LeastSquaresNLP,
     check_solver_options,
     is_diagonal,
+    resolve_solver,
     weight_factor,
 )
 from estim.estimators.robust import as_loss
@@ -76,11 +76,15 @@ class MHE(Estimator):
     arrival_cost : {"none", "fixed", "filtering", "smoothing"}
     lower, upper : optional
         State bounds (default: the model's).
-    solver : {"gauss-newton", "ipopt", "sqp", "fatrop"}
+    solver : {"auto", "gauss-newton", "ipopt", "sqp", "fatrop"}
+        ``"auto"`` (default): the fastest solver for the problem, which for these
+        least-squares problems with box bounds is ``"gauss-newton"``
+        (:func:`~estim.estimators.nlp.resolve_solver`); the choice is
+        :attr:`solver` and ``info.extra["solver"]``.
         ``"gauss-newton"``: the structure-exploiting projected Newton/Gauss-Newton
         solver of :mod:`estim.estimators.gauss_newton` (block-tridiagonal solve,
         bounds by projection; fastest). ``"ipopt"``: interior point with the
-        exact Hessian. ``"sqp"``: CasADi's
+        exact Hessian, the general-purpose path. ``"sqp"``: CasADi's
         ``sqpmethod`` with the Gauss-Newton Hessian :math:`2J^\top J` and the
         ``qrqp`` active-set QP solver (fast when warm-started).
         ``"fatrop"``: the structure-exploiting interior point solver fatrop on
@@ -137,7 +141,7 @@ class MHE(Estimator):
 
     def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
                  arrival_cost: str = "filtering", lower=None, upper=None,
-                 solver: str = "ipopt", solver_options: dict | None = None,
+                 solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, max_lag: int = 0):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self._loss = as_loss(loss, f_scale)
@@ -148,7 +152,7 @@ class MHE(Estimator):
         if np.linalg.eigvalsh(self.Q)[0] <= 0:
             raise ValueError("Q must be positive definite for MHE (the weights are Q^-1); "
                              "give every state, parameters included, a small variance")
-        solver = as_choice(solver, SOLVERS, "solver")
+        solver = resolve_solver(solver, solver_options)
         solver_options = check_solver_options(solver, solver_options)
         self.horizon = horizon
         self.arrival_cost = arrival_cost
@@ -369,7 +373,7 @@ class MHE(Estimator):
             solve_time=elapsed, P=P, cost=sol.cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
-                   "solver_time": sol.solve_time,
+                   "solver_time": sol.solve_time, "solver": self.solver,
                    **({} if self._loss is None or self._nlp.weights is None else
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})

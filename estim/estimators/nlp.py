@@ -27,10 +27,10 @@ import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import casadi as ca
 import numpy as np
-from scipy.special import chdtri
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
@@ -40,6 +40,8 @@ from estim.estimators.robust import RobustLoss
 from estim.model import Model
 
 SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
+#: What the estimators' ``solver=`` accepts: a solver by name, or ``"auto"``.
+SOLVER_CHOICES = ("auto", *SOLVERS)
 
 #: A robust fit's reweighted solves stop when no weight moves by more than
 #: ``IRLS_WTOL`` between two of them, or after ``IRLS_MAX`` solves.
@@ -47,8 +49,9 @@ IRLS_WTOL = 1e-6
 IRLS_MAX = 100
 #: A whitened measurement component beyond this many standard deviations is an
 #: outlier for a robust loss: a Gaussian one goes beyond it with the probability
-#: ``SUSPECT_TAIL`` of the consistency test (6.1 at 1e-9).
-OUTLIER_SIGMA = float(np.sqrt(chdtri(1, SUSPECT_TAIL)))
+#: ``SUSPECT_TAIL`` of the consistency test (6.1 at 1e-9): the square root of the
+#: chi-square(1) quantile, which is the normal one.
+OUTLIER_SIGMA = -NormalDist().inv_cdf(SUSPECT_TAIL / 2)
 
 _IPOPT_DEFAULTS = {
     "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
@@ -114,6 +117,28 @@ def _dry_run(solver: str, options: dict) -> None:
     defaults = _IPOPT_DEFAULTS if solver == "ipopt" else _SQP_DEFAULTS
     ca.nlpsol("options_check", _PLUGINS[solver], {"x": x, "f": x**2},
               _merge(defaults, options))
+
+
+def resolve_solver(solver, options) -> str:
+    """The solver ``solver=`` names; ``"auto"`` is the fastest one for the problem.
+
+    Moving horizon and full-information estimation pose nonlinear least-squares
+    problems with box bounds, which the structured Gauss-Newton solver
+    (:mod:`estim.estimators.gauss_newton`) solves to the same optimum as Ipopt
+    in a fraction of the time (van der Pol MHE, N = 15: 0.26 against 2.3 ms per
+    step), so ``"auto"`` is ``"gauss-newton"``. Options of another solver with
+    ``"auto"`` are an error that says which solver to name.
+    """
+    solver = as_choice(solver, SOLVER_CHOICES, "solver")
+    if solver != "auto":
+        return solver
+    if isinstance(options, Mapping):
+        foreign = sorted(k for k in options if isinstance(k, str) and k not in _GN_OPTIONS)
+        if foreign:
+            raise ValueError(f"solver='auto' is the Gauss-Newton solver, and solver_options "
+                             f"{foreign} are not its options: name the solver they belong "
+                             f"to, e.g. solver='ipopt'")
+    return "gauss-newton"
 
 
 def check_solver_options(solver: str, options) -> dict:
