@@ -1,13 +1,17 @@
-r"""Accuracy and consistency measures on a :class:`~estim.Log`."""
+r"""Accuracy and consistency measures on a :class:`~estim.Log`, a fit or arrays."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from estim._validate import as_bool, as_float, as_int
 from estim.log import Log
+
+if TYPE_CHECKING:
+    from estim.estimators.fie import FitResult
 
 
 class RMSE(float):
@@ -50,14 +54,86 @@ def startup_samples(n: int) -> int:
     return min(max(1, n // 10), max(n - 1, 0))
 
 
-def _select(log, burn_in: int, states: Sequence[str] | None,
-            needs: Sequence[str] = ("x", "x_hat")):
-    if not isinstance(log, Log):
-        raise TypeError(f"log must be an estim.Log, got {type(log).__name__}")
-    absent = [key for key in needs if key not in log]
-    if absent:
-        raise ValueError(f"log has no {', '.join(map(repr, absent))} series "
-                         f"(it has {log.keys()})")
+class _Series:
+    """What the metrics read: ``x`` (truth), ``x_hat``, ``P``, ``nis``, ``t``, ``names``."""
+
+    def __init__(self, estimate, truth, needs: Sequence[str]):
+        if isinstance(truth, Log):
+            if "x" not in truth:
+                raise ValueError(f"truth is a Log without the true state 'x' (it has "
+                                 f"{truth.keys()})")
+            truth_log, truth = truth, truth.x
+        else:
+            truth_log = None
+        if isinstance(estimate, Log):
+            absent = [key for key in needs
+                      if key not in estimate and not (key == "x" and truth is not None)]
+            if absent:
+                raise ValueError(f"log has no {', '.join(map(repr, absent))} series "
+                                 f"(it has {estimate.keys()})")
+            self.x_hat = estimate.x_hat if "x_hat" in estimate else None
+            self.P = estimate.P if "P" in estimate else None
+            self.nis = estimate.nis if "nis" in estimate else None
+            self.t = estimate.t if "t" in estimate else None
+            names = estimate.state_names
+            x = estimate.x if truth is None and "x" in estimate else truth
+        else:
+            if hasattr(estimate, "x") and hasattr(estimate, "cost"):   # a FitResult
+                x_hat = estimate.x
+                self.P = getattr(estimate, "P", None)
+            elif isinstance(estimate, (list, tuple, np.ndarray)):
+                x_hat, self.P = estimate, None
+            else:
+                raise TypeError(f"estimate must be an estim.Log, a FitResult or an array "
+                                f"of estimates (T, nx), got {type(estimate).__name__}")
+            self.x_hat = _as_states(x_hat, "estimate")
+            self.nis, self.t = None, None
+            names = truth_log.state_names if truth_log is not None else []
+            if "nis" in needs:
+                raise ValueError("nis needs a Log: the innovations are recorded by "
+                                 "simulate/replay")
+            if "P" in needs and self.P is None:
+                raise ValueError("nees needs covariances: a Log with 'P' (a FitResult or "
+                                 "an array carries none)")
+            if truth is None and "x" in needs:
+                raise ValueError("truth is required with a FitResult or an array: the true "
+                                 "states (T, nx), or a Log that has them")
+            x = truth
+        if x is not None and "x" in needs:
+            x = _as_states(x, "truth")
+            if self.x_hat is not None and x.shape != self.x_hat.shape:
+                raise ValueError(f"truth has shape {x.shape} but the estimates have "
+                                 f"{self.x_hat.shape}")
+        self.x = x
+        if self.t is None and truth_log is not None and "t" in truth_log:
+            self.t = truth_log.t
+        n = len(self.x_hat) if self.x_hat is not None else len(self.nis)
+        if self.t is None:
+            self.t = np.arange(n, dtype=float)
+        width = self.x_hat.shape[1] if self.x_hat is not None else 0
+        self.names = list(names) if len(names) == width else \
+            [f"x{i + 1}" for i in range(width)]
+        self.n = n
+
+
+def _as_states(values, name: str) -> np.ndarray:
+    """A (T, nx) float array of states (a 1-D array is one state)."""
+    try:
+        arr = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be numeric states (T, nx), got "
+                        f"{type(values).__name__}") from None
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise ValueError(f"{name} must have shape (T, nx), got {arr.shape}")
+    return arr
+
+
+def _select(estimate, burn_in: int, states: Sequence[str] | None,
+            needs: Sequence[str] = ("x", "x_hat"), truth=None):
+    """The series the metrics read, and the indices of the selected states."""
+    data = _Series(estimate, truth, needs)
     burn_in = as_int(burn_in, "burn_in", minimum=0)
     if isinstance(states, str):
         states = [states]
@@ -68,9 +144,9 @@ def _select(log, burn_in: int, states: Sequence[str] | None,
         for s in states:
             if not isinstance(s, str):
                 raise TypeError(f"states must be a list of state names, got item {s!r}")
-    if burn_in >= len(log):
-        raise ValueError(f"burn_in ({burn_in}) must be shorter than the log ({len(log)} samples)")
-    names = log.state_names or [f"x{i + 1}" for i in range(log.x.shape[1])]
+    if burn_in >= data.n:
+        raise ValueError(f"burn_in ({burn_in}) must be shorter than the log ({data.n} samples)")
+    names = data.names
     if states is None:
         idx = list(range(len(names)))
     else:
@@ -78,42 +154,56 @@ def _select(log, burn_in: int, states: Sequence[str] | None,
         if unknown:
             raise ValueError(f"states {unknown} are not in the log; states are {names}")
         idx = [names.index(s) for s in states]
-    return idx, names
+    return data, idx
 
 
-def errors(log, burn_in: int = 0) -> np.ndarray:
+def errors(estimate: Log | FitResult | np.ndarray, burn_in: int = 0, *,
+           truth: np.ndarray | Log | None = None) -> np.ndarray:
     """Estimation error :math:`\\hat x_k - x_k`, shape ``(T - burn_in, nx)``.
 
     Parameters
     ----------
-    log : Log
-        Needs ``x`` and ``x_hat``.
+    estimate : Log, FitResult or (T, nx) array
+        The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
+        ``truth`` is given), a :class:`~estim.FitResult` or an array.
     burn_in : int
         Samples to skip at the start.
+    truth : (T, nx) array or Log, optional
+        The true states; required unless ``estimate`` is a Log that has them.
     """
-    _select(log, burn_in, None)
-    return log.x_hat[burn_in:] - log.x[burn_in:]
+    data, _ = _select(estimate, burn_in, None, truth=truth)
+    return data.x_hat[burn_in:] - data.x[burn_in:]
 
 
-def rmse(log, burn_in: int = 0, states: Sequence[str] | None = None) -> RMSE:
+def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
+         states: Sequence[str] | None = None, *,
+         truth: np.ndarray | Log | None = None) -> RMSE:
     """RMSE of the estimate against the truth, overall and per state.
+
+    ``estim.rmse(log)`` after :func:`~estim.simulate`; ``estim.rmse(fit,
+    truth=x_true)`` for a :meth:`FullInformation.fit`; ``estim.rmse(x_hat,
+    truth=x_true)`` for plain arrays.
 
     Parameters
     ----------
-    log : Log
-        Needs ``x`` and ``x_hat``.
+    estimate : Log, FitResult or (T, nx) array
+        The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
+        ``truth`` is given), a :class:`~estim.FitResult` or an array.
     burn_in : int
         Samples to skip at the start.
     states : list of str, optional
         States to include (default all).
+    truth : (T, nx) array or Log, optional
+        The true states; required unless ``estimate`` is a Log that has them.
     """
-    idx, names = _select(log, burn_in, states)
-    err = (log.x_hat[burn_in:] - log.x[burn_in:])[:, idx]  # errors(), checked once
-    per = {names[j]: float(np.sqrt(np.mean(err[:, i] ** 2))) for i, j in enumerate(idx)}
+    data, idx = _select(estimate, burn_in, states, truth=truth)
+    err = (data.x_hat[burn_in:] - data.x[burn_in:])[:, idx]
+    per = {data.names[j]: float(np.sqrt(np.mean(err[:, i] ** 2))) for i, j in enumerate(idx)}
     return RMSE(float(np.sqrt(np.mean(err**2))), per)
 
 
-def nees(log, burn_in: int = 0) -> np.ndarray:
+def nees(estimate: Log | FitResult, burn_in: int = 0, *,
+         truth: np.ndarray | Log | None = None) -> np.ndarray:
     r"""Normalised estimation error squared per sample, :math:`e_k^\top P_k^{-1} e_k`, (T',).
 
     NaN where the estimator reported no covariance. For a consistent filter
@@ -121,14 +211,18 @@ def nees(log, burn_in: int = 0) -> np.ndarray:
 
     Parameters
     ----------
-    log : Log
-        Needs ``x``, ``x_hat`` and ``P``.
+    estimate : Log or FitResult
+        Estimates with covariances ``P`` (T, nx, nx) (a Log with ``P``, or a
+        fit that carries per-sample covariances), and the truth unless ``truth``
+        is given.
     burn_in : int
         Samples to skip at the start.
+    truth : (T, nx) array or Log, optional
+        The true states; required unless ``estimate`` is a Log that has them.
     """
-    _select(log, burn_in, None, ("x", "x_hat", "P"))
-    err = log.x_hat[burn_in:] - log.x[burn_in:]
-    P = log.P[burn_in:]
+    data, _ = _select(estimate, burn_in, None, ("x", "x_hat", "P"), truth=truth)
+    err = data.x_hat[burn_in:] - data.x[burn_in:]
+    P = np.asarray(data.P, dtype=float)[burn_in:]
     out = np.full(len(err), np.nan)
     ok = np.isfinite(P).all(axis=(1, 2))
     if ok.any():
@@ -137,7 +231,7 @@ def nees(log, burn_in: int = 0) -> np.ndarray:
     return out
 
 
-def nis(log, burn_in: int = 0) -> np.ndarray:
+def nis(log: Log, burn_in: int = 0) -> np.ndarray:
     r"""Normalised innovation squared per sample, :math:`e_k^\top S_k^{-1} e_k`, (T',).
 
     Parameters
@@ -147,8 +241,8 @@ def nis(log, burn_in: int = 0) -> np.ndarray:
     burn_in : int
         Samples to skip at the start.
     """
-    _select(log, burn_in, None, ("nis",))
-    return np.asarray(log.nis[burn_in:], dtype=float)
+    data, _ = _select(log, burn_in, None, ("nis",))
+    return np.asarray(data.nis[burn_in:], dtype=float)
 
 
 def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -179,29 +273,34 @@ def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     return float(lo), float(hi)
 
 
-def convergence_time(log, tol: float, states: Sequence[str] | None = None,
-                     relative: bool = False) -> float:
+def convergence_time(estimate: Log | FitResult | np.ndarray, tol: float,
+                     states: Sequence[str] | None = None, relative: bool = False, *,
+                     truth: np.ndarray | Log | None = None) -> float:
     """First time after which every selected error stays within ``tol`` (inf if never).
 
     Parameters
     ----------
-    log : Log
+    estimate : Log, FitResult or (T, nx) array
+        The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
+        ``truth`` is given), a :class:`~estim.FitResult` or an array.
     tol : float
         Error bound.
     states : list of str, optional
         States to check (default all).
     relative : bool
         Bound the error relative to ``|x|`` instead of absolutely.
+    truth : (T, nx) array or Log, optional
+        The true states; required unless ``estimate`` is a Log that has them.
     """
-    idx, _ = _select(log, 0, states)
+    data, idx = _select(estimate, 0, states, truth=truth)
     tol = as_float(tol, "tol", minimum=0.0)
     relative = as_bool(relative, "relative")
-    err = np.abs(log.x_hat[:, idx] - log.x[:, idx])
+    err = np.abs(data.x_hat[:, idx] - data.x[:, idx])
     if relative:
-        err = err / np.maximum(np.abs(log.x[:, idx]), 1e-300)
+        err = err / np.maximum(np.abs(data.x[:, idx]), 1e-300)
     bad = np.flatnonzero((err > tol).any(axis=1))
     if len(bad) == 0:
-        return float(log.t[0])
+        return float(data.t[0])
     if bad[-1] == len(err) - 1:
         return float("inf")
-    return float(log.t[bad[-1] + 1])
+    return float(data.t[bad[-1] + 1])

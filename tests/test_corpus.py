@@ -456,7 +456,7 @@ CASES = [
          r"rtol"),
     Case("window-model", lambda: observability.window("m", [1.0, 0.0], 4), T, r"model"),
     # ------------------------------------------------------------ metrics
-    Case("rmse-log-none", lambda: estim.rmse(None), T, r"\blog\b"),
+    Case("rmse-estimate-none", lambda: estim.rmse(None), T, r"\bestimate\b"),
     Case("rmse-burn-in-negative", lambda: estim.rmse(log(), burn_in=-1), V, r"burn_in"),
     Case("rmse-burn-in-bool", lambda: estim.rmse(log(), burn_in=True), T, r"burn_in"),
     Case("rmse-burn-in-too-long", lambda: estim.rmse(log(), burn_in=1000), V, r"burn_in"),

@@ -131,3 +131,34 @@ def test_error_and_solve_time_plots(tmp_path):
     plot_solve_times(logs, tmp_path / "t.png")
     assert (tmp_path / "t.png").stat().st_size > 10_000
     plot_errors(logs["ekf"])
+
+
+def test_metrics_take_a_log_a_fit_or_arrays():
+    """rmse/errors/convergence_time give the same numbers from a Log, from its arrays, and
+    from a FitResult with the truth given; nees needs covariances and says so."""
+    sc = estim.scenarios.van_der_pol()
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    ref = estim.rmse(log)
+    for same in (estim.rmse(log.x_hat, truth=log.x), estim.rmse(log.x_hat, truth=log),
+                 estim.rmse(log, truth=log.x)):
+        assert float(same) == float(ref)
+    assert estim.rmse(log.x_hat, truth=log).per_state == ref.per_state
+    assert list(estim.rmse(log.x_hat, truth=log.x).per_state) == ["x1", "x2"]
+    np.testing.assert_array_equal(estim.errors(log.x_hat, 5, truth=log.x),
+                                  estim.errors(log, 5))
+    fit = estim.FullInformation(sc.model, **sc.tuning).fit(log.y)
+    direct = np.sqrt(np.mean((fit.x - log.x) ** 2))
+    assert float(estim.rmse(fit, truth=log)) == pytest.approx(direct, rel=1e-14)
+    assert estim.convergence_time(fit, 0.5, truth=log) == \
+        estim.convergence_time(fit.x, 0.5, truth=log)
+    # one state as a 1-D array
+    assert float(estim.rmse(log.x_hat[:, 0], truth=log.x[:, 0])) == \
+        pytest.approx(ref.per_state["x1"], rel=1e-14)
+    with pytest.raises(ValueError, match="truth is required"):
+        estim.rmse(fit)
+    with pytest.raises(ValueError, match="truth has shape"):
+        estim.rmse(log.x_hat[1:], truth=log.x)
+    with pytest.raises(ValueError, match="nees needs covariances"):
+        estim.nees(fit, truth=log)
+    with pytest.raises(TypeError, match="estimate must be"):
+        estim.rmse({"x": 1}, truth=log)
