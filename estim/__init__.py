@@ -7,24 +7,27 @@
 True
 """
 
-from estim import models, observability, scenarios, smooth
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+from estim import models, scenarios
 from estim.compare import Comparison, compare
-from estim.estimators import (
-    EKF,
-    MHE,
-    UKF,
-    Estimator,
-    FitResult,
-    FullInformation,
-    ShootingObserver,
-    StepInfo,
-)
-from estim.estimators.base import EstimationWarning
+from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.log import Log
 from estim.metrics import RMSE, chi2_bounds, convergence_time, errors, nees, nis, rmse
 from estim.model import Model
 from estim.scenarios import Record, Scenario
 from estim.simulate import replay, simulate
+
+if TYPE_CHECKING:
+    from estim import observability, smooth
+    from estim.estimators.ekf import EKF
+    from estim.estimators.fie import FitResult, FullInformation
+    from estim.estimators.mhe import MHE
+    from estim.estimators.shooting import ShootingObserver
+    from estim.estimators.ukf import UKF
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
@@ -34,3 +37,23 @@ __all__ = [
     "rmse", "scenarios", "simulate", "smooth",
 ]
 __version__ = "0.1.0"
+
+#: Names imported on first use (PEP 562): the estimators and the modules that
+#: ``import estim`` does not need, so that it stays fast.
+_LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
+         "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
+         "observability": "estim.observability", "smooth": "estim.smooth"}
+
+if not TYPE_CHECKING:  # type checkers see the imports above, and no catch-all
+    def __getattr__(name: str) -> Any:
+        if name not in _LAZY:
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        module = importlib.import_module(_LAZY[name])
+        value = module if module.__name__ == f"{__name__}.{name}" else getattr(module, name)
+        globals()[name] = value  # imported once: later look-ups do not come here
+        return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -13,6 +13,7 @@ import inspect
 import operator
 from collections.abc import Callable, Mapping, Sequence
 from numbers import Real
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -165,6 +166,25 @@ def _holds_bool(value) -> bool:
     return False
 
 
+def by_name(value, names: Sequence[str] | None, name: str, what: str = "columns"):
+    """A pandas ``DataFrame`` read by column name: its columns ``names``, in that order,
+    as an array (other columns are ignored); a missing name is a ``ValueError`` naming it.
+    A frame with unnamed columns (``0, 1, ...``), a ``Series`` and anything else are
+    returned as they are, to be read by position."""
+    columns = getattr(value, "columns", None)
+    if names is None or columns is None or not type(value).__module__.startswith("pandas"):
+        return value
+    cols = list(columns)
+    if cols == list(range(len(cols))):
+        return value.to_numpy()
+    missing = [n for n in names if n not in cols]
+    if missing:
+        raise ValueError(f"{name} is a DataFrame without the column(s) {missing}: it has "
+                         f"{cols}, the model's {what} are {list(names)} (rename the columns, "
+                         f"or pass {name}.to_numpy() to read them by position)")
+    return value[list(names)].to_numpy()
+
+
 def _numeric_array(value, name: str) -> np.ndarray:
     """``value`` as a float array (as ``np.asarray(value, dtype=float)``); None,
     booleans, strings, complex numbers and ragged nestings are refused."""
@@ -192,12 +212,14 @@ def _numeric_array(value, name: str) -> np.ndarray:
                         f"{_show(value)}") from exc
 
 
-def as_record(value, n: int, name: str, *, missing: bool = True) -> np.ndarray:
+def as_record(value, n: int, name: str, *, missing: bool = True,
+              names: Sequence[str] | None = None, what: str = "columns") -> np.ndarray:
     """A time-major record: ``value`` as a ``(T, n)`` float array with ``T >= 1`` (a
     ``(T,)`` array when ``n == 1``). With ``missing``, NaN entries are allowed (a
     missing sample); ±inf is refused naming the first row that holds one, as is any
-    non-finite entry without ``missing``."""
-    arr = _numeric_array(value, name)
+    non-finite entry without ``missing``. A pandas DataFrame is read by the column
+    ``names`` (:func:`by_name`; ``what`` says whose names they are)."""
+    arr = _numeric_array(by_name(value, names, name, what), name)
     if arr.ndim == 1 and n == 1:
         arr = arr[:, None]
     if arr.ndim != 2 or arr.shape[1] != n:
@@ -213,10 +235,12 @@ def as_record(value, n: int, name: str, *, missing: bool = True) -> np.ndarray:
     return arr
 
 
-def as_input_table(value, T: int, nu: int, name: str = "inputs") -> np.ndarray:
+def as_input_table(value, T: int, nu: int, name: str = "inputs",
+                   names: Sequence[str] | None = None) -> np.ndarray:
     """An input signal given as a table, ``(T, nu)`` float (``(T,)`` when ``nu == 1``),
-    finite: one row per step of a simulation."""
-    U = _numeric_array(value, name)
+    finite: one row per step of a simulation. A pandas DataFrame is read by the input
+    ``names``."""
+    U = _numeric_array(by_name(value, names, name, "inputs"), name)
     if U.ndim == 1 and nu == 1:
         U = U[:, None]
     if U.shape != (T, nu):
@@ -230,11 +254,12 @@ def as_inputs(value, T: int, model, name: str = "U") -> np.ndarray:
     """The inputs of a ``T``-sample record as a ``(T, nu)`` float array (zero if
     ``value`` is None). ``(T-1, nu)`` is accepted for a held input (``U[k]`` acts from
     sample k to k+1; the last row, never used, is zero); a model with ``hold="foh"``
-    takes ``(T, nu)``, the input at each sample. Non-finite inputs are refused."""
+    takes ``(T, nu)``, the input at each sample. Non-finite inputs are refused. A
+    pandas DataFrame is read by the model's input names."""
     nu = model.nu
     if value is None:
         return np.zeros((T, nu))
-    U = _numeric_array(value, name)
+    U = _numeric_array(by_name(value, model.input_names, name, "inputs"), name)
     if U.ndim == 1 and nu == 1:
         U = U[:, None]
     if U.shape == (T - 1, nu) and not model.sampled:
@@ -473,7 +498,18 @@ class _Signature:
             raise TypeError(f"{owner} is missing the required {word} {_quoted(missing)}")
 
 
-def check_keywords(func: Callable | None = None, *, owner: str | None = None):
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+@overload
+def check_keywords(func: _F, *, owner: str | None = None) -> _F: ...
+
+
+@overload
+def check_keywords(func: None = None, *, owner: str | None = None) -> Callable[[_F], _F]: ...
+
+
+def check_keywords(func: Callable | None = None, *, owner: str | None = None) -> Any:
     """Decorator: check keyword names against ``func``'s signature before calling it.
 
     Unknown keywords raise ``TypeError("<owner> got unknown option 'clipp'; did

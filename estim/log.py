@@ -4,10 +4,18 @@ from __future__ import annotations
 
 import html
 from collections.abc import Sequence
+from os import PathLike
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_float, as_names, check_keywords
+
+if TYPE_CHECKING:
+    import pandas as pd
+    import xarray as xr
+    from matplotlib.figure import Figure
 
 #: Fields :func:`estim.simulate` fills, with their per-sample shape names.
 FIELDS = ("t", "x", "y", "u", "x_hat", "P", "solve_time", "status", "iterations", "success",
@@ -53,6 +61,21 @@ class Log:
         Unit of ``t`` (the model's :attr:`~estim.Model.time_unit`; empty when unknown).
     """
 
+    # the series that simulate and replay write (looked up by __getattr__)
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    x_hat: np.ndarray
+    P: np.ndarray
+    solve_time: np.ndarray
+    status: np.ndarray
+    iterations: np.ndarray
+    success: np.ndarray
+    nis: np.ndarray
+    cost: np.ndarray
+    diagnostics: np.ndarray
+
     @check_keywords(owner="Log")
     def __init__(self, state_names: Sequence[str] | None = None,
                  output_names: Sequence[str] | None = None,
@@ -78,7 +101,7 @@ class Log:
         self._arrays: dict[str, np.ndarray] = {}
 
     # ----------------------------------------------------------- recording
-    def __call__(self, key: str, value) -> None:
+    def __call__(self, key: str, value: ArrayLike) -> None:
         """Append ``value`` to the series ``key``."""
         if not isinstance(key, str) or not key.isidentifier():
             raise ValueError(f"key must be an identifier string, got {key!r}")
@@ -94,7 +117,7 @@ class Log:
         self._series.pop(key, None)
         self._arrays[key] = np.asarray(array)
 
-    def __getattr__(self, key: str):
+    def __getattr__(self, key: str) -> Any:
         if key.startswith("_"):
             raise AttributeError(key)
         arrays = self.__dict__.get("_arrays", {})
@@ -123,7 +146,7 @@ class Log:
         return 0
 
     # ------------------------------------------------------------- exports
-    def to_pandas(self):
+    def to_pandas(self) -> pd.DataFrame:
         """One row a sample: ``t``, ``x:<name>``, ``x_hat:<name>``, ``y:<name>``, ``u:<name>``, ...
 
         Series of another length than the log (logged at another rate) and
@@ -150,7 +173,7 @@ class Log:
         frame = pd.DataFrame(cols)
         return frame.set_index("t") if "t" in frame else frame
 
-    def to_xarray(self):
+    def to_xarray(self) -> xr.Dataset:
         """An ``xarray.Dataset`` with dimensions ``time``, ``state``, ``output``, ``input``."""
         try:
             import xarray as xr
@@ -226,7 +249,8 @@ class Log:
         return names if len(names) == n else [str(i) for i in range(n)]
 
     # ---------------------------------------------------------------- plot
-    def plot(self, path=None, states: Sequence[str] | None = None, sigma: bool = True):
+    def plot(self, path: str | PathLike[str] | None = None, states: Sequence[str] | None = None,
+             sigma: bool = True) -> Figure:
         """Truth vs estimate per state, with the measurement where it is a state.
 
         Parameters

@@ -10,7 +10,6 @@ propagation with ``model.f``); its Jacobian gives the standard errors.
 from __future__ import annotations
 
 from functools import cache
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -153,7 +152,7 @@ def test_every_ok_step_passed_the_gradient_test():
 
 def _fake_minimize(status, x=None):
     """scipy's minimize, with its result's status (and optionally x) replaced."""
-    real = shooting.optimize.minimize
+    real = shooting.scipy_minimize
 
     def minimize(fun, x0, **kw):
         res = real(fun, x0, **kw)
@@ -162,7 +161,7 @@ def _fake_minimize(status, x=None):
             res.x = np.full_like(res.x, x)
             res.fun, res.jac = fun(res.x) if kw.get("jac") else (fun(res.x), None)
         return res
-    return SimpleNamespace(minimize=minimize)
+    return minimize
 
 
 @pytest.mark.parametrize(("method", "status", "x", "expected"), [
@@ -176,7 +175,7 @@ def test_scipy_stops_before_the_gradient_test_are_not_ok(monkeypatch, method, st
     """BFGS's precision loss (status 2) or max_iter (1), L-BFGS-B stopping where it started:
     usable, so "inexact"; a non-finite point: "failed", and the estimate is kept."""
     y = _record(0)[:(W - 1) * N + 1]
-    monkeypatch.setattr(shooting, "optimize", _fake_minimize(status, x))
+    monkeypatch.setattr(shooting, "scipy_minimize", _fake_minimize(status, x))
     obs = _observer(method=method, x0=[1.0, 1.0, 0.5])
     runs = _run(obs, y)
     (got, _, _), = runs

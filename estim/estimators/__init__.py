@@ -1,15 +1,50 @@
-"""Estimators sharing one protocol (see :mod:`estim.estimators.base`)."""
+"""Estimators sharing one protocol (see :mod:`estim.estimators.base`).
+
+The estimator classes are imported on first use (PEP 562), so that
+``import estim`` does not load every estimator and its dependencies.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ekf import EKF
-from estim.estimators.fie import FitResult, FullInformation
-from estim.estimators.mhe import MHE
-from estim.estimators.shooting import ShootingObserver
-from estim.estimators.ukf import UKF
 
-#: Estimator classes by short name (command line, comparisons).
-ESTIMATORS = {"ekf": EKF, "ukf": UKF, "mhe": MHE, "fie": FullInformation,
-              "shooting": ShootingObserver}
+if TYPE_CHECKING:
+    from estim.estimators.ekf import EKF
+    from estim.estimators.fie import FitResult, FullInformation
+    from estim.estimators.mhe import MHE
+    from estim.estimators.shooting import ShootingObserver
+    from estim.estimators.ukf import UKF
+
+    #: Estimator classes by short name (command line, comparisons).
+    ESTIMATORS: dict[str, type[Estimator]]
+
+#: Where each lazily imported name is defined.
+_LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
+         "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf"}
+
+#: The short names of :data:`ESTIMATORS` and their classes.
+_SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",
+                "shooting": "ShootingObserver"}
 
 __all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "FitResult", "FullInformation",
            "ShootingObserver", "StepInfo", "UKF"]
+
+
+if not TYPE_CHECKING:  # type checkers see the imports above, and no catch-all
+    def __getattr__(name: str) -> Any:
+        if name == "ESTIMATORS":
+            value = {short: __getattr__(cls) for short, cls in _SHORT_NAMES.items()}
+        elif name in _LAZY:
+            value = getattr(importlib.import_module(_LAZY[name]), name)
+        else:
+            raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+        globals()[name] = value  # imported once: later look-ups do not come here
+        return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

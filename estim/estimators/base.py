@@ -51,6 +51,7 @@ from dataclasses import dataclass, field
 from functools import cache
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._smoothness import advice, nonsmooth_operations
 from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
@@ -171,7 +172,8 @@ class Estimator:
         if "__init__" in cls.__dict__:
             cls.__init__ = check_keywords(cls.__dict__["__init__"])
 
-    def __init__(self, model: Model, *, Q, R, x0, P0=None):
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                 P0: ArrayLike | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
         self.model = model
@@ -191,7 +193,8 @@ class Estimator:
         self._dt: float | None = None  # the interval of the current step (variable_dt)
 
     # -------------------------------------------------------------- protocol
-    def step(self, y, u=None, dt: float | None = None) -> np.ndarray:
+    def step(self, y: ArrayLike, u: ArrayLike | None = None,
+             dt: float | None = None) -> np.ndarray:
         """Process measurement ``y`` (ny,) after input ``u`` (nu,); return x̂ (nx,).
 
         ``u`` is the input that acted since the previous measurement, or, for a
@@ -230,7 +233,7 @@ class Estimator:
                              f"variable_dt=True for irregular time stamps")
         return as_float(dt, "dt", positive=True)
 
-    def reset(self, x0=None, P0=None) -> None:
+    def reset(self, x0: ArrayLike | None = None, P0: ArrayLike | None = None) -> None:
         """Forget all data; optionally replace the initial guess and its covariance."""
         if x0 is not None:
             self.x0 = as_vector(x0, self.model.nx, "x0")
@@ -242,7 +245,8 @@ class Estimator:
         self._u_last = self._u_zero.copy()
         self._reset()
 
-    def set_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> None:
+    def set_tuning(self, *, Q: ArrayLike | None = None, R: ArrayLike | None = None,
+                   P0: ArrayLike | None = None, x0: ArrayLike | None = None) -> None:
         """Change the tuning; nothing is rebuilt (every compiled graph takes it as data).
 
         Parameters

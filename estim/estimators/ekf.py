@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool
@@ -79,8 +80,9 @@ class EKF(Estimator):
     name = "ekf"
     _checks_inf_itself = True
 
-    def __init__(self, model: Model, *, Q, R, x0, P0, clip: bool = False, lower=None,
-                 upper=None, gate: float | None = None):
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                 P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
+                 upper: ArrayLike | None = None, gate: float | None = None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)

@@ -30,7 +30,7 @@ from collections import deque
 
 import casadi as ca
 import numpy as np
-from scipy import optimize
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_float, as_int
@@ -39,6 +39,14 @@ from estim.estimators.nlp import _casadi_reason, measurement_weights, weight_fac
 from estim.model import Model, euler_step, rk4_step
 
 METHODS = ("bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient")
+
+
+def scipy_minimize(fun, x0, **options):
+    """:func:`scipy.optimize.minimize`, imported on the first solve rather than with
+    estim (scipy.optimize takes a third of a second to import)."""
+    from scipy.optimize import minimize
+
+    return minimize(fun, x0, **options)
 
 
 def derivative_filter(samples: np.ndarray, dt: float) -> np.ndarray:
@@ -173,9 +181,11 @@ class ShootingObserver(Estimator):
     name = "shooting"
     _requires_P0 = False
 
-    def __init__(self, model: Model, *, window: int, every: int, R, x0, Q=None, P0=None,
+    def __init__(self, model: Model, *, window: int, every: int, R: ArrayLike, x0: ArrayLike,
+                 Q: ArrayLike | None = None, P0: ArrayLike | None = None,
                  derivative_weight: float | None = None, derivative_samples: int = 5,
-                 method: str = "bfgs", direction: str = "forward", lower=None, upper=None,
+                 method: str = "bfgs", direction: str = "forward",
+                 lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  max_iter: int = 100, tol: float = 1e-3, resolution: float | None = None,
                  history_length: int | None = 1000):
         super().__init__(model, Q=0.0 if Q is None else Q, R=R, x0=x0, P0=P0)
@@ -610,10 +620,10 @@ class ShootingObserver(Estimator):
                 diag = np.ones(n) if H is None else np.diag(H)
                 T = np.diag(1.0 / np.sqrt(diag + 1e-9 * max(float(diag.max()), 1e-300)))
                 lo, up = (self.lower - start) / np.diag(T), (self.upper - start) / np.diag(T)
-                res = optimize.minimize(lambda z: cost(z, T), np.zeros(n), jac=True,
-                                        method="L-BFGS-B", bounds=list(zip(lo, up, strict=True)),
-                                        options={"maxiter": self.max_iter, "gtol": gtol,
-                                                 "ftol": 0.0})
+                res = scipy_minimize(lambda z: cost(z, T), np.zeros(n), jac=True,
+                                     method="L-BFGS-B", bounds=list(zip(lo, up, strict=True)),
+                                     options={"maxiter": self.max_iter, "gtol": gtol,
+                                              "ftol": 0.0})
                 # converged: the projected (scaled) gradient passes the gradient test; L-BFGS-B
                 # also stops when the cost no longer decreases (ftol=0) or its line search fails
                 z = np.clip(res.x, lo, up)
@@ -631,9 +641,9 @@ class ShootingObserver(Estimator):
                         f"no direction {self._undetermined[4:]} (0 of {n})")
             z0 = np.zeros(kept)
             if self.method == "bfgs":
-                res = optimize.minimize(lambda z: cost(z, T), z0, jac=True,
-                                        method="BFGS",
-                                        options={"maxiter": self.max_iter, "gtol": gtol})
+                res = scipy_minimize(lambda z: cost(z, T), z0, jac=True,
+                                     method="BFGS",
+                                     options={"maxiter": self.max_iter, "gtol": gtol})
                 # scipy's BFGS stops with status 0 only on its gradient test; 1: max_iter,
                 # 2: precision loss (the line search found no decrease) before it
                 converged = res.status == 0
@@ -641,9 +651,9 @@ class ShootingObserver(Estimator):
                        2: "line search stalled (precision loss) before the gradient test"
                        }.get(res.status, str(res.message).strip())
             else:
-                res = optimize.minimize(lambda z: cost(z, T)[0], z0, method="Nelder-Mead",
-                                        options={"maxiter": self.max_iter * n,
-                                                 "xatol": 1e-3 * gtol, "fatol": self.tol})
+                res = scipy_minimize(lambda z: cost(z, T)[0], z0, method="Nelder-Mead",
+                                     options={"maxiter": self.max_iter * n,
+                                              "xatol": 1e-3 * gtol, "fatol": self.tol})
                 converged = res.status == 0
                 why = f"{str(res.message).strip()} (max_iter {self.max_iter} per variable)"
             if kept < n:  # optimal in the subspace at best

@@ -3,7 +3,7 @@ r"""Unscented Kalman filter on filterpy's ``UnscentedKalmanFilter``."""
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
@@ -44,7 +44,8 @@ class UKF(Estimator):
 
     name = "ukf"
 
-    def __init__(self, model: Model, *, Q, R, x0, P0, alpha: float = 0.1, beta: float = 2.0,
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                 P0: ArrayLike, alpha: float = 0.1, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.gate = self._gate(gate)
@@ -67,6 +68,9 @@ class UKF(Estimator):
         return y.copy() if rows is None else y[rows].copy()
 
     def _reset(self) -> None:
+        # filterpy imports scipy.stats (~0.3 s): on the first filter, not with estim
+        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
         m = self.model
         points = MerweScaledSigmaPoints(m.nx, alpha=self.alpha, beta=self.beta, kappa=self.kappa)
         ukf = UnscentedKalmanFilter(dim_x=m.nx, dim_z=m.ny, dt=m.dt, hx=self._hx, fx=self._fx,
