@@ -162,3 +162,9 @@ def on_files(files, config):
         for image, data in images.items():
             files.append(File.generated(config, f"{SECTION}/{image}", content=data))
     return files
+
+
+def on_serve(server, config, builder):
+    """``mkdocs serve`` rebuilds when a notebook changes."""
+    server.watch(str(NOTEBOOKS))
+    return server
