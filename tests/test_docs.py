@@ -28,7 +28,8 @@ import estim
 ROOT = Path(__file__).resolve().parents[1]
 DOCS_PACKAGES = {"mkdocs": "mkdocs", "mkdocstrings": "mkdocstrings[python]",
                  "mkdocstrings_handlers": "mkdocstrings[python]",
-                 "pymdownx": "pymdown-extensions"}
+                 "pymdownx": "pymdown-extensions", "latex2mathml": "latex2mathml",
+                 "pygments": "pygments", "matplotlib": "matplotlib"}
 
 
 def _missing_docs_packages() -> list[str]:
@@ -36,24 +37,29 @@ def _missing_docs_packages() -> list[str]:
                    if importlib.util.find_spec(module) is None})
 
 
-def test_mkdocs_build_strict(tmp_path):
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The site of one strict mkdocs build, shared by the tests of this module."""
     missing = _missing_docs_packages()
     if missing:
         pytest.skip(f"the documentation build needs {', '.join(missing)} "
-                    f"(pip install mkdocs 'mkdocstrings[python]')")
-    site = tmp_path / "site"
+                    f"(pip install '.[docs]')")
+    site = tmp_path_factory.mktemp("docs") / "site"
     res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict",
                           "--site-dir", str(site)],
                          cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "WARNING" not in res.stderr, res.stderr
+    return site
+
+
+def test_mkdocs_build_strict(site):
     for page in ("index", "ekf", "mhe", "fie", "shooting", "models", "observability",
-                 "comparisons", "performance", "api"):
-        path = site / "index.html" if page == "index" else site / page / "index.html"
-        assert path.exists(), f"{page}.md was not built"
+                 "comparisons", "performance", "plotting", "api"):
+        assert (site / f"{page}.html").exists(), f"{page}.md was not built"
     # the API page documents every public name as what it is (estim.simulate and
     # estim.compare are functions that share their names with modules)
-    api = (site / "api" / "index.html").read_text(encoding="utf-8")
+    api = (site / "api.html").read_text(encoding="utf-8")
     absent = []
     for name in estim.__all__:
         obj = getattr(estim, name)
@@ -63,6 +69,81 @@ def test_mkdocs_build_strict(tmp_path):
         if not re.search(rf'<div class="doc doc-object doc-{kind}">\s*<h\d id="{path}"', api):
             absent.append(f"estim.{name} ({kind})")
     assert not absent, "not on the API page: " + ", ".join(absent)
+
+
+_EXTERNAL = r"(?:[a-z][a-z0-9+.-]*:)?//"  # http://, https://, //host: anything not in the site
+_TAG = re.compile(r"<(script|link|img|source|iframe|embed|object|video|audio|input)\b[^>]*>",
+                  re.I | re.S)
+_ATTR = re.compile(r"""\b(src|href|srcset|data|poster)\s*=\s*(["']?)([^"'\s>]*)""", re.I)
+_CSS_URL = re.compile(r"""url\(\s*(["']?)([^"')]*)|@import\s+(["'])([^"']*)""", re.I)
+
+
+def _external_references(site: Path) -> list[str]:
+    found = []
+    for path in sorted(site.rglob("*")):
+        if path.suffix not in (".html", ".css"):
+            continue
+        text = path.read_text(encoding="utf-8", errors="replace")
+        where = path.relative_to(site)
+        css = [text] if path.suffix == ".css" else \
+            re.findall(r"<style[^>]*>(.*?)</style>", text, re.S | re.I) + \
+            re.findall(r"""\bstyle\s*=\s*"([^"]*)\"""", text, re.I)
+        if path.suffix == ".html":
+            for tag in _TAG.finditer(text):
+                for attr in _ATTR.finditer(tag.group(0)):
+                    if re.match(_EXTERNAL, attr.group(3), re.I):
+                        found.append(f"{where}: <{tag.group(1)} {attr.group(1)}="
+                                     f"{attr.group(3)}>")
+        for block in css:
+            for m in _CSS_URL.finditer(block):
+                url = m.group(2) if m.group(2) is not None else m.group(4)
+                if re.match(_EXTERNAL, url or "", re.I):
+                    found.append(f"{where}: CSS {url}")
+    return found
+
+
+def test_site_needs_no_network(site):
+    """No page loads a script, stylesheet, font or image from another host: the site
+    works offline and opened from disk."""
+    external = _external_references(site)
+    assert not external, "external resources:\n" + "\n".join(external)
+    # the check itself sees what it must see
+    probe = site.parent / "probe"
+    probe.mkdir()
+    (probe / "a.html").write_text('<script src="https://cdn.example/x.js"></script>'
+                                  '<link rel="stylesheet" href="//cdn.example/s.css">'
+                                  '<img src="http://example.org/i.png">'
+                                  '<style>@import "https://fonts.example/f.css";</style>'
+                                  '<a href="https://example.org">a link is fine</a>')
+    (probe / "b.css").write_text("@font-face { src: url(https://fonts.example/f.woff2); }")
+    assert len(_external_references(probe)) == 5
+
+
+def _has_math(markdown: str) -> bool:
+    text = re.sub(r"```.*?```", "", markdown, flags=re.S)
+    text = re.sub(r"`[^`]*`", "", text)
+    return bool(re.search(r"\$[^$\s][^$]*\$", text))
+
+
+def test_formulas_are_rendered_as_mathml(site):
+    """Every formula became MathML when the site was built: no TeX is left for a script."""
+    pages = {md.stem: md for md in (ROOT / "docs").glob("*.md")}
+    with_math = [name for name, md in pages.items() if _has_math(md.read_text())] + ["api"]
+    assert len(with_math) > 5
+    problems = []
+    for name in sorted(set(with_math)):
+        html = (site / f"{name}.html").read_text(encoding="utf-8")
+        prose = re.sub(r"<(pre|code)\b.*?</\1>", "", html, flags=re.S)
+        if "<math" not in html:
+            problems.append(f"{name}: no MathML")
+        for tex in ("\\(", "\\[", "$$"):
+            if tex in prose:
+                problems.append(f"{name}: raw {tex} left")
+    assert not problems, "; ".join(problems)
+    # code is coloured when the site is built (Pygments), with the stylesheet in the site
+    ekf = (site / "ekf.html").read_text(encoding="utf-8")
+    assert '<div class="highlight"><pre>' in ekf and '<span class="n">' in ekf
+    assert (site / "css" / "pygments.css").exists() and "css/pygments.css" in ekf
 
 
 # ------------------------------------------------------------------ docstrings

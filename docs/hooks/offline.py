@@ -1,0 +1,120 @@
+"""mkdocs hook: formulas and code rendered at build time, so the site needs no network.
+
+* Math. ``pymdownx.arithmatex`` (generic mode) leaves ``\\(...\\)`` in
+  ``<span class="arithmatex">`` and ``\\[...\\]`` in ``<div class="arithmatex">``.
+  This hook converts each to MathML with ``latex2mathml``, which browsers render
+  natively: no script, no font download. The sidebar's table of contents gets the
+  same MathML. Before converting, ``\\operatorname{f}`` becomes ``\\mathrm{f}``
+  and the ``gathered``/``aligned`` environments become ``array`` (centred; right,
+  left, ...), which latex2mathml lays out as tables. A formula that does not
+  convert, or that leaves a command latex2mathml does not know as text, stops the
+  build with its page and TeX.
+* Code. ``pymdownx.highlight`` colours code blocks with Pygments when the page is
+  built; this hook writes the Pygments stylesheet (``css/pygments.css``) and the
+  math rules (``css/math.css``) into the site.
+
+Loaded by ``mkdocs.yml`` (``hooks:``).
+"""
+
+from __future__ import annotations
+
+import html
+import re
+
+from latex2mathml.converter import convert
+from mkdocs.exceptions import PluginError
+from mkdocs.structure.files import File
+from pygments.formatters import HtmlFormatter
+
+PYGMENTS_STYLE = "default"
+STYLESHEETS = ("css/pygments.css", "css/math.css")
+
+_INLINE = re.compile(r'<span class="arithmatex">\\\((.*?)\\\)</span>', re.S)
+_BLOCK = re.compile(r'<div class="arithmatex">\\\[(.*?)\\\]</div>', re.S)
+_TOC_MATH = re.compile(r"\\\((.*?)\\\)", re.S)
+_OPERATORNAME = re.compile(r"\\operatorname\s*\{")
+_ENV = re.compile(r"\\begin\{(gathered|aligned)\}(.*?)\\end\{\1\}", re.S)
+# what latex2mathml leaves of a command it does not know, or of an alignment mark
+_LEFTOVER = re.compile(r"<m(?:i|o|n|text)[^>]*>\s*(\\[A-Za-z]+|&amp;|&)\s*</m(?:i|o|n|text)>")
+
+# latex2mathml's slips, mended: \sim and \pm as operators; \bar, \dot, \ddot,
+# \tilde, \vec, \check, \acute, \grave, \breve as accents (close to the letter)
+_FIXES = (
+    (re.compile(r"<mi>&#x0007E;</mi>"), "<mo>&#x0223C;</mo>"),
+    (re.compile(r"<mi>&#x000B1;</mi>"), "<mo>&#x000B1;</mo>"),
+    (re.compile(r"<mover>(<mi>[^<]*</mi><mo[^>]*>&#x(?:000AF|000A8|002D9|0007E|02192|002C7"
+                r"|000B4|00060|002D8);</mo>)</mover>"),
+     r'<mover accent="true">\1</mover>'),
+)
+
+MATH_CSS = """\
+/* MathML written by docs/hooks/offline.py */
+math { font-family: "STIX Two Math", "Latin Modern Math", "Cambria Math", math; }
+math[display="block"] { display: block; margin: 1em 0; overflow-x: auto; overflow-y: hidden; }
+.arithmatex { overflow-x: auto; }
+"""
+
+
+def _environment(match: re.Match) -> str:
+    name, body = match.group(1), match.group(2)
+    if name == "gathered":
+        columns = "c"
+    else:
+        ampersands = max(row.count("&") for row in body.split(r"\\"))
+        columns = "".join("rl"[i % 2] for i in range(ampersands + 1))
+    return rf"\begin{{array}}{{{columns}}}{body}\end{{array}}"
+
+
+def tex_to_mathml(tex: str, display: bool = False) -> str:
+    """MathML of a TeX formula; a ``ValueError`` names what does not convert."""
+    source = _ENV.sub(_environment, _OPERATORNAME.sub(r"\\mathrm{", tex.strip()))
+    try:
+        out = convert(source, display="block" if display else "inline")
+    except Exception as exc:  # latex2mathml raises its own exception types
+        raise ValueError(f"latex2mathml cannot convert {tex!r}: "
+                         f"{type(exc).__name__}: {exc}") from exc
+    left = _LEFTOVER.search(out)
+    if left:
+        raise ValueError(f"latex2mathml does not know {html.unescape(left.group(1))!r} "
+                         f"in {tex!r}")
+    for pattern, replacement in _FIXES:
+        out = pattern.sub(replacement, out)
+    return out
+
+
+def _converter(page, display: bool):
+    def replace(match: re.Match) -> str:
+        try:
+            return tex_to_mathml(html.unescape(match.group(1)), display)
+        except ValueError as exc:
+            raise PluginError(f"{page.file.src_uri}: {exc}") from None
+
+    return replace
+
+
+def _toc(items, page) -> None:
+    for item in items:
+        if "\\(" in item.title:
+            item.title = _TOC_MATH.sub(_converter(page, False), item.title)
+        _toc(item.children, page)
+
+
+def on_page_content(html_text: str, page, config, files) -> str:
+    html_text = _BLOCK.sub(_converter(page, True), html_text)
+    html_text = _INLINE.sub(_converter(page, False), html_text)
+    _toc(page.toc.items, page)
+    return html_text
+
+
+def on_config(config):
+    for sheet in STYLESHEETS:
+        if sheet not in config.extra_css:
+            config.extra_css.append(sheet)
+    return config
+
+
+def on_files(files, config):
+    css = HtmlFormatter(style=PYGMENTS_STYLE).get_style_defs(".highlight")
+    for uri, content in zip(STYLESHEETS, (css + "\n", MATH_CSS), strict=True):
+        files.append(File.generated(config, uri, content=content))
+    return files
