@@ -23,6 +23,7 @@ import sys
 import textwrap
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,10 @@ from estim.metrics import nees, rmse, startup_samples
 from estim.model import Model
 from estim.scenarios import Scenario
 from estim.simulate import FAILED_FRACTION, simulate
+
+if TYPE_CHECKING:
+    import pandas as pd
+    from matplotlib.figure import Figure
 
 Factory = Callable[[Model, dict], Estimator]
 
@@ -185,7 +190,8 @@ class Comparison:
                                        subsequent_indent="    ")
         return "\n".join(lines)
 
-    def plot(self, path=None, *, kind: str = "overview", seed_index: int = 0):
+    def plot(self, path: str | os.PathLike[str] | None = None, *, kind: str = "overview",
+             seed_index: int = 0) -> Figure:
         r"""Figures of the kept logs (needs ``compare(..., keep_logs=True)`` and matplotlib).
 
         Parameters
@@ -226,7 +232,7 @@ class Comparison:
             return plotting.plot_errors(logs, path)
         return plotting.plot_solve_times(logs, path)
 
-    def to_pandas(self):
+    def to_pandas(self) -> pd.DataFrame:
         """The rows as a DataFrame indexed by estimator (needs pandas)."""
         import pandas as pd
 

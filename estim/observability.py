@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._validate import (
     _numeric_array,
@@ -347,7 +348,7 @@ def _classify(names, N: np.ndarray, tol: float = 1e-6):
 
 @check_keywords
 def analyze(model: Model, order: int | None = None, inputs: str = "varying",
-            method: str = "numeric", at=None, seed: int = 0, n_points: int = 3,
+            method: str = "numeric", at: ArrayLike | None = None, seed: int = 0, n_points: int = 3,
             arrangement: str | None = None, max_order: int | None = None,
             rtol: float = 1e-9, input_samples: int | None = None) -> ObservabilityReport:
     """Observability rank condition and continuous symmetries of a model.
@@ -579,8 +580,8 @@ class WindowReport:
 
 
 @check_keywords
-def window(model: Model, x0, n_steps: int, inputs=None, R=None, every: int = 1,
-           rtol: float = 1e-9) -> WindowReport:
+def window(model: Model, x0: ArrayLike, n_steps: int, inputs: ArrayLike | None = None,
+           R: ArrayLike | None = None, every: int = 1, rtol: float = 1e-9) -> WindowReport:
     """Identifiability of the initial state from ``n_steps`` samples along a trajectory.
 
     Parameters

@@ -46,13 +46,19 @@ Examples
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import Any
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._validate import _numeric_array, as_float
 
 __all__ = ["abs", "clip", "max", "min", "relu", "step"]
+
+#: What the helpers take: CasADi expressions or numbers and arrays. They return a CasADi
+#: expression when any argument is one, else a numpy value.
+Operand = ca.SX | ca.MX | ca.DM | ArrayLike
 
 LOG2 = float(np.log(2.0))
 
@@ -107,7 +113,7 @@ def _softplus(z, op):
 
 
 # ------------------------------------------------------------------ helpers
-def relu(x, width):
+def relu(x: Operand, width: float) -> Any:
     r"""Smooth :math:`\max(x, 0)`: the softplus of width :math:`w`.
 
     .. math:: \operatorname{relu}_w(x) = w \log\big(1 + e^{x / w}\big)
@@ -141,7 +147,7 @@ def relu(x, width):
     return w * _softplus(x / w, op)
 
 
-def max(a, b, width):  # noqa: A001 - the smooth counterpart of the builtin
+def max(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
     r"""Smooth :math:`\max(a, b)`, the softplus of the difference.
 
     .. math:: \max\nolimits_w(a, b) = b + w \log\big(1 + e^{(a - b)/w}\big)
@@ -173,7 +179,7 @@ def max(a, b, width):  # noqa: A001 - the smooth counterpart of the builtin
     return b + w * _softplus((a - b) / w, op)
 
 
-def min(a, b, width):  # noqa: A001 - the smooth counterpart of the builtin
+def min(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
     r"""Smooth :math:`\min(a, b)`.
 
     .. math:: \min\nolimits_w(a, b) = a - w \log\big(1 + e^{(a - b)/w}\big)
@@ -209,7 +215,7 @@ def min(a, b, width):  # noqa: A001 - the smooth counterpart of the builtin
     return a - w * _softplus((a - b) / w, op)
 
 
-def abs(x, width):  # noqa: A001 - the smooth counterpart of the builtin
+def abs(x: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
     r"""Smooth :math:`|x|` (pseudo-Huber).
 
     .. math:: \operatorname{abs}_w(x) = \sqrt{x^2 + w^2} - w
@@ -244,7 +250,7 @@ def abs(x, width):  # noqa: A001 - the smooth counterpart of the builtin
     return x * (x / (op.hypot(x, w) + w))
 
 
-def step(x, width):
+def step(x: Operand, width: float) -> Any:
     r"""Smooth Heaviside step :math:`[x > 0]`: the logistic function.
 
     .. math:: \operatorname{step}_w(x) = \frac{1}{1 + e^{-x/w}}
@@ -278,7 +284,7 @@ def step(x, width):
     return (1 + op.tanh(x / (2 * w))) / 2
 
 
-def clip(x, lower, upper, width):
+def clip(x: Operand, lower: Operand, upper: Operand, width: float) -> Any:
     r"""Smooth :math:`\min(\max(x, l), u)`: a saturation with rounded corners.
 
     .. math:: \operatorname{clip}_w(x) = l + w \log\big(1 + e^{(x - l)/w}\big)

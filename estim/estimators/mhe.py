@@ -7,6 +7,7 @@ from collections import deque
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_int
@@ -139,8 +140,9 @@ class MHE(Estimator):
 
     name = "mhe"
 
-    def __init__(self, model: Model, *, horizon: int, Q, R, x0, P0=None,
-                 arrival_cost: str = "filtering", lower=None, upper=None,
+    def __init__(self, model: Model, *, horizon: int, Q: ArrayLike, R: ArrayLike,
+                 x0: ArrayLike, P0: ArrayLike | None = None, arrival_cost: str = "filtering",
+                 lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, max_lag: int = 0):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
@@ -238,7 +240,7 @@ class MHE(Estimator):
             setattr(self, key, value.copy() if isinstance(value, np.ndarray) else value)
         self._history = list(self._history)
 
-    def insert(self, y, lag: int) -> np.ndarray:
+    def insert(self, y: ArrayLike, lag: int) -> np.ndarray:
         """Add a measurement that arrived late and return the new current estimate.
 
         ``y`` (ny,) was taken at the step ``lag`` steps before the latest one

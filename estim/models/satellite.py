@@ -6,6 +6,8 @@ inertial coordinates: :math:`v_I = q \otimes v_B \otimes q^*`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import casadi as ca
 import numpy as np
 
@@ -144,7 +146,8 @@ def nadir_in_body(x: np.ndarray) -> np.ndarray:
 
 
 def reference_attitude(t: float, amplitude: float = 0.4,
-                       periods=(100.0, 73.0, 131.0), phases=(0.0, 1.0, 2.0)) -> np.ndarray:
+                       periods: Sequence[float] = (100.0, 73.0, 131.0),
+                       phases: Sequence[float] = (0.0, 1.0, 2.0)) -> np.ndarray:
     r"""Persistently exciting target :math:`q_{ref}(t) = \exp(\phi(t)/2)`.
 
     :math:`\phi_i(t) = a \sin(2\pi t / P_i + c_i)` is a rotation vector; the

@@ -64,6 +64,11 @@ def main() -> None:
     text: str = table.table()
     assert "ekf" in text and "ukf" in text
 
+    report: estim.observability.ObservabilityReport = estim.observability.analyze(model)
+    assert report is not None
+    soft = estim.smooth.max(np.array([-1.0, 2.0]), 0.0, width=0.01)
+    assert np.allclose(soft, [0.0, 2.0], atol=0.01)
+
 
 if __name__ == "__main__":
     main()
