@@ -298,7 +298,7 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
     if unknown:
         raise ValueError(f"names must be augmented parameters of the model "
                          f"{augmented}, got {unknown}")
-    X = as_record(X, model.nx, "X", missing=False)
+    X = as_record(X, model.nx, "X", missing=False, names=model.state_names, what="states")
     T = X.shape[0]
     U = as_inputs(U, T, model)
     if not names:

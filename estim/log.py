@@ -285,7 +285,7 @@ class Log:
         if "x" in self and "x_hat" in self and np.isfinite(self.x).all():
             from estim.metrics import rmse
 
-            extra = f"<p>RMSE {rmse(self)!r}</p>"
+            extra = f"<p>{html.escape(repr(rmse(self)))}</p>"
         problems = self.problems()
         if problems:
             extra += f"<p><b>Warning</b>: {html.escape(problems)}</p>"

@@ -17,10 +17,13 @@ CasADi Functions and their algorithmic-differentiation Jacobians.
 from __future__ import annotations
 
 import threading
+import warnings
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import (
@@ -222,8 +225,8 @@ class Model:
         params: Mapping[str, float] | None = None,
         integrator: str = "rk4",
         substeps: int = 1,
-        lower=None,
-        upper=None,
+        lower: ArrayLike | None = None,
+        upper: ArrayLike | None = None,
         name: str = "model",
         hold: str | Mapping[str, str] = "zoh",
         variable_dt: bool = False,
@@ -314,7 +317,7 @@ class Model:
         (the interval) with ``variable_dt``."""
         return (2 * self.nu if self.sampled else self.nu) + int(self.variable_dt)
 
-    def input_path(self, w, reverse: bool = False):
+    def input_path(self, w: ca.SX | ca.MX, reverse: bool = False) -> Any:
         """The input along a transition whose input is ``w``: ``w`` itself (held), or
         for a sampled model a function of the fraction ``s`` of the sample, linear
         from the start value to the end value for ``"foh"`` inputs (``reverse``:
@@ -330,7 +333,7 @@ class Model:
             return held + ramp * (u0 + s * (u1 - u0) - held)
         return u_of
 
-    def transition(self, u_prev, u, dt: float | None = None) -> np.ndarray:
+    def transition(self, u_prev: ArrayLike, u: ArrayLike, dt: float | None = None) -> np.ndarray:
         """The input ``w`` of the transition into the sample whose input is ``u``, the
         previous sample's being ``u_prev``: ``u`` (held), or ``[u_prev; u]``; with
         ``variable_dt``, followed by the interval ``dt`` (default the model's)."""
@@ -339,7 +342,7 @@ class Model:
             w = np.append(w, self.dt if dt is None else dt)
         return w
 
-    def measurement_input(self, w) -> np.ndarray:
+    def measurement_input(self, w: ArrayLike) -> np.ndarray:
         """The input at the end of a transition whose input is ``w`` (what ``h`` sees
         at the next sample)."""
         nu = self.nu
@@ -347,6 +350,15 @@ class Model:
 
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
+        # numpy functions on CasADi symbols (np.sin(x[0])) give CasADi expressions
+        # (CasADi's legacy behaviour, which the equations rely on); CasADi 3.7's
+        # 20-line FutureWarning about them says nothing about the model
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"\s*casadi: a numpy function",
+                                    category=FutureWarning)
+            self._build_graphs()
+
+    def _build_graphs(self) -> None:
         nx, nu, ny, nw = self.nx, self.nu, self.ny, self.nw
         x = ca.SX.sym("x", nx)
         u = ca.SX.sym("u", nu)
@@ -456,7 +468,8 @@ class Model:
                                                                      "u_next")
         return self.transition(u, nxt, dt)
 
-    def f(self, x, u=None, u_next=None, dt: float | None = None) -> np.ndarray:
+    def f(self, x: ArrayLike, u: ArrayLike | None = None, u_next: ArrayLike | None = None,
+          dt: float | None = None) -> np.ndarray:
         """Next state ``F(x, u; p)``: ``x`` (nx,), ``u`` (nu,) or None (zero input).
 
         For a sampled-input model (``hold="foh"``) ``u`` is the input at this
@@ -467,12 +480,13 @@ class Model:
         x, u = self._xu(x, u)
         return self._fast("F")(x, self._w(u, u_next, dt), self.p)[0].copy()
 
-    def h(self, x, u=None) -> np.ndarray:
+    def h(self, x: ArrayLike, u: ArrayLike | None = None) -> np.ndarray:
         """Output ``h(x, u; p)`` as a (ny,) array (safe from several threads)."""
         x, u = self._xu(x, u)
         return self._fast("H")(x, u, self.p)[0].copy()
 
-    def jacobians(self, x, u=None, u_next=None, dt: float | None = None
+    def jacobians(self, x: ArrayLike, u: ArrayLike | None = None,
+                  u_next: ArrayLike | None = None, dt: float | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
         """``(A, C) = (dF/dx, dh/dx)`` at ``(x, u)``: (nx, nx) and (ny, nx) arrays
         (``u_next``, ``dt`` as for :meth:`f`)."""
@@ -500,7 +514,8 @@ class Model:
             p[self.param_names.index(key)] = as_float(val, f"parameter {key!r}")
         return self._copy(p=p, _local=threading.local())
 
-    def augment(self, *names: str, lower=None, upper=None) -> Model:
+    def augment(self, *names: str, lower: ArrayLike | None = None,
+                upper: ArrayLike | None = None) -> Model:
         r"""Append parameters to the state with constant dynamics.
 
         The new state is :math:`[x; \theta]` with :math:`\dot\theta = 0`

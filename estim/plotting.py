@@ -22,6 +22,51 @@ def _pyplot():
 _LINESTYLES = ("-", "--", "-.", ":")
 
 
+#: Backends that draw nothing on screen: a figure there is shown by its PNG in Jupyter.
+_NON_INTERACTIVE = ("agg", "cairo", "pdf", "pgf", "ps", "svg", "template")
+
+
+class _DisplayOnce:
+    """``Figure._ipython_display_`` of estim's figures: drawn once in Jupyter.
+
+    A pyplot figure returned as a cell's value is drawn twice there: as the value,
+    and by the inline backend when the cell ends. This draws the PNG and, under
+    the inline backend, releases the figure from pyplot so that it is not drawn
+    again; under a widget or notebook backend, which shows the live figure
+    itself, it draws nothing.
+    """
+
+    def __init__(self, fig):
+        self.fig = fig
+
+    def __call__(self) -> None:
+        import io
+
+        import matplotlib
+        import matplotlib.pyplot as plt
+        from IPython.display import Image, display
+
+        backend = matplotlib.get_backend().lower()
+        number = getattr(self.fig, "number", None)
+        managed = number is not None and plt.fignum_exists(number)
+        inline = "inline" in backend
+        if managed and not inline and backend not in _NON_INTERACTIVE:
+            return
+        buf = io.BytesIO()
+        self.fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+        display(Image(data=buf.getvalue()))
+        if managed and inline:
+            plt.close(self.fig)
+
+
+def _finish(fig, path):
+    """Write the figure if asked, make Jupyter draw it once, and return it."""
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    fig._ipython_display_ = _DisplayOnce(fig)
+    return fig
+
+
 def _style(k: int) -> dict:
     """Colour and line style of the k-th estimator of a figure."""
     return {"color": f"C{k}", "ls": _LINESTYLES[k % len(_LINESTYLES)],
@@ -84,9 +129,7 @@ def plot_log(log, path=None, states: Sequence[str] | None = None, sigma: bool = 
     axes[0, 0].legend(loc="best", fontsize=8)
     axes[-1, 0].set_xlabel(_time_label(log))
     fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_comparison(result, path=None, seed_index: int = 0):
@@ -160,9 +203,7 @@ def plot_comparison(result, path=None, seed_index: int = 0):
         fig.tight_layout(rect=(0, (0.16 * lines + 0.15) / height, 1, 1))
     else:
         fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float | None = None,
@@ -210,9 +251,7 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
     if title:
         axes[0, 0].set_title(title, fontsize="medium")
     axes[-1, 0].set_xlabel(_time_label(truth))
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_errors(logs, path=None, sigma: float = 2.0):
@@ -292,9 +331,7 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
     axes[0, 0].set_title(f"estimation error, ±{sigma:g}σ bands where a covariance exists; "
                          f"axes scaled to the settled errors", fontsize="medium")
     axes[-1, 0].set_xlabel(_time_label(first))
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
+    return _finish(fig, path)
 
 
 def plot_solve_times(logs, path=None):
@@ -315,6 +352,4 @@ def plot_solve_times(logs, path=None):
     ax.set_ylabel("solve time per step [s]")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize="small")
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
+    return _finish(fig, path)

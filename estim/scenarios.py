@@ -8,8 +8,9 @@ estimator takes, so ``estim.EKF(sc.model, **sc.tuning)`` is the whole set-up.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -132,14 +133,14 @@ class Scenario:
         if self.inputs is not None and self.controller is not None:
             raise ValueError("give inputs= or controller=, not both")
         if self.inputs is not None and not callable(self.inputs):
-            as_input_table(self.inputs, self.n_steps, m.nu)
+            as_input_table(self.inputs, self.n_steps, m.nu, names=m.input_names)
         self.plant_changes = check_plant_changes(self.plant_changes, m)
         if not isinstance(self.remarks, Mapping) or not all(
                 isinstance(k, str) and isinstance(v, str) for k, v in self.remarks.items()):
             raise TypeError("remarks must be a dict {estimator class name: text}")
         self.remarks = dict(self.remarks)
 
-    def replace(self, **changes) -> Scenario:
+    def replace(self, **changes: Any) -> Scenario:
         """A copy with some fields changed (e.g. ``n_steps``)."""
         from dataclasses import replace
 
@@ -285,7 +286,7 @@ class Record:
 
 
 def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int = 400,
-                      seed: int = 0, guess=(0.40, 0.50, 0.20)) -> Record:
+                      seed: int = 0, guess: Sequence[float] = (0.40, 0.50, 0.20)) -> Record:
     """Inertia identification record (Oliva & Carnevale, sec. 2.1-2.4).
 
     The full attitude plant of :func:`satellite` (PD control on the true
@@ -328,7 +329,7 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
 }
 
 
-def get(name: str, **kwargs) -> Scenario:
+def get(name: str, **kwargs: Any) -> Scenario:
     """Build a scenario by name, e.g. ``estim.scenarios.get("batch_reactor")``.
 
     Parameters

@@ -22,9 +22,11 @@ same seed gives the same noise whatever the estimator does.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import contextmanager
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import (
@@ -38,6 +40,7 @@ from estim._validate import (
     as_record,
     as_seed,
     as_vector,
+    by_name,
     check_keywords,
 )
 from estim.estimators.base import EstimationWarning, Estimator
@@ -95,7 +98,8 @@ class _Recorder:
                   time_unit=model.time_unit)
         for key, arr in (("t", t), ("x", x), ("y", y), ("u", u), ("x_hat", self.x_hat),
                          ("P", self.P), ("solve_time", self.solve_time),
-                         ("status", self.status.astype(str)), ("iterations", self.iterations),
+                         ("status", self.status.astype(str).astype(object)),  # Python str
+                         ("iterations", self.iterations),
                          ("success", self.success), ("nis", self.nis), ("cost", self.cost),
                          ("diagnostics", self.extra)):
             log.set(key, arr[:n])
@@ -152,9 +156,14 @@ def output_state_map(model: Model) -> dict[int, int]:
 
 @check_keywords
 def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 0, *,
-             x0=None, n_steps: int | None = None, Q=None, R=None, inputs=None,
-             controller=None, feedback: str | None = None, clip: bool | None = None,
-             missing=None, plant_changes=None, warn: bool = True) -> Log:
+             x0: ArrayLike | None = None, n_steps: int | None = None,
+             Q: ArrayLike | None = None, R: ArrayLike | None = None,
+             inputs: ArrayLike | Callable[[float], ArrayLike] | None = None,
+             controller: Callable[[float, np.ndarray], ArrayLike] | None = None,
+             feedback: str | None = None, clip: bool | None = None,
+             missing: float | ArrayLike | None = None,
+             plant_changes: Sequence[tuple[float, Mapping[str, float]]] | None = None,
+             warn: bool = True) -> Log:
     """Run ``estimator`` in closed loop on a scenario (or a bare model) and log everything.
 
     Parameters
@@ -243,7 +252,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     x = as_vector(x0, nx, "x0")
     Lq = _sqrt_psd(as_covariance(Q, nx, "Q", definite=False))
     Lr = _sqrt_psd(as_covariance(R, ny, "R", definite=False))
-    U = _input_table(inputs, T, nu, model.dt)
+    U = _input_table(inputs, T, model)
     miss = _missing(missing, T, ny, seed)
 
     noise_rng = np.random.default_rng(seed)
@@ -304,7 +313,9 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
 
 
 @check_keywords
-def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True) -> Log:
+def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
+           x: ArrayLike | None = None, t: ArrayLike | None = None, *,
+           warn: bool = True) -> Log:
     """Run an estimator over recorded data (e.g. measurements from an experiment).
 
     Parameters
@@ -344,8 +355,9 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     Y, dts = _check_replay(model, y, u, x, t)  # dts: each interval (variable_dt) or None
     warn = as_bool(warn, "warn")
     T = Y.shape[0]
-    U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model.nu, model.dt)
-    X = np.full((T, model.nx), np.nan) if x is None else np.asarray(x, dtype=float)
+    U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model)
+    X = np.full((T, model.nx), np.nan) if x is None else \
+        np.asarray(by_name(x, model.state_names, "x", "states"), dtype=float)
     ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
     rec = _Recorder(T, model.nx)
     estimator.reset()
@@ -360,13 +372,14 @@ def replay(estimator: Estimator, y, u=None, x=None, t=None, *, warn: bool = True
     return rec.finish(model, estimator, ts, X, Y, U, warn)
 
 
-def _input_table(inputs, T: int, nu: int, dt: float) -> np.ndarray | None:
+def _input_table(inputs, T: int, model: Model) -> np.ndarray | None:
     if inputs is None:
         return None
+    nu = model.nu
     if callable(inputs):
-        return np.array([as_vector(inputs(k * dt), nu, "inputs(t)") for k in range(T)]
+        return np.array([as_vector(inputs(k * model.dt), nu, "inputs(t)") for k in range(T)]
                         ).reshape(T, nu)
-    return as_input_table(inputs, T, nu)
+    return as_input_table(inputs, T, nu, names=model.input_names)
 
 
 def _missing(missing, T: int, ny: int, seed) -> np.ndarray | None:
@@ -409,14 +422,15 @@ def _check_simulate(model: Model, n_steps, seed, clip, inputs, controller, missi
 def _check_replay(model: Model, y, u, x, t) -> tuple[np.ndarray, np.ndarray | None]:
     """Check every array of :func:`replay` before the first step; return ``y`` as (T, ny)
     and the intervals of ``t`` for a ``variable_dt`` model (see :func:`as_intervals`)."""
-    Y = as_record(y, model.ny, "y")
+    Y = as_record(y, model.ny, "y", names=model.output_names, what="outputs")
     T = Y.shape[0]
     if u is not None and not callable(u):
-        U = as_record(u, model.nu, "u", missing=False)
+        U = as_record(u, model.nu, "u", missing=False, names=model.input_names,
+                      what="inputs")
         if U.shape != (T, model.nu):
             raise ValueError(f"u must have shape ({T}, {model.nu}) = (T, nu), got {U.shape}")
     if x is not None:
-        X = _numeric_array(x, "x")
+        X = _numeric_array(by_name(x, model.state_names, "x", "states"), "x")
         if X.shape != (T, model.nx):
             raise ValueError(f"x must have shape ({T}, {model.nx}), got {X.shape}")
         if np.isinf(X).any():

@@ -95,6 +95,14 @@ class StepInfo:
     nis: float = float("nan")
     extra: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        # plain Python values, whatever a solver handed over (np.bool_, np.str_, 0-d arrays)
+        for name, kind in (("status", str), ("success", bool), ("iterations", int),
+                           ("solve_time", float), ("cost", float), ("nis", float)):
+            value = getattr(self, name)
+            if type(value) is not kind:
+                object.__setattr__(self, name, kind(value))
+
     @classmethod
     def _fast(cls, **fields) -> StepInfo:
         """Build without the frozen-dataclass ``__setattr__`` cost (hot paths only)."""

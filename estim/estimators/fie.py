@@ -8,6 +8,7 @@ from dataclasses import dataclass, field, replace
 
 import casadi as ca
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
@@ -181,7 +182,9 @@ class FullInformation(Estimator):
     name = "fie"
     _requires_P0 = False
 
-    def __init__(self, model: Model, *, Q, R, x0=None, P0=None, lower=None, upper=None,
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
+                 P0: ArrayLike | None = None, lower: ArrayLike | None = None,
+                 upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None):
         solver = resolve_solver(solver, solver_options)
@@ -213,7 +216,8 @@ class FullInformation(Estimator):
         if "P0" in new and not (self._x0_given or "x0" in new):
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
 
-    def set_tuning(self, *, Q=None, R=None, P0=None, x0=None) -> None:
+    def set_tuning(self, *, Q: ArrayLike | None = None, R: ArrayLike | None = None,
+                   P0: ArrayLike | None = None, x0: ArrayLike | None = None) -> None:
         new = self._validated_tuning(Q=Q, R=R, P0=P0, x0=x0)
         self._x0_given = self._x0_given or "x0" in new  # a prior needs its mean
         self.__dict__.update(new)
@@ -241,7 +245,7 @@ class FullInformation(Estimator):
         """``Y``, the transitions' inputs ``W (T, nw)`` (the last row unused) and the
         measurements' inputs ``(T, nu)`` of a record."""
         m = self.model
-        Y = as_record(Y, m.ny, "Y")
+        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
         T = Y.shape[0]
         if np.isnan(Y).all():
             raise ValueError("Y has no measured value")
@@ -260,7 +264,9 @@ class FullInformation(Estimator):
                 W[:-1, -1] = dts
         return Y, W, Uy
 
-    def fit(self, Y, U=None, guess=None, *, Q=None, R=None, t=None) -> FitResult:
+    def fit(self, Y: ArrayLike, U: ArrayLike | None = None, guess: ArrayLike | None = None, *,
+            Q: ArrayLike | None = None, R: ArrayLike | None = None,
+            t: ArrayLike | None = None) -> FitResult:
         """Solve over the whole record.
 
         Parameters
