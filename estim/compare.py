@@ -512,5 +512,5 @@ def _check_compare(scenario: Scenario, estimators, seeds, n_jobs, backend, keep_
                                   'pip install "estim[dask]"')
         elif importlib.util.find_spec("joblib") is None:
             raise ImportError(f"n_jobs={n_jobs} runs in parallel through joblib: "
-                              f'pip install "estim[parallel]"')
+                              "pip install joblib (a dependency of estim)")
     return seeds, n_jobs, burn_in, keep_logs, progress
