@@ -139,7 +139,18 @@ def test_formulas_are_rendered_as_mathml(site):
         for tex in ("\\(", "\\[", "$$"):
             if tex in prose:
                 problems.append(f"{name}: raw {tex} left")
+        # browsers draw no mathvariant but "normal" (MathML Core)
+        for variant in set(re.findall(r'mathvariant="(?!normal")([^"]*)"', html)):
+            problems.append(f"{name}: mathvariant={variant}")
     assert not problems, "; ".join(problems)
+    # a formula that does not convert stops the build, naming it
+    spec = importlib.util.spec_from_file_location("offline", ROOT / "docs/hooks/offline.py")
+    offline = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(offline)
+    for bad in (r"\frac{a}{", r"\unknowncommand x"):
+        with pytest.raises(ValueError, match=re.escape(bad)):
+            offline.tex_to_mathml(bad)
+    assert 'mathvariant' not in offline.tex_to_mathml(r"\mathbb R^3 \ni \mathbf x")
     # code is coloured when the site is built (Pygments), with the stylesheet in the site
     ekf = (site / "ekf.html").read_text(encoding="utf-8")
     assert '<div class="highlight"><pre>' in ekf and '<span class="n">' in ekf

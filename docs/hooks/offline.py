@@ -6,7 +6,10 @@
   natively: no script, no font download. The sidebar's table of contents gets the
   same MathML. Before converting, ``\\operatorname{f}`` becomes ``\\mathrm{f}``
   and the ``gathered``/``aligned`` environments become ``array`` (centred; right,
-  left, ...), which latex2mathml lays out as tables. A formula that does not
+  left, ...), which latex2mathml lays out as tables. After it, a few slips are
+  mended (``\\sim`` and ``\\pm`` as operators, accents close to their letter) and
+  bold, double-struck, script and fraktur letters become their Unicode letters,
+  since browsers draw no ``mathvariant`` but ``normal``. A formula that does not
   convert, or that leaves a command latex2mathml does not know as text, stops the
   build with its page and TeX.
 * Code. ``pymdownx.highlight`` colours code blocks with Pygments when the page is
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import html
 import re
+import unicodedata
 
 from latex2mathml.converter import convert
 from mkdocs.exceptions import PluginError
@@ -45,6 +49,7 @@ _FIXES = (
     (re.compile(r"<mover>(<mi>[^<]*</mi><mo[^>]*>&#x(?:000AF|000A8|002D9|0007E|02192|002C7"
                 r"|000B4|00060|002D8);</mo>)</mover>"),
      r'<mover accent="true">\1</mover>'),
+    (re.compile(r'<mtext mathvariant="monospace">'), '<mtext style="font-family: monospace">'),
 )
 
 MATH_CSS = """\
@@ -65,9 +70,35 @@ def _environment(match: re.Match) -> str:
     return rf"\begin{{array}}{{{columns}}}{body}\end{{array}}"
 
 
+_VARIANT = re.compile(r'<(mi|mn) mathvariant="(bold|bold-italic|double-struck|script|fraktur|'
+                      r'sans-serif)">([A-Za-z0-9])</\1>')
+_VARIANT_NAMES = {"bold": "BOLD", "bold-italic": "BOLD ITALIC", "double-struck": "DOUBLE-STRUCK",
+                  "script": "SCRIPT", "fraktur": "FRAKTUR", "sans-serif": "SANS-SERIF"}
+_DIGITS = "ZERO ONE TWO THREE FOUR FIVE SIX SEVEN EIGHT NINE".split()
+_SINGLE_MATHRM = re.compile(r"\\mathrm\s*\{\s*([A-Za-z])\s*\}")
+
+
+def _unicode_variant(match: re.Match) -> str:
+    """``<mi mathvariant="double-struck">R</mi>`` as ``<mi>ℝ</mi>``: browsers (MathML Core)
+    draw only the mathvariant ``normal``, the others are letters of their own in Unicode."""
+    tag, variant, char = match.groups()
+    kind = f"DIGIT {_DIGITS[int(char)]}" if char.isdigit() else \
+        f"{'CAPITAL' if char.isupper() else 'SMALL'} {char.upper()}"
+    style = _VARIANT_NAMES[variant]
+    holes = {"DOUBLE-STRUCK": "DOUBLE-STRUCK", "SCRIPT": "SCRIPT", "FRAKTUR": "BLACK-LETTER"}
+    for name in (f"MATHEMATICAL {style} {kind}", f"{holes.get(style, style)} {kind}"):
+        try:
+            return f"<{tag}>&#x{ord(unicodedata.lookup(name)):05X};</{tag}>"
+        except KeyError:
+            continue
+    return match.group(0)
+
+
 def tex_to_mathml(tex: str, display: bool = False) -> str:
     """MathML of a TeX formula; a ``ValueError`` names what does not convert."""
-    source = _ENV.sub(_environment, _OPERATORNAME.sub(r"\\mathrm{", tex.strip()))
+    source = _OPERATORNAME.sub(r"\\mathrm{", tex.strip())
+    # latex2mathml draws \mathrm{d} as an italic d; \text is upright
+    source = _ENV.sub(_environment, _SINGLE_MATHRM.sub(r"\\text{\1}", source))
     try:
         out = convert(source, display="block" if display else "inline")
     except Exception as exc:  # latex2mathml raises its own exception types
@@ -79,7 +110,7 @@ def tex_to_mathml(tex: str, display: bool = False) -> str:
                          f"in {tex!r}")
     for pattern, replacement in _FIXES:
         out = pattern.sub(replacement, out)
-    return out
+    return _VARIANT.sub(_unicode_variant, out)
 
 
 def _converter(page, display: bool):
