@@ -29,7 +29,10 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS_PACKAGES = {"mkdocs": "mkdocs", "mkdocstrings": "mkdocstrings[python]",
                  "mkdocstrings_handlers": "mkdocstrings[python]",
                  "pymdownx": "pymdown-extensions", "latex2mathml": "latex2mathml",
-                 "pygments": "pygments", "matplotlib": "matplotlib"}
+                 "pygments": "pygments", "matplotlib": "matplotlib",
+                 # the tutorials (examples/notebooks) are executed when the site is built
+                 "nbclient": "nbclient", "nbformat": "nbformat", "ipykernel": "ipykernel",
+                 "pandas": "pandas"}
 
 
 def _missing_docs_packages() -> list[str]:
@@ -57,6 +60,10 @@ def test_mkdocs_build_strict(site):
     for page in ("index", "ekf", "mhe", "fie", "shooting", "models", "observability",
                  "comparisons", "performance", "plotting", "api"):
         assert (site / f"{page}.html").exists(), f"{page}.md was not built"
+    for notebook in sorted((ROOT / "examples" / "notebooks").glob("*.ipynb")):
+        page = site / "tutorials" / f"{notebook.stem}.html"
+        assert page.exists(), f"{notebook.name} was not built"
+        assert '<img alt="output of cell' in page.read_text(encoding="utf-8"), page
     # the API page documents every public name as what it is (estim.simulate and
     # estim.compare are functions that share their names with modules)
     api = (site / "api.html").read_text(encoding="utf-8")
@@ -129,6 +136,8 @@ def test_formulas_are_rendered_as_mathml(site):
     """Every formula became MathML when the site was built: no TeX is left for a script."""
     pages = {md.stem: md for md in (ROOT / "docs").glob("*.md")}
     with_math = [name for name, md in pages.items() if _has_math(md.read_text())] + ["api"]
+    with_math += [f"tutorials/{nb.stem}"  # every tutorial has formulas in its text
+                  for nb in (ROOT / "examples" / "notebooks").glob("*.ipynb")]
     assert len(with_math) > 5
     problems = []
     for name in sorted(set(with_math)):
