@@ -260,10 +260,11 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
     The error axes are scaled to what the errors settle to after the start-up
     transient (the first 10 % of the record, shaded): each estimator's 98th
     percentile of :math:`|\\hat x - x|` and of its band there, an estimator ten
-    times worse than the median not setting the scale. Whatever leaves the
-    axes (the transient, a diverging estimator, the wide band of a window
-    estimator with too few samples at start-up) is named in the axes' corner
-    with its peak, so nothing is hidden without a word.
+    times worse than the median not setting the scale. Whatever goes far
+    beyond the axes (more than half the axis again: the transient, a diverging
+    estimator, the wide band of a window estimator with too few samples at
+    start-up) is named in the axes' corner with its peak, so nothing is hidden
+    without a word.
 
     Parameters
     ----------
@@ -318,7 +319,8 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
         lim = _settled_limit(settled[i])
         if lim > 0:
             ax.set_ylim(-lim, lim)
-            off = sorted((p for p in peaks[i] if p[0] > lim), reverse=True)
+            # named when far beyond (a line just past the edge speaks for itself)
+            off = sorted((p for p in peaks[i] if p[0] > 1.5 * lim), reverse=True)
             if off:
                 text = "beyond the axis: " + "; ".join(
                     f"{who} {size:.3g} at t = {when:g}" for size, who, when in off[:4])
