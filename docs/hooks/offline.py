@@ -53,9 +53,13 @@ _FIXES = (
 )
 
 MATH_CSS = """\
-/* MathML written by docs/hooks/offline.py */
+/* MathML written by docs/hooks/offline.py; "block math" keeps MathML layout for display
+   formulas (plain "block" would lay their children out as text) */
 math { font-family: "STIX Two Math", "Latin Modern Math", "Cambria Math", math; }
-math[display="block"] { display: block; margin: 1em 0; overflow-x: auto; overflow-y: hidden; }
+math[display="block"] {
+  display: block math; math-style: normal; margin: 1em 0; padding: 0.3em 0;
+  overflow-x: auto; overflow-y: hidden;
+}
 .arithmatex { overflow-x: auto; }
 """
 
