@@ -7,7 +7,7 @@
   same MathML. Before converting, ``\\operatorname{f}`` becomes ``\\mathrm{f}``
   and the ``gathered``/``aligned`` environments become ``array`` (centred; right,
   left, ...), which latex2mathml lays out as tables. After it, a few slips are
-  mended (``\\sim`` and ``\\pm`` as operators, accents close to their letter) and
+  mended (``\\sim`` and ``\\pm`` as operators, accents as overscripts) and
   bold, double-struck, script and fraktur letters become their Unicode letters,
   since browsers draw no ``mathvariant`` but ``normal``. A formula that does not
   convert, or that leaves a command latex2mathml does not know as text, stops the
@@ -41,14 +41,15 @@ _ENV = re.compile(r"\\begin\{(gathered|aligned)\}(.*?)\\end\{\1\}", re.S)
 # what latex2mathml leaves of a command it does not know, or of an alignment mark
 _LEFTOVER = re.compile(r"<m(?:i|o|n|text)[^>]*>\s*(\\[A-Za-z]+|&amp;|&)\s*</m(?:i|o|n|text)>")
 
-# latex2mathml's slips, mended: \sim and \pm as operators; \bar, \dot, \ddot,
-# \tilde, \vec, \check, \acute, \grave, \breve as accents (close to the letter)
+# latex2mathml's slips, mended: \sim and \pm as operators; accents (\hat, \dot, ...)
+# as plain overscripts, the hat as the modifier circumflex: a browser whose math font
+# lacks accent metrics (Chromium with DejaVu Math, for one) draws an accent="true"
+# glyph into its letter, while an overscript sits above it with every font
 _FIXES = (
     (re.compile(r"<mi>&#x0007E;</mi>"), "<mo>&#x0223C;</mo>"),
     (re.compile(r"<mi>&#x000B1;</mi>"), "<mo>&#x000B1;</mo>"),
-    (re.compile(r"<mover>(<mi>[^<]*</mi><mo[^>]*>&#x(?:000AF|000A8|002D9|0007E|02192|002C7"
-                r"|000B4|00060|002D8);</mo>)</mover>"),
-     r'<mover accent="true">\1</mover>'),
+    (re.compile(r'<mover accent="true">'), "<mover>"),
+    (re.compile(r"<mo>&#x0005E;</mo></mover>"), "<mo>&#x002C6;</mo></mover>"),
     (re.compile(r'<mtext mathvariant="monospace">'), '<mtext style="font-family: monospace">'),
 )
 
