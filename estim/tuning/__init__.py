@@ -14,5 +14,7 @@ resulting filter's innovations (:class:`TuningResult`):
 from __future__ import annotations
 
 from estim.tuning._result import InnovationCheck, TuningResult, innovation_check
+from estim.tuning.likelihood import log_likelihood, maximum_likelihood
 
-__all__ = ["InnovationCheck", "TuningResult", "innovation_check"]
+__all__ = ["InnovationCheck", "TuningResult", "innovation_check", "log_likelihood",
+           "maximum_likelihood"]
