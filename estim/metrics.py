@@ -78,7 +78,9 @@ class _Series:
             names = estimate.state_names
             x = estimate.x if truth is None and "x" in estimate else truth
         else:
-            if hasattr(estimate, "x") and hasattr(estimate, "cost"):   # a FitResult
+            # a FitResult, or a SmoothResult of EKF.smooth / UKF.smooth
+            if hasattr(estimate, "x") and (hasattr(estimate, "cost")
+                                           or hasattr(estimate, "x_filtered")):
                 x_hat = estimate.x
                 self.P = getattr(estimate, "P", None)
             elif isinstance(estimate, (list, tuple, np.ndarray)):
@@ -93,8 +95,9 @@ class _Series:
                 raise ValueError("nis needs a Log: the innovations are recorded by "
                                  "simulate/replay")
             if "P" in needs and self.P is None:
-                raise ValueError("nees needs covariances: a Log with 'P' (a FitResult or "
-                                 "an array carries none)")
+                raise ValueError("nees needs covariances: a Log with 'P', or a fit's or a "
+                                 "smoother's result with 'P' (an array carries none, nor "
+                                 "a fit that failed)")
             if truth is None and "x" in needs:
                 raise ValueError("truth is required with a FitResult or an array: the true "
                                  "states (T, nx), or a Log that has them")
@@ -211,10 +214,10 @@ def nees(estimate: Log | FitResult, burn_in: int = 0, *,
 
     Parameters
     ----------
-    estimate : Log or FitResult
-        Estimates with covariances ``P`` (T, nx, nx) (a Log with ``P``, or a
-        fit that carries per-sample covariances), and the truth unless ``truth``
-        is given.
+    estimate : Log, FitResult or SmoothResult
+        Estimates with covariances ``P`` (T, nx, nx) (a Log with ``P``, a
+        ``FullInformation.fit`` result, or the result of ``EKF.smooth`` /
+        ``UKF.smooth``), and the truth unless ``truth`` is given.
     burn_in : int
         Samples to skip at the start.
     truth : (T, nx) array or Log, optional

@@ -10,6 +10,7 @@ from estim._fast import FastFunction
 from estim._validate import as_bool
 from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
 from estim.estimators.nlp import is_diagonal
+from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
 
@@ -163,6 +164,60 @@ class EKF(Estimator):
         self._tun[:nx * nx] = self.Q.ravel(order="F")
         self._tun[nx * nx:] = self.R.ravel(order="F")
 
+    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               t: ArrayLike | None = None) -> SmoothResult:
+        r"""Extended Rauch-Tung-Striebel smoother over a whole record.
+
+        The filter runs forward over the record with :meth:`step` (after a
+        :meth:`reset`; inputs, missing outputs, gating and clipping as in
+        :func:`~estim.replay`), then the backward pass from
+        :math:`x^s_{T-1} = \hat x_{T-1}`, :math:`P^s_{T-1} = P_{T-1}`, with
+        :math:`A_k = \partial F/\partial x` at the filtered :math:`\hat x_k`:
+
+        .. math::
+            \bar x_{k+1} = F(\hat x_k, u_k), \quad
+            \bar P_{k+1} = A_k P_k A_k^\top + Q, \quad
+            G_k = P_k A_k^\top \bar P_{k+1}^{-1}, \\
+            x^s_k = \hat x_k + G_k (x^s_{k+1} - \bar x_{k+1}), \quad
+            P^s_k = P_k + G_k (P^s_{k+1} - \bar P_{k+1}) G_k^\top .
+
+        With ``clip``, each smoothed mean is projected on the bounds too. On a
+        linear-Gaussian model this is the Kalman (RTS) smoother.
+
+        Parameters
+        ----------
+        Y : (T, ny) array
+            Measurements, NaN where missing.
+        U : (T-1, nu) or (T, nu) array, optional
+            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
+            the input at each sample), as in ``FullInformation.fit``. Zero if omitted.
+        t : (T,) array, optional
+            Sample times, for a model built with ``variable_dt=True``.
+
+        Returns
+        -------
+        SmoothResult
+            ``x (T, nx)``, ``P (T, nx, nx)``, the filtered ``x_filtered``,
+            ``P_filtered``, the predictions, gains and statuses. The filter is
+            left at the end of the record.
+
+        References
+        ----------
+        H. E. Rauch, F. Tung, C. T. Striebel (1965), AIAA J. 3(8);
+        S. Särkkä, *Bayesian Filtering and Smoothing*, 2013, sec. 9.1.
+        """
+        m, Q = self.model, self.Q
+
+        def predict(X, P, W):
+            A = transitions(m, X, W, jacobian=True)
+            D = P @ A.transpose(0, 2, 1)  # P_k A_k^T
+            Pb = A @ D + Q
+            return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+
+        clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
+            else None
+        return rts(self, Y, U, t, predict, clip)
+
     @property
     def x(self) -> np.ndarray:
         """Current estimate (a view of the filter state)."""
@@ -205,7 +260,8 @@ class EKF(Estimator):
         else:
             self._s[:] = s_new
         info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
-                              innovation=e.copy(), nis=float(flags[0]))
+                              innovation=e.copy(),
+                              nis=float(flags[0]) if flags[4] else float("nan"))  # no output
         if suspect:
             info.__dict__["status"] = self._consistency(float(flags[0]), int(flags[4]),
                                                         bool(flags[7]))

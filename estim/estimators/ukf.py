@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
 from estim.estimators.base import Estimator, StepInfo, chi2_limit
+from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
 
@@ -82,6 +83,71 @@ class UKF(Estimator):
         self._ukf = ukf
         self._trusted = True  # the last step was "ok" (or none was taken)
         self._anchor_state = (self.x0.copy(), self.P0.copy())
+
+    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               t: ArrayLike | None = None) -> SmoothResult:
+        r"""Unscented Rauch-Tung-Striebel smoother over a whole record (Särkkä 2008).
+
+        The filter runs forward over the record with :meth:`step` (after a
+        :meth:`reset`; inputs, missing outputs, gating and clipping as in
+        :func:`~estim.replay`). Backwards from :math:`x^s_{T-1} = \hat x_{T-1}`,
+        :math:`P^s_{T-1} = P_{T-1}`: the filter's sigma points
+        :math:`\mathcal X^{(i)}` of :math:`(\hat x_k, P_k)` (weights
+        :math:`W^m_i, W^c_i`) go through :math:`F` with the input :math:`u_k`,
+
+        .. math::
+            \bar x_{k+1} = \sum_i W^m_i F(\mathcal X^{(i)}), \quad
+            \bar P_{k+1} = \sum_i W^c_i\, \delta F_i\, \delta F_i^\top + Q, \quad
+            D_{k+1} = \sum_i W^c_i (\mathcal X^{(i)} - \hat x_k)\, \delta F_i^\top,
+
+        with :math:`\delta F_i = F(\mathcal X^{(i)}) - \bar x_{k+1}`, and
+
+        .. math::
+            G_k = D_{k+1} \bar P_{k+1}^{-1}, \quad
+            x^s_k = \hat x_k + G_k (x^s_{k+1} - \bar x_{k+1}), \quad
+            P^s_k = P_k + G_k (P^s_{k+1} - \bar P_{k+1}) G_k^\top .
+
+        This is filterpy's ``UnscentedKalmanFilter.rts_smoother`` with the
+        inputs passed to :math:`F` (filterpy's calls ``fx(x, dt)`` without them)
+        and a linear solve for :math:`G_k`. With ``clip``, each smoothed mean is
+        projected on the model's bounds too.
+
+        Parameters
+        ----------
+        Y : (T, ny) array
+            Measurements, NaN where missing.
+        U : (T-1, nu) or (T, nu) array, optional
+            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
+            the input at each sample), as in ``FullInformation.fit``. Zero if omitted.
+        t : (T,) array, optional
+            Sample times, for a model built with ``variable_dt=True``.
+
+        Returns
+        -------
+        SmoothResult
+            ``x (T, nx)``, ``P (T, nx, nx)``, the filtered ``x_filtered``,
+            ``P_filtered``, the predictions, gains and statuses. The filter is
+            left at the end of the record.
+
+        References
+        ----------
+        S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
+        """
+        m, Q = self.model, self.Q
+
+        def predict(X, P, W):
+            pts = self._ukf.points_fn
+            n, ns, nx = len(X), pts.num_sigmas(), m.nx
+            sig = np.array([pts.sigma_points(X[k], P[k]) for k in range(n)])  # (n, ns, nx)
+            Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
+                             ).reshape(n, ns, nx)
+            xb = np.einsum("i,kij->kj", pts.Wm, Fs)
+            dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
+            Pb = np.einsum("i,kia,kib->kab", pts.Wc, dF, dF) + Q
+            D = np.einsum("i,kia,kib->kab", pts.Wc, dX, dF)
+            return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+
+        return rts(self, Y, U, t, predict, self.model.clip if self.clip else None)
 
     @property
     def x(self) -> np.ndarray:
