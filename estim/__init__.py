@@ -28,13 +28,14 @@ if TYPE_CHECKING:
     from estim.estimators.mhe import MHE
     from estim.estimators.shooting import ShootingObserver
     from estim.estimators.ukf import UKF
+    from estim.uncertainty import ParameterEstimates, parameter_uncertainty
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
-    "FullInformation", "Log", "Model", "RMSE", "Record", "Scenario", "ShootingObserver",
-    "StepInfo", "chi2_bounds",
-    "compare", "convergence_time", "errors", "models", "nees", "nis", "observability", "replay",
-    "rmse", "scenarios", "simulate", "smooth",
+    "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
+    "ShootingObserver", "StepInfo", "chi2_bounds",
+    "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
+    "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",
 ]
 __version__ = "0.1.0"
 
@@ -43,7 +44,9 @@ __version__ = "0.1.0"
 _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
-         "observability": "estim.observability", "smooth": "estim.smooth"}
+         "observability": "estim.observability", "smooth": "estim.smooth",
+         "ParameterEstimates": "estim.uncertainty",
+         "parameter_uncertainty": "estim.uncertainty"}
 
 if not TYPE_CHECKING:  # type checkers see the imports above, and no catch-all
     def __getattr__(name: str) -> Any:
