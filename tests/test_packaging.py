@@ -64,10 +64,10 @@ def test_cli_list_leaves_heavy_modules_alone():
 def test_lazy_names_are_public_names():
     assert estim.__all__ == [
         "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
-        "FullInformation", "Log", "Model", "RMSE", "Record", "Scenario", "ShootingObserver",
-        "StepInfo", "chi2_bounds",
+        "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
+        "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
-        "replay", "rmse", "scenarios", "simulate", "smooth"]
+        "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth"]
     assert set(estim.__all__) <= set(dir(estim))
     from estim import EKF, UKF, FitResult, FullInformation, observability, smooth
     from estim.estimators import ESTIMATORS
@@ -77,6 +77,10 @@ def test_lazy_names_are_public_names():
     assert EKF is EKF_ is estim.EKF is ESTIMATORS["ekf"] and FitResult is FitResult_
     assert UKF is ESTIMATORS["ukf"] and FullInformation is ESTIMATORS["fie"]
     assert observability.__name__ == "estim.observability" and smooth.__name__ == "estim.smooth"
+    from estim import ParameterEstimates, parameter_uncertainty
+    from estim.uncertainty import ParameterEstimates as ParameterEstimates_
+
+    assert ParameterEstimates is ParameterEstimates_ and callable(parameter_uncertainty)
     # the submodule estim.compare does not hide the function estim.compare
     importlib.import_module("estim.compare")
     assert callable(estim.compare) and estim.compare.__module__ == "estim.compare"
