@@ -1,4 +1,4 @@
-"""Command line: ``estim list``, ``estim run`` and ``estim observe``.
+"""Command line: ``estim list``, ``estim run``, ``estim tune`` and ``estim observe``.
 
 ``estim run`` with no arguments is the main job: the batch reactor of the
 KU Leuven course with EKF, clipped EKF, UKF and MHE (N = 25, zero prior,
@@ -164,6 +164,54 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_tune(args) -> int:
+    import numpy as np
+
+    from estim.estimators.ekf import EKF
+    from estim.metrics import rmse
+    from estim.simulate import replay, simulate
+
+    sc = scenarios.get(args.scenario)
+    if args.steps is not None:
+        sc = sc.replace(n_steps=args.steps)
+    model, guess = sc.model, {k: sc.tuning[k] for k in ("x0", "P0")}
+    log = simulate(sc, EKF(model, **sc.tuning), seed=args.seed, warn=False)
+    if args.method == "als":
+        from estim.tuning import als
+
+        res = als(model, log.y, log.u, structure=args.structure, **guess)
+    else:
+        from estim.tuning import maximum_likelihood
+
+        res = maximum_likelihood(model, log.y, log.u, structure=args.structure, **guess)
+    print(f"{sc.name}: {sc.n_steps} samples (seed {args.seed}) with the plant's noise "
+          f"Q = diag({', '.join(f'{v:.4g}' for v in np.diag(sc.Q))}), "
+          f"R = diag({', '.join(f'{v:.4g}' for v in np.diag(sc.R))})")
+    print(res.summary())
+    tunings = {"scenario tuning": sc.tuning,
+               "estimated": {**sc.tuning, "Q": res.Q, "R": _definite(res.R)}}
+    seeds = [args.seed + 1 + i for i in range(args.check_seeds)]
+    print(f"{'EKF RMSE':<18}{'scenario tuning':>16}{'estimated':>11}")
+    on_record = [float(rmse(replay(EKF(model, **t), log.y, log.u, x=log.x, warn=False)))
+                 for t in tunings.values()]
+    print(f"{'  this record':<18}{on_record[0]:16.4g}{on_record[1]:11.4g}")
+    if seeds:
+        fresh = [np.mean([float(rmse(simulate(sc, EKF(model, **t), seed=s, warn=False)))
+                          for s in seeds]) for t in tunings.values()]
+        label = f"  {len(seeds)} new record" + ("s" if len(seeds) > 1 else "")
+        print(f"{label:<18}{fresh[0]:16.4g}{fresh[1]:11.4g}")
+    return 0
+
+
+def _definite(R):
+    """``R`` made positive definite for a filter (an estimate may sit on the boundary)."""
+    import numpy as np
+
+    lam = float(np.linalg.eigvalsh(R).min())
+    floor = 1e-9 * max(float(np.trace(R)) / len(R), 1e-300)
+    return R + (floor - lam) * np.eye(len(R)) if lam < floor else R
+
+
 OBSERVE_MODELS = {
     "martinelli_simple": "estim.models.martinelli_simple()",
     "odometry_noncircular": "estim.models.odometry_noncircular()",
@@ -224,6 +272,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                      help="PNG for truth vs estimates of seed 0 ('' for none)")
     run.add_argument("--jobs", type=_int_arg(None, nonzero=True), default=1,
                      help="parallel jobs (joblib; -1: all cores)")
+    tune = sub.add_parser("tune", help="estimate Q and R from a simulated record and compare "
+                                       "the EKF tuned with them")
+    tune.add_argument("scenario", choices=sorted(scenarios.SCENARIOS))
+    tune.add_argument("--method", default="als", choices=["als", "ml"],
+                      help="autocovariance least squares (default) or maximum likelihood")
+    tune.add_argument("--structure", default="diagonal", choices=["diagonal", "full", "scalar"],
+                      help="free entries of Q and R (default diagonal)")
+    tune.add_argument("--seed", type=_int_arg(0), default=0, help="seed of the record")
+    tune.add_argument("--steps", type=_int_arg(1), default=None,
+                      help="override the scenario length")
+    tune.add_argument("--check-seeds", type=_int_arg(0), default=5,
+                      help="new records the two tunings are compared on (default 5)")
     obs = sub.add_parser("observe", help="observability analysis of a scenario's model")
     obs.add_argument("target", help="a scenario name or one of " + ", ".join(OBSERVE_MODELS))
     obs.add_argument("--order", type=_int_arg(0), default=None)
@@ -233,7 +293,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         args = parser.parse_args(["run", *(argv or [])])
     try:
-        return {"list": _cmd_list, "run": _cmd_run, "observe": _cmd_observe}[args.command](args)
+        return {"list": _cmd_list, "run": _cmd_run, "observe": _cmd_observe,
+                "tune": _cmd_tune}[args.command](args)
     except (ValueError, TypeError, ImportError) as exc:
         print(f"estim: error: {exc}", file=sys.stderr)
         return 2

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from estim import cli
@@ -40,3 +42,28 @@ def test_parse_estimator():
 def test_bad_option_is_an_error_not_a_traceback(capsys):
     assert cli.main(["run", "van_der_pol", "--estimator", "nope", "--plot", ""]) == 2
     assert "unknown estimator" in capsys.readouterr().err
+
+
+def _estimate(text: str, entry: str) -> tuple[float, float]:
+    m = re.search(re.escape(entry) + r" = ([-+.\deE]+) ± ([-+.\deE]+)", text)
+    assert m, text
+    return float(m[1]), float(m[2])
+
+
+@pytest.mark.parametrize("method, label", [("als", "als: ok"),
+                                           ("ml", "maximum likelihood: ok")])
+def test_tune_estimates_q_and_r_and_compares_the_ekf(method, label, capsys):
+    assert cli.main(["tune", "van_der_pol", "--steps", "300", "--method", method,
+                     "--check-seeds", "2"]) == 0
+    text = capsys.readouterr().out
+    assert label in text and "Ljung-Box" in text
+    assert "scenario tuning" in text and "this record" in text and "2 new records" in text
+    for entry in ("R[0,0]", "R[1,1]"):  # both outputs are measured with std 1
+        value, se = _estimate(text, entry)
+        assert abs(value - 1.0) < 3 * se
+
+
+def test_tune_rejects_an_unknown_method(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["tune", "van_der_pol", "--method", "guess"])
+    assert "invalid choice" in capsys.readouterr().err
