@@ -71,7 +71,8 @@ RELATIVE_STDERR_LIMIT = 0.5
 #: separable by the data.
 CORRELATION_LIMIT = 0.99
 #: A smallest eigenvalue of the correlation matrix below this (its condition number
-#: above about its inverse) reports a combination of parameters the data do not fix.
+#: above about its inverse) reports confounded parameters: the data determine one
+#: combination of them far better than each alone.
 EIGENVALUE_LIMIT = 1e-3
 
 _SCALES = ("none", "residual")
@@ -262,7 +263,10 @@ def _issues(names, value, cov, lower, upper) -> list[str]:
             combo = " ".join(f"{c:+.2f}·{n}" for c, n in zip(v, names, strict=True)
                              if abs(c) > 0.05)
             out.append(f"near-singular block (smallest eigenvalue of the correlation "
-                       f"{lam[0]:.2g}): the data hardly fix {combo} (in standard errors)")
+                       f"{lam[0]:.2g}): the parameters are confounded, the data determine "
+                       f"mainly the combination {combo} (in standard errors), "
+                       f"{1 / np.sqrt(max(lam[0], 1e-300)):.3g} times better than each "
+                       "alone")
     at = [n for n, v, lo, hi in zip(names, value, lower, upper, strict=True)
           if np.isclose(v, lo, rtol=1e-9, atol=0) or np.isclose(v, hi, rtol=1e-9, atol=0)]
     if at:

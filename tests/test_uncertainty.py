@@ -135,6 +135,22 @@ def test_poorly_determined_parameters_warn(setup):
     assert record[0].filename == __file__
 
 
+def test_a_combination_the_data_do_not_fix_is_named():
+    """Three parameters, each pair correlated below 0.99, whose sum is nearly fixed: the
+    near-singular block names the combination (in standard errors) that the data
+    determine far better than each parameter."""
+    from estim.uncertainty import _issues
+
+    v = np.array([1.0, 1.0, 1.0]) / np.sqrt(3)
+    C = np.eye(3) - (1 - 1e-5) * np.outer(v, v)      # correlations -0.5, eigenvalue 1e-5
+    issues = _issues(("a", "b", "c"), np.array([10.0, 20.0, 30.0]), C, [-np.inf] * 3,
+                     [np.inf] * 3)
+    assert len(issues) == 1 and "near-singular" in issues[0], issues
+    assert "+1.00·a +1.00·b +1.00·c" in issues[0].replace("-", "+")
+    assert _issues(("a",), np.array([1.0]), np.array([[np.nan]]), [0.0], [2.0])[0].startswith(
+        "the covariance is not finite")
+
+
 def test_a_parameter_at_its_bound_is_reported(setup):
     aug, U, y_true, _ = setup
     bounded = first_order(upper={"tau": 0.9})
@@ -163,6 +179,13 @@ def test_mhe_and_filters(setup):
     np.testing.assert_array_equal(pe.stderr, np.sqrt(np.diag(ekf.info.P)[1:]))
     with pytest.raises(ValueError, match="pass x"):
         estim.parameter_uncertainty(ekf)
+    # full information run step by step: its last estimate and info.P
+    fie = estim.FullInformation(aug, Q=Q, R=SIGMA**2, x0=[0.0, 0.7, 1.4])
+    for k in range(30):
+        x_hat = fie.step(Y[k], U[k - 1] if k else None)
+    pe = estim.parameter_uncertainty(fie, warn=False)
+    np.testing.assert_array_equal(pe.value, x_hat[1:])
+    np.testing.assert_array_equal(pe.covariance, fie.info.P[1:, 1:])
     with pytest.raises(ValueError, match="scale='residual' needs a FitResult"):
         estim.parameter_uncertainty(mhe, scale="residual")
 
