@@ -242,6 +242,17 @@ def test_ml_full_structure_recovers_a_correlated_R():
     assert np.all(np.linalg.eigvalsh(res.R) > 0)
 
 
+def test_ml_variance_on_the_boundary_is_reported():
+    """A constant level measured with noise: the likelihood is largest with no process
+    noise, so Q runs to zero; the status says so and Q has no standard error."""
+    y = 3.0 + np.random.default_rng(1).standard_normal(300)
+    res = maximum_likelihood(_local_level(), y, x0=0.0, P0=100.0, Q0=0.1, R0=2.0, starts=2)
+    assert res.status.startswith("boundary: Q[0,0]"), res.status
+    assert res.Q[0, 0] < 1e-6 and np.isnan(res.stderr["Q"][0, 0])
+    assert res.R[0, 0] == pytest.approx(np.var(y), rel=0.05)
+    assert np.isfinite(res.stderr["R"][0, 0])
+
+
 # ------------------------------------------------------------------------ van der Pol
 @pytest.fixture(scope="module")
 def vdp_fit():

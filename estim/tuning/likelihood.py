@@ -348,6 +348,24 @@ class _Parametrisation:
         index = [model.param_names.index(k) for k in spec]
         t0 = [_initial(structures["Q"], Q0, "Q0"), _initial(structures["R"], R0, "R0")]
         self.n_noise = sum(len(t) for t in t0)
+        # the parameters that are logs: (theta index, matrix, diagonal entry or None for
+        # a scalar, 1 for a log-variance or 2 for a log-Cholesky diagonal)
+        self.logs: list[tuple[int, str, int | None, int]] = []
+        offset = 0
+        for name, n in (("Q", nx), ("R", ny)):
+            kind = structures[name]
+            if kind == "scalar":
+                self.logs.append((offset, name, None, 1))
+            elif kind == "diagonal":
+                self.logs += [(offset + i, name, i, 1) for i in range(n)]
+            elif kind == "full":
+                k = 0
+                for col in range(n):
+                    for row in range(col, n):
+                        if row == col:
+                            self.logs.append((offset + k, name, col, 2))
+                        k += 1
+            offset += len(t0[0]) if name == "Q" else 0
         self.theta0 = np.concatenate(t0 + [np.array(list(spec.values()), dtype=float)])
         self.fixed = np.concatenate([Q0.ravel(order="F"), R0.ravel(order="F"), model.p])
         self.key = (structures["Q"], structures["R"], tuple(index))
@@ -622,9 +640,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     The likelihood assumes Gaussian noises, independent in time, and (for a nonlinear
     model) that the filter's innovations are close to Gaussian with covariance
     :math:`S_k`; the standard errors are asymptotic (large :math:`T`, an interior
-    optimum). A variance whose estimate runs to zero has a log going to
-    :math:`-\infty`: its standard error is then meaningless, and the status says the
-    optimiser stopped on a boundary.
+    optimum). A variance whose estimate runs to zero (the likelihood largest without that
+    noise) has a log going to :math:`-\infty`: the status then starts with
+    ``"boundary: "``, names the entry, and its standard errors are NaN.
 
     References
     ----------
@@ -718,6 +736,23 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     free = np.abs(J).sum(axis=1) > 0
     se = np.where(free, se, np.nan)
     nx, ny = model.nx, model.ny
+    # variances run to zero: a log far below the others of its matrix, or one the
+    # likelihood hardly bounds (standard error of the log above 3, a factor 20)
+    boundary = []
+    for idx, name, i, power in par.logs:
+        top = max(pw * theta[j] for j, other, _, pw in par.logs if other == name)
+        loose = np.isfinite(cov_theta[idx, idx]) and np.sqrt(cov_theta[idx, idx]) > 3
+        if power * theta[idx] < top - np.log(1e8) or loose:
+            n = nx if name == "Q" else ny
+            rows = range(n) if i is None else [i]
+            offset = 0 if name == "Q" else nx * nx
+            for row in rows:
+                for col in range(n):
+                    se[offset + row + n * col] = se[offset + col + n * row] = np.nan
+            boundary.append(f"{name}[{i},{i}]" if i is not None else name)
+    if boundary and status == "ok":
+        status = (f"boundary: {', '.join(boundary)} tend(s) to zero (the likelihood is "
+                  f"largest without that noise); no standard error for it")
     q, r, _ = par.matrices(theta)
     Qh, Rh = q.reshape(nx, nx, order="F"), r.reshape(ny, ny, order="F")
     Qh, Rh = 0.5 * (Qh + Qh.T), 0.5 * (Rh + Rh.T)
