@@ -146,7 +146,7 @@ def test_satellite_inertia(tmp_path, capsys):
 
 @pytest.mark.parametrize("name", ["batch_reactor_ekf", "batch_reactor_mhe", "van_der_pol_mhe",
                                   "lorenz_fie", "runaway_observer", "satellite_inertia",
-                                  "observability_pynoa"])
+                                  "observability_pynoa", "tune_noise_covariances"])
 def test_example_has_docstring_and_main(name):
     module = load(name)
     assert module.__doc__ and len(module.__doc__) > 200
@@ -160,3 +160,19 @@ def test_observability_pynoa(tmp_path, capsys):
     assert ranks == {"simple localisation": 2, "odometry, non-circular": 7,
                      "odometry, circular": 4, "quadrotor IMU+GNSS+baro": 31}
     assert "rank" in capsys.readouterr().out
+
+
+def test_tune_noise_covariances(tmp_path, capsys):
+    out = tmp_path / "acf.png"
+    rows = load("tune_noise_covariances").main(["--out", str(out), "--steps", "2000"])["rows"]
+    assert out.stat().st_size > 20_000
+    rmse = {name: row["rmse"] for name, row in rows.items()}
+    # the bad tuning follows the measurements (RMSE near their std, 1); two ALS passes
+    # and maximum likelihood come within 5 % of the true covariances (4000 samples:
+    # within 1 %, see the example's docstring)
+    assert rmse["bad guess"] > 2 * rmse["true"]
+    assert rmse["ALS, two passes"] < 1.05 * rmse["true"]
+    assert rmse["maximum likelihood"] < 1.05 * rmse["true"]
+    # the second ALS pass, from a filter near the optimal one, is far more precise
+    assert max(rows["ALS, two passes"]["stderr_Q"]) < 0.5 * min(rows["ALS, one pass"]["stderr_Q"])
+    assert "ALS, two passes" in capsys.readouterr().out

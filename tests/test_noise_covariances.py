@@ -222,3 +222,18 @@ def test_als_refuses_bad_input():
         als(one, Y[:, :1], structure={"Q": "full"})
     with pytest.raises(ValueError, match="lags"):
         als(model, Y, lags=0)
+    with pytest.raises(ValueError, match="give gain=None"):
+        als(model, Y, gain=np.eye(2) * 0.5, iterations=2)
+
+
+def test_als_second_pass_from_a_bad_filter_is_more_precise():
+    """ALS is consistent for any stable gain, but a gain far from the optimal one gives
+    imprecise estimates; a second pass from the filter of the first estimate fixes it."""
+    model = linear_model(A2, C2)
+    Y = record(A2, C2, Q2, R2, 4000, seed=7)
+    one = als(model, Y, Q0=10.0, R0=0.01)
+    two = als(model, Y, Q0=10.0, R0=0.01, iterations=2)
+    assert two.details["iterations"] == 2
+    assert np.all(two.stderr["Q"].diagonal() < 0.7 * one.stderr["Q"].diagonal())
+    est, se = free(two)
+    assert np.all(np.abs(est - np.r_[np.diag(Q2), np.diag(R2)]) < 3 * se)

@@ -421,13 +421,22 @@ def _solve(Aw, bw, blocks, splits) -> tuple[np.ndarray, np.ndarray, bool]:
     return theta_u, _barrier(Aw, bw, blocks, splits, theta0), True
 
 
+def _floored(M: np.ndarray) -> np.ndarray:
+    """``M`` with its eigenvalues raised to a millionth of its mean variance (positive
+    definite, for the filter of the next ALS pass)."""
+    floor = 1e-6 * max(float(np.trace(M)) / len(M), 1e-300)
+    lam, V = np.linalg.eigh(0.5 * (M + M.T))
+    return (V * np.maximum(lam, floor)) @ V.T
+
+
 # ---------------------------------------------------------------------- the API
 def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         gain: ArrayLike | object | None = None, Q0: ArrayLike | None = None,
         R0: ArrayLike | None = None, x0: ArrayLike | None = None,
         P0: ArrayLike | None = None, lags: int = DEFAULT_ALS_LAGS,
         structure: str | Mapping | ArrayLike = "diagonal", G: ArrayLike | None = None,
-        weighting: str = "identity", burn_in: int | None = None) -> TuningResult:
+        weighting: str = "identity", burn_in: int | None = None,
+        iterations: int = 1) -> TuningResult:
     r"""Autocovariance least squares: estimate ``Q`` and ``R`` from a record.
 
     A filter with a stable gain runs over the record; the sample autocovariances of its
@@ -504,6 +513,12 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         Samples left out at the start, where the filter forgets its initial guess.
         Default: the samples the error dynamics take to decay to 1e-3
         (:math:`\rho(\bar A)^{k} \le 10^{-3}`, from ``lags`` to ``T/4``).
+    iterations : int
+        With ``gain=None``: run ALS this many times, each with the filter of the
+        previous estimates (``Q0, R0`` for the first). ALS is consistent for any stable
+        gain, but its variance grows with the gain's distance from the optimal one: a
+        second pass from a badly tuned filter often shrinks the standard errors several
+        times (``details["Q0"]``, ``details["R0"]`` are the last filter's).
 
     Returns
     -------
@@ -520,8 +535,8 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         (``{"Q", "R"}`` of the unconstrained least squares), ``theta`` and
         ``theta_cov``, ``autocovariance`` :math:`\hat C_j` ``(N, ny, ny)``,
         ``equations`` the unweighted :math:`(\mathcal A, \hat b)`, ``Q0`` and
-        ``R0`` of the default filter, ``Q_w`` with ``G``, and with the optimal weight
-        ``overidentification``: ``(statistic, dof, p_value)`` of
+        ``R0`` of the default filter, ``iterations``, ``Q_w`` with ``G``, and with the
+        optimal weight ``overidentification``: ``(statistic, dof, p_value)`` of
         :math:`n\,r^\top \hat S^{-1} r \sim \chi^2` (a small p-value says the model does
         not explain the autocovariances).
 
@@ -556,6 +571,18 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     """
     if not isinstance(model, Model):
         raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
+    iterations = as_int(iterations, "iterations", minimum=1)
+    if iterations > 1:
+        if gain is not None:
+            raise ValueError("iterations > 1 re-tunes the default filter with each estimate: "
+                             "give gain=None")
+        same = {"x0": x0, "P0": P0, "lags": lags, "structure": structure, "G": G,
+                "weighting": weighting, "burn_in": burn_in}
+        res = als(model, Y, U, Q0=Q0, R0=R0, **same)
+        for _ in range(iterations - 1):
+            res = als(model, Y, U, Q0=_floored(res.Q), R0=_floored(res.R), **same)
+        res.details["iterations"] = iterations
+        return res
     if model.variable_dt:
         raise ValueError("model: als needs uniform samples; this model was built with "
                          "variable_dt=True")
@@ -764,7 +791,8 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
                "linearization": "time-invariant" if invariant else "time-varying",
                "gain": what, "spectral_radius": rho, "constraint_active": active,
                "unconstrained": {"Q": Qu, "R": Ru}, "theta": theta, "theta_cov": cov,
-               "autocovariance": Chat, "equations": (A_als, b), "Q0": Q0, "R0": R0}
+               "autocovariance": Chat, "equations": (A_als, b), "Q0": Q0, "R0": R0,
+               "iterations": 1}
     if G is not None:
         details["Q_w"] = Qw
     if weighting == "optimal":
