@@ -22,7 +22,7 @@ from estim.scenarios import Record, Scenario
 from estim.simulate import replay, simulate
 
 if TYPE_CHECKING:
-    from estim import observability, smooth
+    from estim import observability, smooth, tuning
     from estim.estimators.ekf import EKF
     from estim.estimators.fie import FitResult, FullInformation
     from estim.estimators.mhe import MHE
@@ -35,7 +35,7 @@ __all__ = [
     "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
     "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
-    "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",
+    "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth", "tuning",
 ]
 __version__ = "0.1.0"
 
@@ -45,6 +45,7 @@ _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
          "observability": "estim.observability", "smooth": "estim.smooth",
+         "tuning": "estim.tuning",
          "ParameterEstimates": "estim.uncertainty",
          "parameter_uncertainty": "estim.uncertainty"}
 

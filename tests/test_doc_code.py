@@ -181,7 +181,7 @@ def test_console_blocks_use_existing_commands_and_options(monkeypatch, capsys):
     from estim import cli
 
     seen = []
-    for command in ("list", "run", "observe"):
+    for command in ("list", "run", "observe", "tune"):
         monkeypatch.setattr(cli, f"_cmd_{command}", lambda args: seen.append(args) or 0)
     problems = []
     commands = list(_estim_commands())

@@ -67,7 +67,8 @@ def test_lazy_names_are_public_names():
         "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
         "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
-        "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth"]
+        "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",
+        "tuning"]
     assert set(estim.__all__) <= set(dir(estim))
     from estim import EKF, UKF, FitResult, FullInformation, observability, smooth
     from estim.estimators import ESTIMATORS
