@@ -459,7 +459,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     :math:`\mathcal A \theta \approx \hat b`, solved as
 
     .. math::
-        \hat\theta = \arg\min_\theta\, (\mathcal A\theta - \hat b)^\top W
+        \hat\theta = \operatorname{arg\,min}_\theta\, (\mathcal A\theta - \hat b)^\top W
         (\mathcal A\theta - \hat b) \quad \text{s.t.} \quad Q(\theta) \succeq 0,\;
         R(\theta) \succeq 0.
 
