@@ -751,8 +751,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                     se[offset + row + n * col] = se[offset + col + n * row] = np.nan
             boundary.append(f"{name}[{i},{i}]" if i is not None else name)
     if boundary and status == "ok":
-        status = (f"boundary: {', '.join(boundary)} tend(s) to zero (the likelihood is "
-                  f"largest without that noise); no standard error for it")
+        status = (f"boundary: {', '.join(boundary)} "
+                  f"{'runs' if len(boundary) == 1 else 'run'} to zero (the likelihood is "
+                  f"largest without that noise); no standard error")
     q, r, _ = par.matrices(theta)
     Qh, Rh = q.reshape(nx, nx, order="F"), r.reshape(ny, ny, order="F")
     Qh, Rh = 0.5 * (Qh + Qh.T), 0.5 * (Rh + Rh.T)
