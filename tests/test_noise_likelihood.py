@@ -115,6 +115,25 @@ def test_ml_graph_is_the_filter(kind):
     assert np.all(nis[~measured] == 0)
 
 
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_ml_graph_takes_the_inputs_as_replay(linear, kind):
+    """With inputs (U[k] acts after sample k, as estim.replay takes them) and full Q, R."""
+    rng = np.random.default_rng(4)
+    T = 40
+    U = rng.standard_normal((T, 1))
+    x, Y = linear.x0.copy(), np.empty((T, 2))
+    for k in range(T):
+        Y[k] = linear.C @ x + rng.multivariate_normal(np.zeros(2), linear.R)
+        x = linear.A @ x + linear.B @ U[k] + rng.multivariate_normal(np.zeros(4), linear.Q)
+    est = (estim.EKF if kind == "ekf" else estim.UKF)(linear.model, Q=linear.Q, R=linear.R,
+                                                     x0=np.zeros(4), P0=linear.P0)
+    rep = estim.replay(est, Y, U)
+    rec = _Record(linear.model, Y, U, np.zeros(4), linear.P0, 0)
+    _, eps = _core(linear.model, kind, T, (0.1, 2.0, 0.0))(
+        linear.Q.ravel(), linear.R.ravel(), linear.model.p, *rec.data())
+    np.testing.assert_allclose(np.sum(np.asarray(eps) ** 2, axis=0), rep.nis, rtol=1e-7)
+
+
 def test_ml_log_likelihood_is_the_gaussian_density_of_a_linear_model():
     """For a linear-Gaussian model the likelihood is the density of the whole record,
     N(0, Sigma) with Sigma built from the model: an exact, filter-free reference."""
