@@ -237,3 +237,14 @@ def test_als_second_pass_from_a_bad_filter_is_more_precise():
     assert np.all(two.stderr["Q"].diagonal() < 0.7 * one.stderr["Q"].diagonal())
     est, se = free(two)
     assert np.all(np.abs(est - np.r_[np.diag(Q2), np.diag(R2)]) < 3 * se)
+
+
+def test_als_says_when_a_variance_is_poorly_determined():
+    """A state seen through a gain of 0.02: its process noise is all but invisible."""
+    A = np.diag([0.9, 0.5])
+    C = np.array([[1.0, 0.02]])
+    Y = record(A, C, np.diag([0.2, 0.2]), np.array([[0.5]]), 2000, seed=0)
+    res = als(linear_model(A, C), Y)
+    assert res.status.startswith("poorly determined: Q[1,1]") and "R[0,0]" not in res.status
+    assert abs(res.Q[0, 0] - 0.2) < 3 * res.stderr["Q"][0, 0]
+    assert als(linear_model(A2, C2), record(A2, C2, Q2, R2, 2000, seed=0)).status == "ok"

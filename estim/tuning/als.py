@@ -523,10 +523,13 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     Returns
     -------
     TuningResult
-        ``method="als"``; ``Q (nx, nx)``, ``R (ny, ny)``; ``stderr["Q"]``,
-        ``stderr["R"]`` (NaN for entries held at zero by the structure); ``check`` the
-        :func:`innovation_check` of a filter run with the estimates (after the burn-in;
-        the steady-state Kalman filter for a linear model, else an EKF);
+        ``method="als"``; ``Q (nx, nx)``, ``R (ny, ny)``; ``status`` "ok", or
+        "poorly determined: ..." naming the variances whose standard error exceeds ten
+        times the largest variance of their matrix (the record hardly tells them apart);
+        ``stderr["Q"]``, ``stderr["R"]`` (NaN for entries held at zero by the
+        structure); ``check`` the :func:`innovation_check` of a filter run with the
+        estimates (after the burn-in; the steady-state Kalman filter for a linear model,
+        else an EKF);
         ``objective`` :math:`(\mathcal A\hat\theta - \hat b)^\top W (\mathcal A
         \hat\theta - \hat b)`; ``details``: ``lags``, ``weighting``, ``burn_in``,
         ``samples`` (:math:`n`), ``linearization`` ("time-invariant" or
@@ -801,5 +804,12 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         dof = len(rows) - len(theta)
         stat = n * objective
         details["overidentification"] = (stat, dof, float(stats.chi2.sf(stat, dof)))
+    # variances the record hardly determines: a standard error beyond ten times the
+    # largest variance of their matrix
+    vague = [f"{name}[{i},{i}]" for name, M in (("Q", Qh), ("R", Rh))
+             for i in range(len(M))
+             if stderr[name][i, i] > 10 * max(float(np.max(np.diag(M))), 1e-300)]
+    status = "ok" if not vague else (f"poorly determined: {', '.join(vague)} (standard error "
+                                     f"above ten times the largest variance of its matrix)")
     return TuningResult(method="als", Q=Qh, R=Rh, stderr=stderr, check=check,
-                        objective=objective, details=details)
+                        objective=objective, status=status, details=details)
