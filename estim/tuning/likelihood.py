@@ -490,6 +490,8 @@ class _Objective:
         self._funs = cache[key]
         self._fg, self._eps = self._funs["fg"], self._funs["whitened"]
         self._data = [par.fixed, *data]
+        # 1 / the number of measured outputs in the likelihood
+        self.scale = 1.0 / max(1.0, float(np.sum(data[3] * data[5])))
         self.exact = hessian == "exact" or (hessian == "auto" and T <= EXACT_HESSIAN_SAMPLES)
         self.evaluations = 0
 
@@ -534,7 +536,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                        params: Sequence[str] | Mapping[str, float] | None = None,
                        structure: str | Mapping[str, str] = "diagonal", starts: int = 5,
                        seed: int | None = 0, spread: float = 1.0, burn: int | None = None,
-                       method: str = "L-BFGS-B", hessian: str = "auto", tol: float = 1e-8,
+                       method: str = "BFGS", hessian: str = "auto", tol: float = 1e-8,
                        max_iter: int = 200,
                        alpha: float = 0.1, beta: float = 2.0, kappa: float = 0.0
                        ) -> TuningResult:
@@ -558,9 +560,10 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     * The filter recursion over the whole record is one compiled CasADi graph (the
       filter step scanned with ``mapaccum``, built once per model, filter and record
       length), so :math:`\nabla\ell` and :math:`\nabla^2\ell` are exact (algorithmic
-      differentiation through every step). Each start runs scipy's L-BFGS-B with the
-      exact gradient; the best optimum is then polished by Newton steps with the exact
-      Hessian (scipy's ``trust-exact``), and declared converged when the Hessian is
+      differentiation through every step). Each start runs scipy's BFGS with the exact
+      gradient (on :math:`\ell` per measured output, whose steps are of order one
+      whatever the record's length); the best optimum is then polished by Newton steps
+      with the Hessian (scipy's ``trust-exact``), and declared converged when the Hessian is
       positive definite and the gain a Newton step still predicts,
       :math:`\frac12 \nabla\ell^\top (\nabla^2\ell)^{-1} \nabla\ell`, is below
       ``tol`` (relative to :math:`\max(1, |\ell|)`).
@@ -604,8 +607,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         Number of first samples whose terms are left out of the likelihood. Default 0,
         or ``nx`` with the diffuse prior (statsmodels' ``loglikelihood_burn``).
     method : str
-        The scipy.optimize.minimize method of each start: ``"L-BFGS-B"`` (default),
-        ``"BFGS"``, ``"CG"``, ``"TNC"``, ``"SLSQP"`` (exact gradient, then the Newton
+        The scipy.optimize.minimize method of each start: ``"BFGS"`` (default),
+        ``"L-BFGS-B"``, ``"CG"``, ``"TNC"``, ``"SLSQP"`` (exact gradient, then the Newton
         polish), or ``"trust-exact"``, ``"trust-krylov"``, ``"trust-ncg"``,
         ``"trust-constr"``, ``"Newton-CG"``, ``"dogleg"`` (exact Hessian at every
         iteration, no polish).
@@ -616,7 +619,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         central differences of the exact gradient (:math:`2 n_\theta` gradients, relative
         error about :math:`10^{-8}`); ``"auto"``: exact up to 2000 samples.
     tol : float
-        Gradient tolerance of the optimiser (``gtol``), and the largest predicted Newton
+        Gradient tolerance of the optimiser (``gtol``, on :math:`\ell` per measured
+        output), and the largest predicted Newton
         gain of :math:`\log L` (relative to :math:`\max(1, |\ell|)`) at a converged
         optimum.
     max_iter : int
@@ -809,8 +813,16 @@ def _minimize(obj: _Objective, theta: np.ndarray, method: str, tol: float, max_i
         options = {"maxiter": max_iter, "xtol": tol}
     elif method == "SLSQP":
         options = {"maxiter": max_iter, "ftol": tol}
-    hess = obj.hessian if method in _HESSIAN_METHODS else None
-    return minimize(obj, theta, jac=True, hess=hess, method=method, options=options)
+    c = obj.scale  # -log L per measured output: O(1) values and steps for any record
+
+    def fun(th):
+        f, g = obj(th)
+        return f * c, g * c
+
+    hess = (lambda th: obj.hessian(th) * c) if method in _HESSIAN_METHODS else None
+    res = minimize(fun, theta, jac=True, hess=hess, method=method, options=options)
+    res.fun = res.fun / c
+    return res
 
 
 def _check_method(method) -> str:
