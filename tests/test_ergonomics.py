@@ -142,3 +142,14 @@ def test_figures_are_drawn_once_in_jupyter(tmp_path):
                             resources={"metadata": {"path": str(tmp_path)}}).execute()
     images = [sum("image/png" in o.get("data", {}) for o in c.outputs) for c in nb.cells]
     assert images == [0, 1, 1, 1, 1, 2]
+
+
+def test_a_step_without_measurements_has_no_nis():
+    """NIS is NaN when no output was measured (not 0, which would read as perfect
+    agreement and lower averages of log.nis)."""
+    sc = estim.scenarios.van_der_pol()
+    for est in (estim.EKF(sc.model, **sc.tuning), estim.UKF(sc.model, **sc.tuning)):
+        est.step([np.nan, np.nan])
+        assert np.isnan(est.info.nis) and est.info.status == "ok"
+        est.step([1.0, np.nan])
+        assert np.isfinite(est.info.nis) and est.info.nis > 0

@@ -158,7 +158,10 @@ def test_metrics_take_a_log_a_fit_or_arrays():
         estim.rmse(fit)
     with pytest.raises(ValueError, match="truth has shape"):
         estim.rmse(log.x_hat[1:], truth=log.x)
+    e = fit.x - log.x  # a fit carries the covariance of every sample
+    direct = np.einsum("ki,ki->k", e, np.linalg.solve(fit.P, e[..., None])[..., 0])
+    np.testing.assert_allclose(estim.nees(fit, truth=log), direct, rtol=1e-12)
     with pytest.raises(ValueError, match="nees needs covariances"):
-        estim.nees(fit, truth=log)
+        estim.nees(fit.x, truth=log)
     with pytest.raises(TypeError, match="estimate must be"):
         estim.rmse({"x": 1}, truth=log)

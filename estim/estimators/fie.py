@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
@@ -24,6 +25,9 @@ from estim.estimators.nlp import (
 )
 from estim.estimators.robust import as_loss
 from estim.model import Model
+
+if TYPE_CHECKING:
+    from estim.uncertainty import ParameterEstimates
 
 
 def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
@@ -79,16 +83,27 @@ class FitResult:
         record length builds them; later ones reuse them).
     solver : str
         The solver that ran (what ``solver="auto"`` chose, or the one named).
+    P : (T, nx, nx) array or None
+        Laplace covariance of every sample: the diagonal blocks of
+        :math:`(J^\top J)^{-1}` at the optimum, from a backward recursion over
+        the block-tridiagonal factors (:math:`O(T n_x^3)`, no dense inverse);
+        the Rauch-Tung-Striebel smoother's covariances on a linear-Gaussian model
+        with a prior. With active bounds, the unconstrained approximation at the
+        constrained optimum; with a robust loss, that of the final reweighted
+        problem. None if the solve failed or the matrix is singular; computed
+        on first access.
     P_last : (nx, nx) array or None
-        Laplace covariance of the last state (the Kalman filter's covariance on
-        a linear-Gaussian model with a prior); computed on first access. With a
-        robust loss, that of the final reweighted problem.
+        Laplace covariance of the last state, ``P[-1]`` (the Kalman filter's
+        covariance on a linear-Gaussian model with a prior); computed on first
+        access, alone unless ``P`` was read first.
     measurement_weights : (T, ny) array or None
         With a robust ``loss``: the final weight of each whitened measurement
         component, in (0, 1] (1: treated as Gaussian; small: an outlier). None for
         least squares.
-    _residuals, _covariance : callable or None
-        Internal: compute ``(w, v)`` and ``P_last`` when first read.
+    _residuals, _covariance, _covariances : callable or None
+        Internal: compute ``(w, v)``, ``P_last`` and ``P`` when first read.
+    _context : tuple or None
+        Internal: ``(model, prior, lower, upper)`` of the fit, for :meth:`parameters`.
     """
 
     x: np.ndarray
@@ -102,6 +117,8 @@ class FitResult:
     solver: str = ""
     _residuals: object = field(default=None, repr=False, compare=False)
     _covariance: object = field(default=None, repr=False, compare=False)
+    _covariances: object = field(default=None, repr=False, compare=False)
+    _context: object = field(default=None, repr=False, compare=False)
 
     def _lazy(self, name: str):
         value = getattr(self, name)
@@ -119,8 +136,72 @@ class FitResult:
         return self._lazy("_residuals")[1]
 
     @property
+    def P(self) -> np.ndarray | None:
+        return self._lazy("_covariances")
+
+    @property
     def P_last(self) -> np.ndarray | None:
+        if not callable(self._covariances) and self._covariances is not None:
+            P = self._covariances[0]  # already computed: its last block
+            return None if P is None else P[-1]
         return self._lazy("_covariance")
+
+    def parameters(self, scale: str = "none", warn: bool = True) -> ParameterEstimates:
+        r"""Standard errors, correlations and intervals of the augmented parameters.
+
+        The parameters' block of ``P_last``, the Laplace approximation
+        :math:`[(J^\top J)^{-1}]_{\theta\theta}` at the optimum; see
+        :func:`estim.parameter_uncertainty`, which this calls.
+
+        Parameters
+        ----------
+        scale : {"none", "residual"}
+            ``"none"``: ``R`` is known; ``"residual"``: rescaled by the residual
+            variance, Student's t intervals.
+        warn : bool
+            Warn (:class:`~estim.EstimationWarning`) about poorly determined parameters.
+
+        Returns
+        -------
+        ParameterEstimates
+        """
+        from estim.uncertainty import _estimates
+
+        return _estimates(self, scale=scale, warn=warn, stacklevel=2)
+
+    @property
+    def params(self) -> dict[str, float]:
+        """The augmented parameters' estimates by name (the last sample's)."""
+        from estim.uncertainty import _values
+
+        return _values(self)
+
+    @property
+    def stderr(self) -> dict[str, float]:
+        """The augmented parameters' standard errors by name (see :meth:`parameters`)."""
+        from estim.uncertainty import _estimates
+
+        est = _estimates(self, stacklevel=2)
+        return dict(zip(est.names, est.stderr.tolist(), strict=True))
+
+    def confidence(self, level: float = 0.95) -> dict[str, tuple[float, float]]:
+        """The augmented parameters' confidence intervals by name (see :meth:`parameters`).
+
+        Parameters
+        ----------
+        level : float
+            Confidence level in (0, 1).
+
+        Returns
+        -------
+        dict of str -> (float, float)
+            ``(lower, upper)`` of each parameter.
+        """
+        from estim.uncertainty import _estimates
+
+        est = _estimates(self, stacklevel=2)
+        return {n: (float(lo), float(hi))
+                for n, (lo, hi) in zip(est.names, est.interval(level), strict=True)}
 
 
 class FullInformation(Estimator):
@@ -318,7 +399,7 @@ class FullInformation(Estimator):
             res = replace(res, success=True, status=f"inexact: {', '.join(frozen)} "
                           f"{'has' if len(frozen) == 1 else 'have'} a zero derivative over "
                           f"the record and kept the initial value")
-        return res
+        return replace(res, _context=(self.model, self._prior, self.lower, self.upper))
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
                robust: bool = False, weights=None) -> tuple[FitResult, Solution]:
@@ -365,12 +446,15 @@ class FullInformation(Estimator):
         p_snapshot, complete = nlp._p.copy(), nlp._complete
         cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
             if sol.success else None
+        covs = (lambda: _finite_or_none(
+            nlp.gn.covariances(Xfull.ravel(), p_snapshot, complete)[pad:])) \
+            if sol.success else None
         return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
                          success=sol.success, solve_time=sol.solve_time,
                          build_time=sol.build_time, solver=self.solver,
                          measurement_weights=None if nlp.loss is None or nlp.weights is None
                          else nlp.weights[pad:].copy(),
-                         _residuals=residuals, _covariance=cov)
+                         _residuals=residuals, _covariance=cov, _covariances=covs)
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:
