@@ -562,11 +562,11 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
       length), so :math:`\nabla\ell` and :math:`\nabla^2\ell` are exact (algorithmic
       differentiation through every step). Each start runs scipy's BFGS with the exact
       gradient (on :math:`\ell` per measured output, whose steps are of order one
-      whatever the record's length); the best optimum is then polished by Newton steps
-      with the Hessian (scipy's ``trust-exact``), and declared converged when the Hessian is
-      positive definite and the gain a Newton step still predicts,
-      :math:`\frac12 \nabla\ell^\top (\nabla^2\ell)^{-1} \nabla\ell`, is below
-      ``tol`` (relative to :math:`\max(1, |\ell|)`).
+      whatever the record's length) into the basin of Newton's method; the best optimum
+      is then polished by Newton steps with the Hessian and a backtracking line search,
+      and declared converged when the Hessian is positive definite and the gain a Newton
+      step still predicts, :math:`\frac12 \nabla\ell^\top (\nabla^2\ell)^{-1}
+      \nabla\ell`, is below ``tol`` (or the rounding level of :math:`\ell`).
     * Multi-start: the first start is ``Q0, R0`` (and the parameters' starts), the
       others perturb the noise parameters by :math:`\mathcal N(0, \text{spread}^2)` on
       the log scale (seeded); the best optimum is returned.
@@ -619,10 +619,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         central differences of the exact gradient (:math:`2 n_\theta` gradients, relative
         error about :math:`10^{-8}`); ``"auto"``: exact up to 2000 samples.
     tol : float
-        Gradient tolerance of the optimiser (``gtol``, on :math:`\ell` per measured
-        output), and the largest predicted Newton
-        gain of :math:`\log L` (relative to :math:`\max(1, |\ell|)`) at a converged
-        optimum.
+        The largest gain of :math:`\log L` a Newton step may still predict at a
+        converged optimum (and the gradient tolerance ``gtol`` of the Hessian methods,
+        on :math:`\ell` per measured output).
     max_iter : int
         Iterations per start.
     alpha, beta, kappa : float
@@ -700,7 +699,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         if th is par.theta0 and not np.isfinite(f0[0]):
             runs.append(None)
             continue
-        res = _minimize(obj, th, method, tol, max_iter)
+        # quasi-Newton to the basin of Newton's method, which the polish then finishes
+        res = _minimize(obj, th, method, tol if method in _HESSIAN_METHODS else
+                        max(tol, 1e-5), max_iter)
         runs.append(res if np.isfinite(res.fun) else None)
     good = [i for i, r in enumerate(runs) if r is not None]
     if not good:
@@ -708,16 +709,18 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                          "check Q0, R0, x0, P0 and the model")
     best = min(good, key=lambda i: runs[i].fun)
     res = runs[best]
-    polish = 0
-    if method not in _HESSIAN_METHODS:  # Newton steps with the exact Hessian from the best
-        fine = _minimize(obj, np.asarray(res.x, dtype=float), "trust-exact", tol, max_iter)
-        polish = int(fine.nit)
-        if np.isfinite(fine.fun) and fine.fun <= res.fun:
-            res = fine
+    polish, H = 0, None
     theta = np.asarray(res.x, dtype=float)
+    if method not in _HESSIAN_METHODS:  # Newton steps with the Hessian from the best
+        theta, H, polish = _newton(obj, theta, tol, max_iter)
+        if H is None:  # not positive definite on the way: a trust region copes
+            fine = _minimize(obj, theta, "trust-exact", tol, max_iter)
+            polish += int(fine.nit)
+            if np.isfinite(fine.fun) and fine.fun <= obj(theta)[0]:
+                theta = np.asarray(fine.x, dtype=float)
     nll, grad = obj(theta)
 
-    H = obj.hessian(theta)
+    H = obj.hessian(theta) if H is None else H
     values, J = par.entries(theta)
     cov_theta = np.full_like(H, np.nan)
     decrement = np.inf  # the gain of log L a Newton step predicts
@@ -725,7 +728,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     if definite:
         cov_theta = np.linalg.inv(H)
         decrement = 0.5 * float(grad @ cov_theta @ grad)
-    success = definite and decrement <= tol * max(1.0, abs(nll))
+    success = definite and decrement <= _limit(tol, nll)
     if success:
         status = "ok"
     elif not definite:
@@ -798,6 +801,41 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
 _HESSIAN_METHODS = ("trust-exact", "trust-krylov", "trust-ncg", "trust-constr", "Newton-CG",
                     "dogleg")
 _GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP")
+
+
+def _limit(tol: float, f: float) -> float:
+    """The Newton gain below which an optimum is converged: ``tol``, or the rounding
+    level of the objective's value when that is larger."""
+    return max(tol, 1e3 * np.finfo(float).eps * abs(f))
+
+
+def _newton(obj: _Objective, theta: np.ndarray, tol: float, max_iter: int
+            ) -> tuple[np.ndarray, np.ndarray | None, int]:
+    r"""Newton steps :math:`d = -H^{-1} g` with a backtracking (Armijo) line search until
+    the predicted gain :math:`\frac12 g^\top H^{-1} g` is below the limit of
+    :func:`_limit`. Returns the point, its Hessian (None if it is not positive
+    definite) and the number of steps."""
+    f, g = obj(theta)
+    for it in range(max_iter):
+        H = obj.hessian(theta)
+        try:
+            L = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
+            return theta, None, it
+        d = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+        gain = -0.5 * float(g @ d)
+        if gain <= _limit(tol, f):
+            return theta, H, it
+        t = 1.0
+        while t > 1e-10:
+            fn, gn = obj(theta + t * d)
+            if fn <= f - 1e-4 * t * 2 * gain:
+                break
+            t *= 0.5
+        else:
+            return theta, H, it
+        theta, f, g = theta + t * d, fn, gn
+    return theta, obj.hessian(theta), max_iter
 
 
 def _minimize(obj: _Objective, theta: np.ndarray, method: str, tol: float, max_iter: int):
