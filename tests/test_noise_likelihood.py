@@ -173,6 +173,19 @@ def test_ml_gradient_is_exact():
     np.testing.assert_allclose(-res.details["gradient"], fd, rtol=1e-5, atol=1e-6)
 
 
+def test_ml_hessian_differences_agree_with_the_exact_one():
+    """The default Hessian (central differences of the exact gradient) against the exact
+    one (forward over reverse AD through the scan), with a model parameter estimated."""
+    sc = estim.scenarios.van_der_pol(n_steps=80)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2)
+    fits = {h: maximum_likelihood(sc.model, log.y, x0=[0, 0], P0=1.0, Q0=0.01, R0=1.0,
+                                  params=["mu"], starts=1, max_iter=3, hessian=h)
+            for h in ("differences", "exact")}
+    a, b = (fits[h].details["covariance"] for h in ("differences", "exact"))
+    assert fits["exact"].details["hessian"] == "exact"
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * np.abs(b).max())
+
+
 # ------------------------------------------------------------ simulated linear systems
 A_LIN = np.array([[0.9, 0.3], [-0.2, 0.7]])
 Q_LIN = np.diag([0.5, 0.2])
