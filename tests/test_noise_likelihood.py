@@ -92,6 +92,22 @@ def test_ml_nile_reaches_the_true_maximum(nile):
     assert res.check is not None and res.check.white
 
 
+def test_ml_nile_fixed_and_scalar_structures(nile):
+    """R held at its maximum-likelihood value: Q's conditional maximum is the joint one;
+    a scalar structure of a one-state model is the diagonal one."""
+    y, _ = nile
+    model = _local_level()
+    joint = maximum_likelihood(model, y, x0=0.0, P0=1e6, burn=1, starts=1)
+    fixed = maximum_likelihood(model, y, x0=0.0, P0=1e6, burn=1, starts=1, R0=joint.R,
+                               structure={"Q": "diagonal", "R": "fixed"})
+    assert fixed.R[0, 0] == joint.R[0, 0] and np.isnan(fixed.stderr["R"][0, 0])
+    assert fixed.Q[0, 0] == pytest.approx(joint.Q[0, 0], rel=1e-5)
+    assert fixed.stderr["Q"][0, 0] < joint.stderr["Q"][0, 0]  # R known: Q is better known
+    scalar = maximum_likelihood(model, y, x0=0.0, P0=1e6, burn=1, starts=1, structure="scalar")
+    assert scalar.Q[0, 0] == pytest.approx(joint.Q[0, 0], rel=1e-5)
+    assert scalar.stderr["R"][0, 0] == pytest.approx(joint.stderr["R"][0, 0], rel=1e-3)
+
+
 # ------------------------------------------------------- the filters whose likelihood it is
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 def test_ml_graph_is_the_filter(kind):

@@ -820,8 +820,9 @@ def _newton(obj: _Objective, theta: np.ndarray, tol: float, max_iter: int
             return theta, None, it
         d = -np.linalg.solve(L.T, np.linalg.solve(L, g))
         gain = -0.5 * float(g @ d)
-        if gain <= _limit(tol, f):
-            return theta, H, it
+        if gain <= _limit(tol, f):  # converged: the last full step costs one evaluation
+            fn, _ = obj(theta + d)
+            return (theta + d if fn <= f + _limit(tol, f) else theta), H, it
         t = 1.0
         while t > 1e-10:
             fn, gn = obj(theta + t * d)
