@@ -14,7 +14,7 @@ resulting filter's innovations (:class:`TuningResult`):
 from __future__ import annotations
 
 from estim.tuning._result import InnovationCheck, TuningResult, innovation_check
-from estim.tuning.als import als
+from estim.tuning.autocovariance import als
 from estim.tuning.likelihood import log_likelihood, maximum_likelihood
 
 __all__ = ["InnovationCheck", "TuningResult", "als", "innovation_check", "log_likelihood",
