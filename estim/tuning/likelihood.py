@@ -593,7 +593,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     structure : {"diagonal", "full", "scalar", "fixed"} or dict
         Parametrisation of ``Q`` and ``R``.
     starts : int
-        Number of starts (>= 1).
+        Number of starts (>= 1); one when nothing is perturbed (every covariance
+        ``"fixed"``, or ``spread=0``).
     seed : int, optional
         Seed of the perturbed starts.
     spread : float
@@ -686,7 +687,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
 
     rng = np.random.default_rng(seed)
     thetas = [par.theta0]
-    for _ in range(starts - 1):
+    for _ in range(starts - 1 if par.n_noise and spread > 0 else 0):  # else all the same
         th = par.theta0.copy()
         th[:par.n_noise] += spread * rng.standard_normal(par.n_noise)
         thetas.append(th)
