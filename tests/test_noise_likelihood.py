@@ -150,6 +150,26 @@ def test_ml_graph_takes_the_inputs_as_replay(linear, kind):
     np.testing.assert_allclose(np.sum(np.asarray(eps) ** 2, axis=0), rep.nis, rtol=1e-7)
 
 
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_ml_graph_with_sampled_inputs(kind):
+    """A continuous model whose input is linear between samples (hold="foh", U[k] the
+    input at sample k) and enters the output."""
+    model = estim.Model(states=2, outputs=1, inputs=1, dt=0.2, hold="foh",
+                        ode=lambda x, u, p: ca.vertcat(x[1], -x[0] - 0.3 * x[1] + u[0]),
+                        output=lambda x, u, p: x[0] + 0.1 * u[0])
+    T = 50
+    U = np.sin(0.3 * np.arange(T))[:, None]
+    Y = np.sin(0.1 * np.arange(T))[:, None] + 0.3 * np.random.default_rng(0).standard_normal(
+        (T, 1))
+    est = (estim.EKF if kind == "ekf" else estim.UKF)(model, Q=0.01, R=0.09, x0=[0, 0],
+                                                     P0=1.0)
+    rep = estim.replay(est, Y, U)
+    rec = _Record(model, Y, U, [0, 0], np.eye(2), 0)
+    _, eps = _core(model, kind, T, (0.1, 2.0, 0.0))(
+        (0.01 * np.eye(2)).ravel(), [0.09], model.p, *rec.data())
+    np.testing.assert_allclose(np.sum(np.asarray(eps) ** 2, axis=0), rep.nis, rtol=1e-8)
+
+
 def test_ml_log_likelihood_is_the_gaussian_density_of_a_linear_model():
     """For a linear-Gaussian model the likelihood is the density of the whole record,
     N(0, Sigma) with Sigma built from the model: an exact, filter-free reference."""
