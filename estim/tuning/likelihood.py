@@ -811,10 +811,12 @@ def _newton(obj: _Objective, theta: np.ndarray, tol: float, max_iter: int
     r"""Newton steps :math:`d = -H^{-1} g` with a backtracking (Armijo) line search until
     the predicted gain :math:`\frac12 g^\top H^{-1} g` is below the limit of
     :func:`_limit`. Returns the point, its Hessian (None if it is not positive
-    definite) and the number of steps."""
+    definite, NaN if it is not finite) and the number of steps."""
     f, g = obj(theta)
     for it in range(max_iter):
         H = obj.hessian(theta)
+        if not np.isfinite(H).all():  # the filter breaks down next to theta: stop here
+            return theta, H, it
         try:
             L = np.linalg.cholesky(H)
         except np.linalg.LinAlgError:
