@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._scan import blocked_scan
 from estim._validate import (
     as_choice,
     as_covariance,
@@ -181,40 +182,9 @@ def _core(model: Model, kind: str, T: int, ukf: tuple[float, float, float]) -> c
 def _scan(step: ca.Function, N: int) -> ca.Function:
     r"""``step`` (``(s, w, y, mask, q, r, p) -> (s_new, term, whitened)``) scanned over
     ``N`` samples: ``(s, W, Y, M, q, r, p) -> (s_N, terms, whitened)`` with ``W, Y, M``
-    one column per sample and the outputs side by side.
-
-    It is built as blocks of about :math:`\sqrt N` steps (``mapaccum``) scanned in turn,
-    so that the graph and those of its derivatives hold :math:`O(\sqrt N)` calls instead
-    of :math:`N` (whose construction would dominate a fit of a long record)."""
-    B = max(8, int(np.sqrt(N)))
-    n_blocks, rest = divmod(N, B)
-    args = [ca.MX.sym(n, step.size1_in(i), N if i in (1, 2, 3) else 1)
-            for i, n in enumerate(step.name_in())]
-
-    def run(fun, s, lo, hi):
-        return fun(s, *[a[:, lo:hi] for a in args[1:4]], *args[4:])
-
-    def last_state(fun):  # the scan's state output reduced to its last column
-        sym = [ca.MX.sym(n, fun.size_in(i)) for i, n in enumerate(fun.name_in())]
-        out = fun(*sym)
-        return ca.Function(fun.name() + "_last", sym, [out[0][:, -1], *out[1:]],
-                           fun.name_in(), fun.name_out())
-
-    parts, s = [], args[0]
-    if n_blocks:
-        block = last_state(step.mapaccum(f"{step.name()}_{B}", B))
-        if isinstance(step, ca.Function) and step.is_a("SXFunction"):
-            block = block.expand()  # one SX function per block: no call overhead per step
-        outer = last_state(block.mapaccum(f"{step.name()}_{n_blocks}x{B}", n_blocks))
-        s, *out = run(outer, s, 0, n_blocks * B)
-        parts.append(out)
-    if rest:
-        s, *out = run(last_state(step.mapaccum(f"{step.name()}_{rest}", rest)), s,
-                      n_blocks * B, N)
-        parts.append(out)
-    outputs = [s] + [ca.horzcat(*[p[j] for p in parts]) for j in range(2)]
-    return ca.Function(f"{step.name()}_scan_{N}", args, outputs, step.name_in(),
-                       step.name_out())
+    one column per sample and the outputs side by side (in blocks of about
+    :math:`\sqrt N` steps, see :func:`~estim._scan.blocked_scan`)."""
+    return blocked_scan(step, N, (1, 2, 3))
 
 
 # ------------------------------------------------------------------ the record
