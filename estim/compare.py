@@ -11,6 +11,11 @@ cluster::
     estim.compare(sc, estimators, seeds=range(200), n_jobs=16, backend="dask")
 
 The numbers do not depend on how the runs were distributed.
+
+With ``n_jobs != 1`` the first runs of every estimator are done in this
+process and timed; the rest go to the workers only when that pays for
+starting them (see :func:`compare`), in chunks of similar cost
+(:func:`_plan`), and each worker builds an estimator once per call.
 """
 
 from __future__ import annotations
@@ -21,13 +26,15 @@ import importlib.util
 import os
 import sys
 import textwrap
+import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from estim._validate import as_bool, as_int, check_keywords
+from estim._validate import as_bool, as_float, as_int, check_keywords
 from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.metrics import nees, rmse, startup_samples
@@ -126,6 +133,9 @@ class Comparison:
     rmse: dict[str, np.ndarray]
     logs: dict[str, list[Log]] = field(default_factory=dict)
     remarks: dict[str, str] = field(default_factory=dict)
+    #: How the runs were distributed with ``n_jobs != 1`` ("serial: ..." or
+    #: "parallel: ..."), printed under the table; empty with ``n_jobs=1``.
+    parallel: str = ""
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
@@ -188,6 +198,8 @@ class Comparison:
             for n in notes:
                 lines += textwrap.wrap(n, width=len(head), initial_indent="  ",
                                        subsequent_indent="    ")
+        if self.parallel:
+            lines += [""] + textwrap.wrap(f"Runs: {self.parallel}", width=len(head))
         return "\n".join(lines)
 
     def plot(self, path: str | os.PathLike[str] | None = None, *, kind: str = "overview",
@@ -257,7 +269,9 @@ class Comparison:
         return (f"<p><b>{self.scenario}</b>: {len(self.seeds)} seed(s)</p>"
                 f"<table><tr>{head}</tr>{body}</table>"
                 f"<p><small>{html.escape(self.LEGEND)}</small></p>"
-                + (f"<p><b>Notes</b></p><ul>{notes}</ul>" if notes else ""))
+                + (f"<p><b>Notes</b></p><ul>{notes}</ul>" if notes else "")
+                + (f"<p><small>Runs: {html.escape(self.parallel)}</small></p>"
+                   if self.parallel else ""))
 
 
 def _fmt_time(seconds: float) -> str:
@@ -285,33 +299,62 @@ def _error(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {lines[0] if lines else ''}"[:300]
 
 
-def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_logs: bool):
-    """Run one estimator over some seeds; summaries (and logs) per seed. A run that
-    raises is recorded with its error and does not stop the others."""
+def _build(spec, scenario: Scenario) -> Estimator | str:
+    """The estimator, or the error its construction raised (then every seed fails alike)."""
     try:
-        est = _make(spec, scenario)
-    except Exception as exc:  # noqa: BLE001 - every seed of this estimator fails alike
-        return [{"seed": s, "error": _error(exc), "log": None} for s in seeds]
-    out = []
-    kind, caveat = type(est).__name__, est.caveat
-    for s in seeds:
-        try:
-            log = simulate(scenario, est, seed=s, warn=False)
-            r = rmse(log, burn_in=burn_in)
-            has_p = bool(np.isfinite(log.P).any())
-            ne = float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx \
-                if has_p else np.nan
-        except Exception as exc:  # noqa: BLE001 - recorded, the other runs go on
-            out.append({"seed": s, "error": _error(exc),
-                        "log": getattr(exc, "log", None) if keep_logs else None})
-            continue
-        out.append({
-            "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
-            "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
-            "steps": len(log), "log": log if keep_logs else None,
-            "peak": _peak(log, s), "kind": kind, "caveat": caveat,
-        })
-    return out
+        return _make(spec, scenario)
+    except Exception as exc:  # noqa: BLE001 - recorded for every seed
+        return _error(exc)
+
+
+def _run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
+              keep_logs: bool) -> dict:
+    """One run's summary (and log). A run that raises is recorded with its error."""
+    if isinstance(est, str):
+        return {"seed": s, "error": est, "log": None}
+    try:
+        log = simulate(scenario, est, seed=s, warn=False)
+        r = rmse(log, burn_in=burn_in)
+        has_p = bool(np.isfinite(log.P).any())
+        ne = float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx \
+            if has_p else np.nan
+    except Exception as exc:  # noqa: BLE001 - recorded, the other runs go on
+        return {"seed": s, "error": _error(exc),
+                "log": getattr(exc, "log", None) if keep_logs else None}
+    return {
+        "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
+        "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
+        "steps": len(log), "log": log if keep_logs else None,
+        "peak": _peak(log, s), "kind": type(est).__name__, "caveat": est.caveat,
+    }
+
+
+#: Estimators built by a worker in the current call, by (call, name, thread): a worker
+#: builds each estimator once per call, whatever the number of its chunks.
+_BUILT: dict[tuple[str, str, int], Estimator | str] = {}
+_BUILT_LOCK = threading.Lock()
+
+
+def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_logs: bool,
+               key: tuple[str, str] | None = None):
+    """Run one estimator over some seeds: ``(pid, start time, summaries per seed)``.
+
+    With ``key = (call, name)`` the estimator is built once per process and thread
+    for that call (and kept for the call's other chunks)."""
+    start = time.time()
+    if key is None:
+        est = _build(spec, scenario)
+    else:
+        full = (*key, threading.get_ident())
+        with _BUILT_LOCK:
+            if any(k[0] != key[0] for k in _BUILT):  # a new call: drop the last one's
+                _BUILT.clear()
+            est = _BUILT.get(full)
+        if est is None:
+            est = _build(spec, scenario)
+            with _BUILT_LOCK:
+                _BUILT[full] = est
+    return os.getpid(), start, [_run_seed(scenario, est, s, burn_in, keep_logs) for s in seeds]
 
 
 def _peak(log: Log, seed: int) -> tuple[float, str]:
@@ -358,16 +401,101 @@ def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
         caveat=done[0]["caveat"])
 
 
-def _chunks(seeds: list[int], n: int) -> list[list[int]]:
-    n = max(1, min(n, len(seeds)))
-    return [list(c) for c in np.array_split(np.asarray(seeds), n) if len(c)]
+def _plan(costs: Mapping[str, tuple[float, float, int]], workers: int
+          ) -> list[tuple[str, int, int]]:
+    """Split every estimator's runs into chunks of similar cost for ``workers`` workers.
+
+    ``costs[name] = (setup, per_run, n_runs)``: seconds to build the estimator (and
+    its first run's extra), seconds per run, runs to do. Returns tasks
+    ``(name, start, stop)`` (runs ``start:stop`` of that estimator), in the order to
+    dispatch them: guided self-scheduling, each chunk taken from the estimator with
+    the most work left and worth half a worker's share of the work left, down to a
+    tenth of a worker's share of the total, so the chunks shrink towards the end and
+    the workers finish together; the estimators interleave.
+    """
+    workers = max(1, int(workers))
+    left = {name: n for name, (_, _, n) in costs.items() if n > 0}
+    pos = dict.fromkeys(left, 0)
+    total = sum(costs[name][1] * n for name, n in left.items())
+    remaining = total
+    floor = total / (10 * workers)
+    tasks = []
+    while left:
+        name = max(left, key=lambda k: costs[k][1] * left[k])
+        per = costs[name][1]
+        target = max(remaining / (2 * workers), floor)
+        k = left[name] if per <= 0 else int(min(max(round(target / per), 1), left[name]))
+        if (left[name] - k) * per < floor / 2:  # no crumbs at the end
+            k = left[name]
+        tasks.append((name, pos[name], pos[name] + k))
+        pos[name] += k
+        left[name] -= k
+        remaining -= k * per
+        if not left[name]:
+            del left[name]
+    return tasks
+
+
+def _makespan(tasks: list[tuple[str, int, int]], costs: Mapping[str, tuple[float, float, int]],
+              workers: int) -> float:
+    """Wall time of ``tasks`` dealt in order to the first free of ``workers`` workers,
+    each building an estimator (``setup``) the first time it runs one of its chunks
+    (and ``_TASK_OVERHEAD`` per chunk)."""
+    free = [0.0] * max(1, int(workers))
+    built: list[set[str]] = [set() for _ in free]
+    for name, a, b in tasks:
+        w = int(np.argmin(free))
+        setup, per, _ = costs[name]
+        free[w] += (b - a) * per + (0.0 if name in built[w] else setup) + _TASK_OVERHEAD
+        built[w].add(name)
+    return max(free)
+
+
+#: Seconds to start workers and import estim in them, before any was measured in this
+#: process; then the last measured start-up of the same backend and number of workers.
+_COLD_START = {"threading": 0.05}
+_COLD_START_DEFAULT = 2.0
+#: Seconds from a call to the first run on warm (already started) workers, at least.
+_WARM_START = 0.1
+#: Seconds to send a chunk to a worker and its results back.
+_TASK_OVERHEAD = 0.005
+#: loky workers stop after this long idle (joblib's default).
+_IDLE_TIMEOUT = 300.0
+#: (backend, workers) -> {"end": time.monotonic() of the last call's end, "cold": s, "warm": s}
+_POOLS: dict[tuple[str, int], dict[str, float]] = {}
+
+
+def _loky_alive() -> bool:
+    """Whether loky's reusable executor is up (best effort: True when unknown)."""
+    try:
+        from joblib.externals.loky import reusable_executor
+
+        ex = reusable_executor._executor
+        return ex is not None and ex._flags.broken is None and not ex._flags.shutdown
+    except Exception:  # noqa: BLE001 - private API; assume alive
+        return True
+
+
+def _startup(backend: str, workers: int) -> tuple[float, bool]:
+    """Estimated seconds before the workers run (start-up), and whether they are warm."""
+    rec = _POOLS.get((backend, workers), {})
+    warm = bool(rec) and time.monotonic() - rec["end"] < _IDLE_TIMEOUT and (
+        backend != "loky" or _loky_alive())
+    if warm:
+        return max(rec.get("warm", _WARM_START), _WARM_START), True
+    cold = rec.get("cold", _COLD_START.get(backend, _COLD_START_DEFAULT))
+    return max(cold, _WARM_START if backend != "threading" else 0.0), False
+
+
+def _fmt_s(seconds: float) -> str:
+    return f"{seconds:.2g} s" if seconds < 10 else f"{seconds:.0f} s"
 
 
 @check_keywords
 def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estimator],
             seeds: Iterable[int] = range(5), *, n_jobs: int = 1, backend: str = "loky",
-            keep_logs: bool = False, burn_in: int = 0, progress: bool | None = None
-            ) -> Comparison:
+            keep_logs: bool = False, burn_in: int = 0, progress: bool | None = None,
+            min_parallel_seconds: float | None = None) -> Comparison:
     """Run every estimator on the scenario for every seed (same noise per seed).
 
     Parameters
@@ -393,6 +521,18 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
     progress : bool, optional
         Show a tqdm progress bar (default: when stderr is a terminal and there
         are more than 20 runs).
+    min_parallel_seconds : float, optional
+        With ``n_jobs != 1``: the first two runs of every estimator are done in
+        this process and timed, giving each estimator's cost (build and first
+        run's extra, then seconds per run). By default the other runs go to the
+        workers only when the estimated parallel time (the workers' start-up,
+        measured on the last cold start in this process, about 2 s before any,
+        or about 0.1 s when they are still up from a call with the same backend
+        and ``n_jobs``, plus the busiest worker's share) is at most 80 % of the
+        estimated serial time; otherwise they run here. A number: in parallel
+        when the estimated serial time of the other runs is at least that many
+        seconds (``0``: always). :attr:`Comparison.parallel` says what was done
+        and why. The numbers are the same either way.
 
     Returns
     -------
@@ -402,38 +542,87 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         raise TypeError(f"scenario must be an estim.Scenario, got {type(scenario).__name__}")
     seeds, n_jobs, burn_in, keep_logs, progress = _check_compare(
         scenario, estimators, seeds, n_jobs, backend, keep_logs, burn_in, progress)
+    if min_parallel_seconds is not None:
+        min_parallel_seconds = as_float(min_parallel_seconds, "min_parallel_seconds",
+                                        minimum=0.0)
     workers = (os.cpu_count() or 1) if n_jobs < 0 else int(n_jobs)
-    tasks = [(name, chunk) for name in estimators
-             for chunk in (_chunks(seeds, 2 * workers) if workers > 1 else [seeds])]
     total = len(estimators) * len(seeds)
     show = progress if progress is not None else (total > 20 and sys.stderr.isatty())
-    if n_jobs == 1:
-        results = []
-        bar = _bar(total, show)
-        for name, chunk in tasks:
-            results.append(_run_chunk(scenario, estimators[name], chunk, burn_in, keep_logs))
-            bar.update(len(chunk))
-        bar.close()
-    elif backend == "dask":
-        # straight to the active dask.distributed client (a local or remote cluster)
-        from dask.distributed import get_client
-
-        client = get_client()
-        futures = [client.submit(_run_chunk, scenario, estimators[name], chunk, burn_in,
-                                 keep_logs, pure=False) for name, chunk in tasks]
-        results = client.gather(futures)
-    else:
-        import joblib.parallel as jp
-        from joblib import Parallel, delayed
-
-        if backend not in jp.BACKENDS and backend in getattr(jp, "EXTERNAL_BACKENDS", {}):
-            jp.EXTERNAL_BACKENDS[backend]()  # joblib registers dask/ray lazily
-        results = Parallel(n_jobs=n_jobs, backend=backend, verbose=0)(
-            delayed(_run_chunk)(scenario, estimators[name], chunk, burn_in, keep_logs)
-            for name, chunk in tasks)
+    bar = _bar(total, show)
     per_name: dict[str, list[dict]] = {name: [] for name in estimators}
-    for (name, _), res in zip(tasks, results, strict=True):
-        per_name[name].extend(res)
+    # this process: every run with n_jobs=1; else the first two runs of every estimator,
+    # timed (build + first run, then a run), to decide whether workers pay
+    built, costs = {}, {}
+    pilot = seeds if n_jobs == 1 else seeds[:2]
+    for name, spec in estimators.items():
+        t0 = time.perf_counter()
+        built[name] = _build(spec, scenario)
+        build = time.perf_counter() - t0
+        times = []
+        for s in pilot:
+            t1 = time.perf_counter()
+            per_name[name].append(_run_seed(scenario, built[name], s, burn_in, keep_logs))
+            times.append(time.perf_counter() - t1)
+            bar.update(1)
+        setup = build + (times[0] - times[-1] if len(times) > 1 else 0.0)
+        costs[name] = (max(setup, 0.0), times[-1], len(seeds) - len(pilot))
+    rest = seeds[len(pilot):]
+    note = ""
+    if rest:
+        serial_s = sum(per * n for _, per, n in costs.values())
+        tasks = _plan(costs, workers)
+        startup, warm = _startup(backend, workers)
+        par_s = startup + _makespan(tasks, costs, workers)
+        estimate = (f"{len(rest) * len(estimators)} runs estimated at {_fmt_s(serial_s)} "
+                    f"in this process, {_fmt_s(par_s)} on {workers} workers (starting "
+                    f"{'warm' if warm else 'cold'} workers: about {_fmt_s(startup)})")
+        if min_parallel_seconds is None:
+            go = par_s <= 0.8 * serial_s
+        else:
+            go = serial_s >= min_parallel_seconds
+        if not go:
+            note = f"serial: {estimate}"
+            for name in estimators:
+                for s in rest:
+                    per_name[name].append(_run_seed(scenario, built[name], s, burn_in,
+                                                    keep_logs))
+                    bar.update(1)
+    bar.close()
+    if rest and go:
+        del built
+        call = f"{os.getpid()}-{time.time_ns()}"
+        args = [(scenario, estimators[name], rest[a:b], burn_in, keep_logs, (call, name))
+                for name, a, b in tasks]
+        t0 = time.time()
+        if backend == "dask":
+            # straight to the active dask.distributed client (a local or remote cluster)
+            from dask.distributed import get_client
+
+            client = get_client()
+            results = client.gather([client.submit(_run_chunk, *a, pure=False) for a in args])
+        else:
+            import joblib.parallel as jp
+            from joblib import Parallel, delayed
+
+            if backend not in jp.BACKENDS and backend in getattr(jp, "EXTERNAL_BACKENDS", {}):
+                jp.EXTERNAL_BACKENDS[backend]()  # joblib registers dask/ray lazily
+            results = Parallel(n_jobs=n_jobs, backend=backend, verbose=0, batch_size=1)(
+                delayed(_run_chunk)(*a) for a in args)
+        wall = time.time() - t0
+        with _BUILT_LOCK:
+            _BUILT.clear()  # this process's (threading backend)
+        first: dict[int, float] = {}
+        for (name, _, _), (pid, start, res) in zip(tasks, results, strict=True):
+            per_name[name].extend(res)
+            first[pid] = min(first.get(pid, np.inf), start - t0)
+        rec = _POOLS.setdefault((backend, workers), {})
+        rec["warm" if warm else "cold"] = max(float(np.mean(list(first.values()))), 0.0)
+        rec["end"] = time.monotonic()
+        how = "forced, " if min_parallel_seconds is not None else ""
+        note = (f"parallel ({how}{len(tasks)} chunks): {estimate}; took {_fmt_s(wall)}, "
+                f"the workers started in {_fmt_s(rec['warm' if warm else 'cold'])}")
+    elif n_jobs != 1 and not rest:
+        note = "serial: every run was one of the first runs, timed in this process"
     rows, all_rmse, logs = [], {}, {}
     names = scenario.model.state_names
     order = {s: i for i, s in enumerate(seeds)}
@@ -443,7 +632,8 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         all_rmse[name] = np.array([r.get("rmse", np.nan) for r in runs])
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
-    return Comparison(scenario.name, seeds, rows, all_rmse, logs, remarks=scenario.remarks)
+    return Comparison(scenario.name, seeds, rows, all_rmse, logs, remarks=scenario.remarks,
+                      parallel=note)
 
 
 class _NoBar:

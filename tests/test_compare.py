@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import importlib
+import itertools
+
 import numpy as np
 import pytest
 
 import estim
 from estim import cli
+
+compare_module = importlib.import_module("estim.compare")  # estim.compare is the function
 
 
 def _estimators():
@@ -17,8 +22,8 @@ def _estimators():
 def _check_same(a, b):
     for ra, rb in zip(a.rows, b.rows, strict=True):
         assert ra.name == rb.name
-        assert ra.rmse_mean == rb.rmse_mean and ra.nees_mean == rb.nees_mean
-        assert ra.rmse_per_state == rb.rmse_per_state and ra.failures == rb.failures
+        np.testing.assert_equal((ra.rmse_mean, ra.nees_mean, ra.rmse_per_state, ra.failures),
+                                (rb.rmse_mean, rb.nees_mean, rb.rmse_per_state, rb.failures))
     for name in a.rmse:
         np.testing.assert_array_equal(a.rmse[name], b.rmse[name])
 
@@ -26,7 +31,9 @@ def _check_same(a, b):
 def test_parallel_equals_serial():
     sc = estim.scenarios.van_der_pol(n_steps=60)
     serial = estim.compare(sc, _estimators(), seeds=range(4))
-    parallel = estim.compare(sc, _estimators(), seeds=range(4), n_jobs=2)
+    parallel = estim.compare(sc, _estimators(), seeds=range(4), n_jobs=2,
+                             min_parallel_seconds=0)
+    assert parallel.parallel.startswith("parallel (forced")
     _check_same(serial, parallel)
     # and the numbers are those of single simulate runs
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2)
@@ -40,8 +47,69 @@ def test_local_dask_cluster_equals_serial():
     with distributed.Client(n_workers=2, threads_per_worker=1, processes=False,
                             dashboard_address=None):
         on_dask = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(3), n_jobs=2,
-                                backend="dask")
+                                backend="dask", min_parallel_seconds=0)
+    assert on_dask.parallel.startswith("parallel")
     _check_same(serial, on_dask)
+
+
+def test_small_workload_runs_serially(monkeypatch):
+    # workers that take a second to start do not pay for a few EKF runs
+    monkeypatch.setattr(compare_module, "_startup", lambda backend, workers: (1.0, False))
+    sc = estim.scenarios.van_der_pol(n_steps=60)
+    serial = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(4))
+    assert serial.parallel == "" and "Runs:" not in serial.table()
+    res = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(4), n_jobs=2)
+    assert res.parallel.startswith("serial: 2 runs estimated at ")
+    assert "starting cold workers: about 1 s" in res.parallel
+    assert "Runs: serial:" in res.table() and "Runs: serial:" in res._repr_html_()
+    _check_same(serial, res)
+    # every run among the timed first ones
+    assert estim.compare(sc, {"ekf": estim.EKF}, seeds=[3, 1], n_jobs=2).parallel == (
+        "serial: every run was one of the first runs, timed in this process")
+
+
+def test_forced_parallel_equals_serial_bit_for_bit():
+    sc = estim.scenarios.van_der_pol(n_steps=50)
+    est = {**_estimators(), "broken": lambda m, t: estim.EKF(m, **{**t, "R": -1.0})}
+    seeds = [7, 3, 11, 0, 5, 2, 9]
+    serial = estim.compare(sc, est, seeds=seeds, keep_logs=True)
+    for backend in ("loky", "threading"):
+        par = estim.compare(sc, est, seeds=seeds, n_jobs=2, backend=backend, keep_logs=True,
+                            min_parallel_seconds=0)
+        assert par.parallel.startswith("parallel (forced, ")
+        _check_same(serial, par)
+        assert par.rows[2].errors == serial.rows[2].errors and len(par.rows[2].errors) == 7
+        for name in ("ekf", "mhe"):
+            for a, b in zip(serial.logs[name], par.logs[name], strict=True):
+                np.testing.assert_array_equal(a.x_hat, b.x_hat)
+                np.testing.assert_array_equal(a.P, b.P)
+    with pytest.raises(ValueError, match="min_parallel_seconds"):
+        estim.compare(sc, {"ekf": estim.EKF}, n_jobs=2, min_parallel_seconds=-1)
+
+
+def test_plan_splits_by_cost():
+    # (setup, seconds per run, runs): "b" costs 4x "a" per run
+    costs = {"a": (0.2, 0.01, 200), "b": (0.5, 0.04, 100), "c": (0.0, 0.0, 3)}
+    tasks = compare_module._plan(costs, 2)
+    for name, (_, _, n) in costs.items():  # every run once, in order
+        spans = [(a, b) for k, a, b in tasks if k == name]
+        assert spans[0][0] == 0 and spans[-1][1] == n
+        assert all(b0 == a1 for (_, b0), (a1, _) in itertools.pairwise(spans))
+    cost = [(b - a) * costs[k][1] for k, a, b in tasks if costs[k][1] > 0]
+    total = 200 * 0.01 + 100 * 0.04
+    # guided: the first chunk is half a worker's share, then they shrink to a tenth
+    assert cost[0] == pytest.approx(total / 4, rel=0.05)
+    assert all(c2 <= max(c1, 1.5 * total / 20) for c1, c2 in itertools.pairwise(cost))
+    assert min(cost) >= total / 20 * 0.9 and len(tasks) < 20
+    # the estimators interleave, the one with more work left first
+    assert [k for k, _, _ in tasks[:4]] == ["b", "b", "a", "b"]
+    assert {k for k, _, _ in tasks[-4:]} >= {"a", "b"}
+    # the two workers finish within a small chunk of each other
+    makespan = compare_module._makespan(tasks, costs, 2)
+    assert makespan <= (total + 2 * 0.7) / 2 + total / 20
+    # one worker: the same runs; nothing to run: no chunk
+    assert compare_module._makespan(compare_module._plan(costs, 1), costs, 1) >= total
+    assert compare_module._plan({"a": (0.1, 0.01, 0)}, 2) == []
 
 
 def test_table_consistency_and_logs():

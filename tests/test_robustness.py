@@ -94,7 +94,8 @@ def test_threading_backend_equals_serial(fast_switching):
              "mhe": lambda m, t: estim.MHE(m, horizon=8, solver="gauss-newton", **t)}
     sc = estim.scenarios.van_der_pol(n_steps=60)
     serial = estim.compare(sc, specs, seeds=range(4))
-    threaded = estim.compare(sc, specs, seeds=range(4), n_jobs=2, backend="threading")
+    threaded = estim.compare(sc, specs, seeds=range(4), n_jobs=2, backend="threading",
+                             min_parallel_seconds=0)  # on the threads however small
     for name in specs:
         np.testing.assert_array_equal(serial.rmse[name], threaded.rmse[name])
 
@@ -120,7 +121,8 @@ def test_compare_keeps_every_other_run_when_one_raises(n_jobs, backend):
     try:
         res = estim.compare(sc, {"ekf": estim.EKF, "flaky": _RaisesOnAMeasurement,
                                  "broken": lambda m, t: estim.EKF(m, **{**t, "R": -1.0})},
-                            seeds=seeds, n_jobs=n_jobs, backend=backend, keep_logs=True)
+                            seeds=seeds, n_jobs=n_jobs, backend=backend, keep_logs=True,
+                            min_parallel_seconds=0)
     finally:
         _RaisesOnAMeasurement.trigger = None
     ref = estim.compare(sc, {"ekf": estim.EKF}, seeds=seeds)
