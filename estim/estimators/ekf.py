@@ -8,11 +8,11 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._scan import blocked_scan
-from estim._validate import as_bool
+from estim._validate import as_bool, as_inputs, as_intervals, as_record
 from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
 from estim.estimators.filtering import FilterResult
 from estim.estimators.nlp import is_diagonal
-from estim.estimators.smoothing import SmoothResult, record, rts, transitions
+from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
 
@@ -255,15 +255,20 @@ class EKF(Estimator):
         """
         m = self.model
         nx, ny = m.nx, m.ny
-        Y, steps, _ = record(m, Y, U, t)
+        Y = as_record(Y, ny, "Y", names=m.output_names, what="outputs")
         T = Y.shape[0]
-        W, prev = np.zeros((T, m.nw)), np.zeros(m.nu)
-        for k, (u, dt) in enumerate(steps):  # the transitions' inputs as step sees them
-            W[k] = u if self._plain else m.transition(prev, u, dt)
-            prev = u if m.sampled else prev
+        U = as_inputs(U, T, m)
+        dts = as_intervals(t, T, m)
+        # step's input u at every sample (the input since the previous sample, or at this
+        # one for sampled inputs) and the transitions' inputs w as step makes them
+        before = np.vstack([np.zeros((1, m.nu)), U[:-1]])
+        steps_u = U if m.sampled else before
+        W = np.hstack([before, U]) if m.sampled else before
+        if m.variable_dt:
+            W = np.hstack([W, np.concatenate([[m.dt], dts])[:, None]])
         self.reset()
-        S, E, F = (np.asarray(a) for a in self._whole_record(T)(
-            self._s.copy(), ca.DM(Y.T), ca.DM(W.T), self._tun, self.P0.ravel(order="F")))
+        S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
+            self._s, Y.T, W.T, self._tun, self.P0.ravel(order="F")))
         failed = np.flatnonzero(F[1] == 0)
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nx, nx), np.nan)
@@ -274,8 +279,10 @@ class EKF(Estimator):
         measured = F[4, :n] > 0
         nis[:n][measured] = F[0, :n][measured]
         suspect = (F[6, :n] + F[7, :n]) > 0
-        status = [self._consistency(float(F[0, k]), int(F[4, k]), bool(F[7, k]))
-                  if suspect[k] else "ok" for k in range(n)]
+        status = np.full(n, "ok", dtype=object)
+        for k in np.flatnonzero(suspect):
+            status[k] = self._consistency(float(F[0, k]), int(F[4, k]), bool(F[7, k]))
+        status = status.tolist()
         if n:  # the filter as the step loop leaves it after sample n - 1
             trusted = np.flatnonzero(~suspect)
             self._s[:] = S[:, n - 1]
@@ -284,13 +291,13 @@ class EKF(Estimator):
             self._trusted = not suspect[-1]
             self._first, self._k = False, n
             if m.sampled:
-                self._u_last = np.array(steps[n - 1][0], dtype=float)
+                self._u_last = U[n - 1].copy()
             self._info = StepInfo._fast(P=P[n - 1].copy(), innovation=innovation[n - 1].copy(),
                                         nis=float(nis[n - 1]), status=status[-1])
         success = True
         for k in range(n, T):  # from a non-finite update on: the step loop
-            u, dt = steps[k]
-            X[k] = self.step(Y[k].copy(), u, dt=dt)
+            dt = None if dts is None or k == 0 else float(dts[k - 1])
+            X[k] = self.step(Y[k].copy(), steps_u[k].copy(), dt=dt)
             info = self.info
             if info.P is not None:
                 P[k] = info.P
@@ -302,7 +309,7 @@ class EKF(Estimator):
         return FilterResult(x=X, P=P, innovation=innovation, nis=nis, status=tuple(status),
                             success=success)
 
-    def _whole_record(self, T: int) -> ca.Function:
+    def _whole_record(self, T: int) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
         (the first an update), the filter state, innovation and flags of every sample
         side by side; a gated step keeps the prediction with ``P0`` added."""
@@ -332,8 +339,9 @@ class EKF(Estimator):
             scan = blocked_scan(scanned(True), T - 1, (1, 2))
             _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
             S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
-        fun = ca.Function(f"ekf_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
-                          ["s0", "Y", "W", "tuning", "P0"], ["S", "innovation", "flags"])
+        fun = FastFunction(ca.Function(f"ekf_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
+                                       ["s0", "Y", "W", "tuning", "P0"],
+                                       ["S", "innovation", "flags"]))
         cache[T] = fun
         return fun
 
