@@ -1,0 +1,218 @@
+"""Per-sample time of ``EKF.filter`` (a whole record in one compiled call) against the
+``step`` loop, filterpy's ``ExtendedKalmanFilter`` loop and dynamax's jitted
+``extended_kalman_filter``.
+
+Two records, each replayed through every filter in the same process:
+
+* the batch reactor of the KU Leuven course (``estim.scenarios.batch_reactor()``,
+  400 samples, RK4 at 0.25 h) and
+* van der Pol (``estim.scenarios.van_der_pol(n_steps=1000)``, RK4 at 0.1 s, both
+  states measured).
+
+Every filter starts with an update from ``x0, P0`` alone, then predicts with ``Q``
+and updates at every later sample. The filterpy models are the hand-written numpy
+ones of ``benchmarks/ekf.py`` (the RK4 Jacobian by the chain rule); dynamax gets the
+same RK4 maps written in ``jax.numpy`` (its Jacobians by ``jax.jacfwd``), runs in
+float64 and is timed after a first call that compiles it (``jax.jit``), waiting for
+its result (``block_until_ready``). ``EKF.filter`` is timed after a first call that
+builds its Function for that record length (the build time is printed too).
+
+The script prints the largest difference of each filter's estimates from the step
+loop's (``EKF.filter`` should equal it to rounding; filterpy and dynamax update
+``P`` as ``P - K S K^T`` where estim uses the Joseph form), then the median
+per-sample time over the repeats and the ratios. dynamax is skipped when it is not
+installed (``pip install dynamax``).
+
+Run from the repository root::
+
+    python benchmarks/whole_record.py [--repeats 7]
+
+There are no timing assertions; the numbers depend on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import casadi
+import numpy as np
+
+import estim
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ekf import (  # noqa: E402 - the numpy models of benchmarks/ekf.py
+    GAIN,
+    K1,
+    K2,
+    KM1,
+    KM2,
+    TS,
+    NonlinearEKF,
+    reactor_h,
+    reactor_h_x,
+    reactor_step,
+    rk4_with_jacobian,
+    tuning,
+)
+
+MU, TS_VDP = 1.0, 0.1
+
+
+def vdp_f(x: np.ndarray) -> np.ndarray:
+    return np.array([x[1], MU * (1 - x[0] ** 2) * x[1] - x[0]])
+
+
+def vdp_f_x(x: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, 1.0], [-2 * MU * x[0] * x[1] - 1, MU * (1 - x[0] ** 2)]])
+
+
+def vdp_step(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return rk4_with_jacobian(vdp_f, vdp_f_x, x, TS_VDP)
+
+
+def vdp_h(x: np.ndarray) -> np.ndarray:
+    return x.copy()
+
+
+def vdp_h_x(x: np.ndarray) -> np.ndarray:
+    return np.eye(2)
+
+
+def timed(run, repeats: int) -> float:
+    """Median seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
+    times = []
+    for _ in range(repeats):
+        enabled = gc.isenabled()
+        gc.disable()
+        try:
+            t0 = time.perf_counter()
+            run()
+            times.append(time.perf_counter() - t0)
+        finally:
+            if enabled:
+                gc.enable()
+    return statistics.median(times)
+
+
+def step_loop(est: estim.EKF, Y: np.ndarray) -> np.ndarray:
+    est.reset()
+    step = est.step
+    return np.array([step(y) for y in Y])
+
+
+def filterpy_loop(sc: estim.Scenario, step, h, h_x, Y: np.ndarray) -> np.ndarray:
+    tun = tuning(sc)
+    kf = NonlinearEKF(sc.model.nx, sc.model.ny, step)
+    kf.x, kf.P, kf.Q, kf.R = tun["x0"].copy(), tun["P0"].copy(), tun["Q"], tun["R"]
+    out = np.empty((len(Y), sc.model.nx))
+    kf.update(Y[0], h_x, h)
+    out[0] = kf.x
+    for k in range(1, len(Y)):
+        kf.predict()
+        kf.update(Y[k], h_x, h)
+        out[k] = kf.x
+    return out
+
+
+def dynamax_filter(name: str, sc: estim.Scenario):
+    """``Y -> estimates`` by dynamax's EKF under ``jax.jit``, or None without dynamax."""
+    try:
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import jax.numpy as jnp
+        from dynamax.nonlinear_gaussian_ssm import ParamsNLGSSM, extended_kalman_filter
+    except ImportError:
+        return None
+
+    def rk4(f, x, h):
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+    if name == "batch_reactor":
+        def f(x):
+            r1 = K1 * x[0] - KM1 * x[1] * x[2]
+            r2 = K2 * x[1] ** 2 - KM2 * x[2]
+            return jnp.array([-r1, r1 - 2 * r2, r1 + r2])
+
+        def dynamics(x):
+            return rk4(f, x, TS)
+
+        def emission(x):
+            return jnp.array([GAIN * (x[0] + x[1] + x[2])])
+    else:
+        def f(x):
+            return jnp.array([x[1], MU * (1 - x[0] ** 2) * x[1] - x[0]])
+
+        def dynamics(x):
+            return rk4(f, x, TS_VDP)
+
+        def emission(x):
+            return x
+
+    tun = tuning(sc)
+    params = ParamsNLGSSM(initial_mean=jnp.asarray(tun["x0"]),
+                          initial_covariance=jnp.asarray(tun["P0"]),
+                          dynamics_function=dynamics, dynamics_covariance=jnp.asarray(tun["Q"]),
+                          emission_function=emission, emission_covariance=jnp.asarray(tun["R"]))
+    run = jax.jit(lambda Y: extended_kalman_filter(params, Y).filtered_means)
+    return lambda Y: np.asarray(run(jnp.asarray(Y)).block_until_ready())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    repeats = max(3, args.repeats)
+    print(f"Python {platform.python_version()}, CasADi {casadi.__version__}, "
+          f"numpy {np.__version__}, {platform.machine()}; median of {repeats} runs")
+    problems = [("batch_reactor", estim.scenarios.batch_reactor(), reactor_step, reactor_h,
+                 reactor_h_x),
+                ("van_der_pol", estim.scenarios.van_der_pol(n_steps=1000), vdp_step, vdp_h,
+                 vdp_h_x)]
+    for problem in problems:
+        benchmark(*problem, repeats)
+
+
+def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
+    """Check every filter against the step loop on one record (also a warm-up), then
+    print the median per-sample times."""
+    Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0).y
+    T = len(Y)
+    est = estim.EKF(sc.model, **sc.tuning)
+    t0 = time.perf_counter()
+    est.filter(Y)  # builds the Function for this record length
+    build = time.perf_counter() - t0
+    print(f"\n{name}: {T} samples; EKF.filter's first call (build + run) "
+          f"{build * 1e3:.1f} ms")
+    ref = step_loop(est, Y)
+    runs = {"EKF.filter": lambda: est.filter(Y).x,
+            "step loop": lambda: step_loop(est, Y),
+            "filterpy EKF loop": lambda: filterpy_loop(sc, step, h, h_x, Y)}
+    dyn = dynamax_filter(name, sc)
+    if dyn is not None:
+        t0 = time.perf_counter()
+        dyn(Y)  # compiles
+        print(f"  dynamax's jit compilation {time.perf_counter() - t0:.2f} s")
+        runs["dynamax EKF (jit)"] = lambda: dyn(Y)
+    print(f"  {'filter':<20} {'max |x - step loop|':>20} {'us/sample':>10} "
+          f"{'/ EKF.filter':>13}")
+    times = {}
+    for label, run in runs.items():
+        diff = float(np.max(np.abs(run() - ref)))
+        times[label] = timed(run, repeats) / T
+        ratio = times[label] / times["EKF.filter"]
+        print(f"  {label:<20} {diff:>20.2e} {times[label] * 1e6:>10.2f} {ratio:>12.2f}x")
+    if dyn is None:
+        print("  dynamax is not installed: skipped")
+
+if __name__ == "__main__":
+    main()
