@@ -14,7 +14,7 @@ NEW = {"Q": [0.02, 0.005], "R": [0.5, 2.0]}
 
 def _built(est):
     """The compiled functions an estimator holds (to see that none is rebuilt)."""
-    if isinstance(est, estim.EKF):
+    if isinstance(est, (estim.EKF, estim.UKF)):
         return [est._update, est._predict_update]
     if isinstance(est, estim.MHE):
         return [est._nlp, est._cov_step] + list(est._nlp.gn._funs.values())

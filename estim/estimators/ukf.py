@@ -1,34 +1,78 @@
-r"""Unscented Kalman filter on filterpy's ``UnscentedKalmanFilter``."""
+r"""Unscented Kalman filter, fused into one compiled call per step."""
 
 from __future__ import annotations
 
+import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
-from estim.estimators.base import Estimator, StepInfo, chi2_limit
+from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
+from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
 
+def _matrix(v, n: int, diagonal: bool):
+    """The ``(n, n)`` matrix stored column-major in ``v`` (its diagonal only if asked)."""
+    return ca.diag(v[[i * n + i for i in range(n)]]) if diagonal else ca.reshape(v, n, n)
+
+
+#: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
+POINTS = ("merwe", "julier", "cubature")
+
+
 class UKF(Estimator):
-    r"""Unscented Kalman filter with Van der Merwe's scaled sigma points.
+    r"""Unscented Kalman filter (discrete time, additive noise).
 
     Same constructor, ``step`` and ``reset`` as :class:`~estim.EKF`; the
-    prediction and update propagate :math:`2n_x + 1` sigma points through the
-    model's :math:`F` and :math:`h` instead of linearising. filterpy's
-    :class:`~filterpy.kalman.UnscentedKalmanFilter` does the arithmetic; the
-    model functions are the compiled CasADi ones.
+    prediction and update propagate sigma points through the model's :math:`F`
+    and :math:`h` instead of linearising. The sigma points of a mean :math:`x`
+    and covariance :math:`P` are :math:`x` (except for the cubature set) and
+    :math:`x \pm U_i`, with :math:`U_i` the rows of the upper Cholesky factor of
+    :math:`cP` (:func:`sigma_weights` gives :math:`c` and the weights
+    :math:`W^m, W^c`). The prediction, from the sigma points
+    :math:`\mathcal X^{(i)}` of :math:`(\hat x_{k-1}, P_{k-1})`,
+
+    .. math::
+        \bar x_k = \sum_i W^m_i F(\mathcal X^{(i)}, u_{k-1}), \qquad
+        \bar P_k = \sum_i W^c_i \,\delta F_i\, \delta F_i^\top + Q,
+
+    then the update with the sigma points :math:`\mathcal X^{(i)}` of
+    :math:`(\bar x_k, \bar P_k)` and :math:`\mathcal Z^{(i)} = h(\mathcal X^{(i)})`,
+
+    .. math::
+        \bar y = \sum_i W^m_i \mathcal Z^{(i)}, \quad
+        S = \sum_i W^c_i\, \delta\mathcal Z_i\, \delta\mathcal Z_i^\top + R, \quad
+        P_{xy} = \sum_i W^c_i (\mathcal X^{(i)} - \bar x_k)\, \delta\mathcal Z_i^\top, \\
+        K = P_{xy} S^{-1}, \quad \hat x_k = \bar x_k + K (y_k - \bar y), \quad
+        P_k = \bar P_k - K S K^\top
+
+    (kept symmetric; :math:`K` from a linear solve). This is filterpy's
+    :class:`~filterpy.kalman.UnscentedKalmanFilter`, step for step. On the
+    first step there is no prediction. Missing outputs (NaN in ``y``) drop
+    their rows of :math:`\mathcal Z`, :math:`y` and :math:`R` exactly.
+
+    The sigma points, the propagation through :math:`F` and :math:`h`, the
+    update, the checks and optional clipping are one CasADi Function evaluated
+    on preallocated buffers, as in the :class:`~estim.EKF`. A step fails when
+    a value is not finite or a covariance has no Cholesky factor (not
+    positive definite); it then keeps the prediction of a trusted estimate or
+    re-anchors, as the EKF does.
 
     Parameters
     ----------
     model : Model
     Q, R, x0, P0 :
         As for every estimator.
+    points : {"merwe", "julier", "cubature"}
+        Sigma-point set: Van der Merwe's scaled points (default), Julier's, or
+        the :math:`2n_x` equally weighted points of the cubature Kalman filter.
     alpha, beta, kappa : float
-        Sigma-point spread (:math:`\alpha`), prior knowledge of the
-        distribution (:math:`\beta = 2` for Gaussian) and secondary scaling.
+        Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
+        distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
+        scaling (:math:`\kappa`, merwe and julier; :math:`n_x + \kappa > 0`).
     clip : bool
         Project the estimate onto the model bounds after each update.
     gate : float, optional
@@ -40,49 +84,149 @@ class UKF(Estimator):
     R. van der Merwe, *Sigma-Point Kalman Filters for Probabilistic Inference
     in Dynamic State-Space Models*, PhD thesis, OGI 2004;
     E. A. Wan, R. van der Merwe, "The unscented Kalman filter for nonlinear
-    estimation", IEEE AS-SPCC 2000.
+    estimation", IEEE AS-SPCC 2000;
+    S. J. Julier, J. K. Uhlmann, "Unscented filtering and nonlinear estimation",
+    Proc. IEEE 92(3), 2004;
+    I. Arasaratnam, S. Haykin, "Cubature Kalman filters", IEEE TAC 54(6), 2009.
     """
 
     name = "ukf"
+    _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
-                 P0: ArrayLike, alpha: float = 0.1, beta: float = 2.0,
+                 P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.gate = self._gate(gate)
+        if not isinstance(points, str) or points not in POINTS:
+            raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
+                             f"got {points!r}")
+        self.points = points
         self.alpha = as_float(alpha, "alpha", positive=True)
         self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
         self.clip = as_bool(clip, "clip")
         self.lower, self.upper = model.lower, model.upper
-        # buffered model evaluations of this filter's own (never shared between threads)
-        self._F, self._H = FastFunction(model.F), FastFunction(model.H)
+        nx = model.nx
+        if points != "cubature" and nx + self.kappa <= 0:
+            raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
+                             f"got {self.kappa!r}")
+        self._scale, self._Wm, self._Wc = sigma_weights(points, nx, self.alpha, self.beta,
+                                                        self.kappa)
+        # the filter state [x; vec(P)] lives where both compiled functions read it
+        self._s = np.zeros(nx + nx * nx)
+        self._u = np.zeros(model.nw)  # the transition's input (both ends if sampled)
+        self._y = np.zeros(model.ny)
+        self._tun = np.zeros(nx * nx + model.ny ** 2)  # Q and R, read by both functions
+        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
+        bound = [self._s, self._u, self._y, self._tun]
+        self._update = FastFunction(self._build(predict=False), bound)
+        self._predict_update = FastFunction(self._build(predict=True), bound)
+        self._tuning_changed()
         self._reset()
 
-    def _tuning_changed(self) -> None:
-        self._ukf.Q, self._ukf.R = self.Q.copy(), self.R.copy()
+    def _sigma_points(self, x, P) -> tuple[list, ca.SX]:
+        """The sigma points of ``(x, P)`` (columns) and whether ``P`` has a Cholesky
+        factor (positive definite)."""
+        L, definite = _cholesky(self._scale * P)
+        n = x.numel()
+        offsets = [L[:, k] for k in range(n)]  # the rows of the upper factor L^T
+        centre = [] if self.points == "cubature" else [x]
+        return centre + [x + d for d in offsets] + [x - d for d in offsets], definite
 
-    def _fx(self, x, dt, u):
-        return self._F(x, u, self.model.p)[0].copy()
-
-    def _hx(self, x, u, rows=None):
-        y = self._H(x, u, self.model.p)[0]
-        return y.copy() if rows is None else y[rows].copy()
-
-    def _reset(self) -> None:
-        # filterpy imports scipy.stats (~0.3 s): on the first filter, not with estim
-        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
-
+    def _build(self, predict: bool) -> ca.Function:
         m = self.model
-        points = MerweScaledSigmaPoints(m.nx, alpha=self.alpha, beta=self.beta, kappa=self.kappa)
-        ukf = UnscentedKalmanFilter(dim_x=m.nx, dim_z=m.ny, dt=m.dt, hx=self._hx, fx=self._fx,
-                                    points=points)
-        ukf.x = self.x0.copy()
-        ukf.P = self.P0.copy()
-        ukf.Q = self.Q.copy()
-        ukf.R = self.R.copy()
-        self._ukf = ukf
-        self._trusted = True  # the last step was "ok" (or none was taken)
-        self._anchor_state = (self.x0.copy(), self.P0.copy())
+        nx, ny = m.nx, m.ny
+        Wm, Wc = self._Wm, self._Wc
+        s = ca.SX.sym("s", nx + nx * nx)
+        x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
+        u = ca.SX.sym("u", m.nw)
+        y = ca.SX.sym("y", ny)
+        tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
+        Q, R = (_matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
+                _matrix(tun[nx * nx:], ny, self._diagonal["R"]))
+        p = ca.DM(m.p)
+        mask = ca.fabs(y) < ca.inf  # 0 for NaN (missing) and for +-inf (rejected)
+        y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
+
+        def mean(points, weights):
+            return sum((float(w) * v for w, v in zip(weights, points, strict=True)),
+                       ca.SX.zeros(points[0].numel()))
+
+        def cov(a, b, weights):
+            return sum((float(w) * (da @ db.T) for w, da, db in zip(weights, a, b,
+                                                                    strict=True)),
+                       ca.SX.zeros(a[0].numel(), b[0].numel()))
+
+        if predict:
+            sig, definite = self._sigma_points(x, P)
+            FX = [m.F(v, u, p) for v in sig]
+            xb = mean(FX, Wm)
+            dF = [v - xb for v in FX]
+            Pb = cov(dF, dF, Wc) + Q
+            ok_mean = ca.logic_and(definite, _finite(ca.vertcat(*FX)))
+        else:
+            xb, Pb = x, P
+            ok_mean = ca.SX(1)
+        # the update draws the sigma points of the prediction again (as filterpy does)
+        sig, definite = self._sigma_points(xb, Pb)
+        ok_prior = ca.logic_and(ca.logic_and(ok_mean, definite),
+                                _finite(ca.vertcat(xb, ca.vec(Pb))))
+        uy = m.measurement_input(u)  # the input at this measurement
+        Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]  # missing rows: 0
+        zp = mean(Z, Wm)
+        dZ = [v - zp for v in Z]
+        dX = [v - xb for v in sig]
+        D = ca.diag(mask)
+        S = cov(dZ, dZ, Wc) + D @ R @ D + ca.diag(1 - mask)
+        S = 0.5 * (S + S.T)
+        Pxz = cov(dX, dZ, Wc)
+        e = ca.if_else(mask, y - zp, 0)
+        K = ca.solve(S, Pxz.T).T
+        xh = xb + K @ e
+        if self.clip:
+            xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
+        Ph = Pb - K @ S @ K.T
+        Ph = 0.5 * (Ph + Ph.T)
+        nis = ca.dot(e, ca.solve(S, e))
+        s_new = ca.vertcat(xh, ca.vec(Ph))
+        s_prior = ca.vertcat(xb, ca.vec(Pb))
+        # finite, and a covariance the next sigma points can be drawn from
+        ok = ca.logic_and(_finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
+        measured = ca.sum1(mask) if ny else ca.SX(0)
+        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
+
+        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
+            if not ny or tail is None:
+                return ca.SX(0)
+            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
+            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
+
+        suspect, gated = beyond(SUSPECT_TAIL), beyond(self.gate)
+        name = "ukf_predict_update" if predict else "ukf_update"
+        return ca.Function(name, [s, u, y, tun], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
+                                                                  measured, ok_mean, suspect,
+                                                                  gated),
+                                             s_prior],
+                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
+
+    def _tuning_changed(self) -> None:
+        nx = self.model.nx
+        self._tun[:nx * nx] = self.Q.ravel(order="F")
+        self._tun[nx * nx:] = self.R.ravel(order="F")
+
+    def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
+        r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
+        (``(2 nx + 1, nx)``, ``(2 nx, nx)`` for ``points="cubature"``); with a stack
+        ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``.
+
+        The offsets are the rows of the upper Cholesky factor :math:`U` of
+        :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
+        x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+        L = np.linalg.cholesky(self._scale * P)
+        off = np.swapaxes(L, -1, -2)  # rows of U = L^T
+        xs = x[..., None, :]
+        centre = [] if self.points == "cubature" else [xs]
+        return np.concatenate(centre + [xs + off, xs - off], axis=-2)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> SmoothResult:
@@ -136,112 +280,132 @@ class UKF(Estimator):
         m, Q = self.model, self.Q
 
         def predict(X, P, W):
-            pts = self._ukf.points_fn
-            n, ns, nx = len(X), pts.num_sigmas(), m.nx
-            sig = np.array([pts.sigma_points(X[k], P[k]) for k in range(n)])  # (n, ns, nx)
+            n, ns, nx = len(X), len(self._Wm), m.nx
+            sig = self.sigma_points(X, P)  # (n, ns, nx)
             Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
                              ).reshape(n, ns, nx)
-            xb = np.einsum("i,kij->kj", pts.Wm, Fs)
+            xb = np.einsum("i,kij->kj", self._Wm, Fs)
             dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
-            Pb = np.einsum("i,kia,kib->kab", pts.Wc, dF, dF) + Q
-            D = np.einsum("i,kia,kib->kab", pts.Wc, dX, dF)
+            Pb = np.einsum("i,kia,kib->kab", self._Wc, dF, dF) + Q
+            D = np.einsum("i,kia,kib->kab", self._Wc, dX, dF)
             return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
 
         return rts(self, Y, U, t, predict, self.model.clip if self.clip else None)
 
     @property
     def x(self) -> np.ndarray:
-        return self._ukf.x.copy()
+        """Current estimate."""
+        return self._s[: self.model.nx].copy()
 
     @property
     def P(self) -> np.ndarray:
-        return self._ukf.P.copy()
+        """Current covariance."""
+        nx = self.model.nx
+        return self._s[nx:].reshape(nx, nx, order="F").copy()
+
+    def _reset(self) -> None:
+        nx = self.model.nx
+        self._s[:nx] = self.x0
+        self._s[nx:] = self.P0.ravel(order="F")
+        # the anchor of a failed step: the filter state after the last step reported "ok"
+        # (the prior to begin with), in _s while every step is ok, else in _s_trusted
+        self._s_trusted = self._s.copy()
+        self._trusted = True  # _s holds the anchor
 
     def _step(self, y, u, first):
-        ukf = self._ukf
-        if self._trusted:  # the anchor of a failed step: the last state reported "ok"
-            self._anchor_state = (ukf.x.copy(), ukf.P.copy())
-        if first:  # no prediction: the sigma points of the prior x0, P0
-            ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
-            error = None
+        self._y[:] = y
+        if self._u.size:
+            self._u[:] = self._transition(u)
+        fun = self._update if first else self._predict_update
+        s_new, e, flags, s_prior = fun.evaluate()
+        if flags[3]:
+            raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
+        if not flags[1]:
+            return self._recover(flags, s_prior)
+        nx = self.model.nx
+        suspect = flags[6] or flags[7]
+        if suspect and self._trusted:
+            self._s_trusted[:] = self._s
+        self._trusted = not suspect
+        if flags[7]:  # gated: the prediction, with P0 added
+            self._s[:] = s_prior
+            self._s[nx:] += self.P0.ravel(order="F")
         else:
-            w = self._transition(u)
-            error = self._guard(lambda: ukf.predict(u=w), "prediction F(x, u)")
-        if error is None:
-            prediction = (ukf.x.copy(), ukf.P.copy())
-            update_error = self._update(y, u)
-            if update_error is None:
-                return self._accepted(y, prediction)
-            if self._trusted:  # a usable prediction of a trusted estimate: keep it
-                ukf.x, ukf.P = prediction
-                self._trusted = False
-                return ukf.x.copy(), StepInfo(
-                    status=f"failed: {update_error}; kept the prediction", success=False,
-                    P=ukf.P.copy())
-            error = update_error
-        # re-anchor on the last trusted estimate with P + P0 and update with this y
-        ukf.x, ukf.P = self._anchor(*self._anchor_state)
-        ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
-        saved = (ukf.x.copy(), ukf.P.copy())
-        again = self._update(y, u)
-        if again is not None:
-            ukf.x, ukf.P = saved
+            self._s[:] = s_new
+        info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
+                              innovation=e.copy(),
+                              nis=float(flags[0]) if flags[4] else float("nan"))  # no output
+        if suspect:
+            info.__dict__["status"] = self._consistency(float(flags[0]), int(flags[4]),
+                                                        bool(flags[7]))
+        return self._s[:nx].copy(), info
+
+    def _recover(self, flags, s_prior):
+        """A failed update: keep the prediction of a trusted estimate, or re-anchor on
+        the last trusted estimate with ``P + P0`` and update with this measurement."""
+        if self._trusted:
+            self._s_trusted[:] = self._s
+        if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
+            self._s[:] = s_prior
+            status = ("failed: update non-finite or its covariance not positive definite; "
+                      "kept the prediction")
+        else:
+            what = ("update non-finite or its covariance not positive definite" if flags[2]
+                    else "prediction F(x, u): covariance not positive definite" if flags[5]
+                    else "non-finite prediction F(x, u) at the sigma points")
+            nx = self.model.nx
+            x, P = self._anchor(self._s_trusted[:nx],
+                                self._s_trusted[nx:].reshape(nx, nx, order="F"))
+            self._s[:nx] = x
+            self._s[nx:] = P.ravel(order="F")
+            s_new, _, flags, _ = self._update.evaluate()
+            if flags[1]:
+                self._s[:] = s_new
+            status = (f"failed: {what}; re-anchored on the last trusted estimate "
+                      f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
         self._trusted = False
-        status = (f"failed: {error}; re-anchored on the last trusted estimate with P + P0"
-                  + ("" if again is None else " (no update: non-finite)"))
-        return ukf.x.copy(), StepInfo(status=status, success=False, P=ukf.P.copy())
+        return self.x, StepInfo(status=status, success=False, P=self.P)
 
-    def _guard(self, action, what: str) -> str | None:
-        """Run a filterpy step; None, or what went wrong (an exception or non-finite
-        values; scipy's Cholesky raises ``ValueError`` on NaN, ``LinAlgError`` when
-        the covariance is not positive definite)."""
-        ukf = self._ukf
-        try:
-            action()
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            return f"{what}: {exc}"
-        if not (np.isfinite(ukf.x).all() and np.isfinite(ukf.P).all()):
-            return f"non-finite {what}"
-        try:  # the next sigma points need a Cholesky factor
-            np.linalg.cholesky(0.5 * (ukf.P + ukf.P.T))
-        except np.linalg.LinAlgError:
-            return f"{what}: covariance not positive definite"
-        return None
 
-    def _update(self, y, u) -> str | None:
-        """Measurement update with the measured rows of ``y`` (none: the prediction is
-        the estimate); None or what went wrong."""
-        ukf = self._ukf
-        rows = np.isfinite(y)
-        if rows.all():
-            error = self._guard(lambda: ukf.update(y, u=u), "update")
-        elif rows.any():
-            idx = np.flatnonzero(rows)
-            error = self._guard(lambda: ukf.update(
-                y[idx], R=self.R[np.ix_(idx, idx)], hx=lambda x, u: self._hx(x, u, idx), u=u),
-                "update")
-        else:
-            error = None
-        if error is None and self.clip:
-            ukf.x = self.model.clip(ukf.x)
-        return error
+def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
+                  kappa: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
+    r"""The spread :math:`c` (the offsets are the rows of the Cholesky factor of
+    :math:`c P`) and the mean and covariance weights of a sigma-point set.
 
-    def _accepted(self, y, prediction):
-        """Estimate and information of a successful update (the prediction with
-        ``P + P0`` where the gate rejects the measurement)."""
-        ukf = self._ukf
-        ukf.P = 0.5 * (ukf.P + ukf.P.T)
-        rows = np.isfinite(y)
-        e = np.zeros(self.model.ny)
-        nis, status = float("nan"), "ok"
-        if rows.any():
-            e[rows] = np.ravel(ukf.y)
-            nis = float(np.ravel(ukf.y) @ np.linalg.solve(ukf.S, np.ravel(ukf.y)))
-            dof = int(rows.sum())
-            gated = self.gate is not None and nis > chi2_limit(dof, self.gate)
-            if gated or nis > chi2_limit(dof):
-                status = self._consistency(nis, dof, gated)
-            if gated:
-                ukf.x, ukf.P = prediction[0], prediction[1] + self.P0
-        self._trusted = status == "ok"
-        return ukf.x.copy(), StepInfo(status=status, P=ukf.P.copy(), innovation=e, nis=nis)
+    ``"merwe"``: :math:`c = \alpha^2 (n + \kappa)`, :math:`\lambda = c - n`,
+    :math:`W^m_0 = \lambda / c`, :math:`W^c_0 = W^m_0 + 1 - \alpha^2 + \beta`,
+    :math:`W_i = 1/(2c)` (filterpy's ``MerweScaledSigmaPoints``); ``"julier"``:
+    :math:`c = n + \kappa`, :math:`W_0 = \kappa / c`, :math:`W_i = 1/(2c)`
+    (``JulierSigmaPoints``); ``"cubature"``: :math:`c = n`, :math:`2n` points of
+    weight :math:`1/(2n)`, no centre point (the cubature Kalman filter's).
+    """
+    if points == "cubature":
+        W = np.full(2 * n, 0.5 / n)
+        return float(n), W, W.copy()
+    c = alpha ** 2 * (n + kappa) if points == "merwe" else n + kappa
+    Wm = np.full(2 * n + 1, 0.5 / c)
+    Wm[0] = (c - n) / c if points == "merwe" else kappa / c
+    Wc = Wm.copy()
+    if points == "merwe":
+        Wc[0] += 1 - alpha ** 2 + beta
+    return c, Wm, Wc
+
+
+def _finite(v) -> ca.SX:
+    """1 where every entry of ``v`` is finite (a NaN or inf makes the sum not finite)."""
+    return ca.fabs(ca.sum1(ca.vec(v))) < ca.inf
+
+
+def _cholesky(A) -> tuple[ca.SX, ca.SX]:
+    r"""Lower Cholesky factor :math:`L` (:math:`L L^\top = A`, from the upper triangle of
+    ``A`` as LAPACK's upper factorisation reads it) and whether every pivot is positive."""
+    n = A.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    definite = ca.SX(1)
+    for j in range(n):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
+        definite = ca.logic_and(definite, d > 0)
+        L[j][j] = ca.sqrt(d)
+        for i in range(j + 1, n):
+            L[i][j] = (A[j, i] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
+    return ca.vertcat(*[ca.horzcat(*row) for row in L]), definite
