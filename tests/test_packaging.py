@@ -46,8 +46,8 @@ def test_import_estim_leaves_heavy_modules_alone():
 
 
 def test_estimators_without_their_optional_dependencies():
-    # building every estimator needs neither filterpy (the UKF imports it on
-    # construction) nor matplotlib, pandas or scipy.stats
+    # building every estimator needs neither filterpy (estim never imports it: it is the
+    # reference of the tests and benchmarks) nor matplotlib, pandas or scipy.stats
     modules = _imported_by("import estim; from estim import EKF, MHE, FullInformation, "
                            "ShootingObserver, UKF; from estim.estimators import ESTIMATORS")
     assert not {"filterpy", "matplotlib", "pandas", "scipy.stats", "scipy.optimize"} & modules

@@ -3,6 +3,9 @@ missing outputs against a numpy unscented update on the measured rows."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from conftest import make_linear
@@ -220,3 +223,12 @@ def test_a_non_finite_update_keeps_the_prediction_then_re_anchors():
     est = estim.UKF(model, Q=1e-4, R=0.01, x0=[4.0], P0=1.0)
     est.step([2.0])
     assert est.info.status == "ok"
+
+
+def test_filtering_imports_no_filterpy():
+    code = ("import sys, estim; sc = estim.scenarios.van_der_pol(n_steps=5); "
+            "u = estim.UKF(sc.model, **sc.tuning); u.step([0.1, 0.2]); u.step([0.2, 0.1]); "
+            "u.smooth([[0.1, 0.2], [0.2, 0.1]]); print('filterpy' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    assert out.strip() == "False"
