@@ -155,3 +155,12 @@ def test_tuning_is_data():
     Y = log.y.copy()
     Y[20] += 50.0
     _same(est, Y)
+
+
+def test_a_few_record_lengths_are_kept():
+    sc = estim.scenarios.van_der_pol(n_steps=40)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    est = estim.EKF(sc.model, **sc.tuning)
+    for T in range(5, 40, 3):
+        _same(est, log.y[:T])
+    assert len(est._whole_records) == 8 and 38 in est._whole_records

@@ -15,6 +15,9 @@ from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
+#: :meth:`EKF.filter` keeps its compiled Function for this many record lengths.
+_RECORD_LENGTHS_KEPT = 8
+
 
 def _matrix(v, n: int, diagonal: bool):
     """The ``(n, n)`` matrix stored column-major in ``v`` (its diagonal only if asked)."""
@@ -312,7 +315,8 @@ class EKF(Estimator):
     def _whole_record(self, T: int) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
         (the first an update), the filter state, innovation and flags of every sample
-        side by side; a gated step keeps the prediction with ``P0`` added."""
+        side by side; a gated step keeps the prediction with ``P0`` added. Kept for the
+        last :data:`_RECORD_LENGTHS_KEPT` record lengths."""
         cache = self.__dict__.setdefault("_whole_records", {})
         if T in cache:
             return cache[T]
@@ -342,6 +346,8 @@ class EKF(Estimator):
         fun = FastFunction(ca.Function(f"ekf_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
                                        ["s0", "Y", "W", "tuning", "P0"],
                                        ["S", "innovation", "flags"]))
+        if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
+            del cache[next(iter(cache))]
         cache[T] = fun
         return fun
 
