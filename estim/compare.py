@@ -125,6 +125,9 @@ class Comparison:
     remarks : dict of str -> str
         The scenario's :attr:`~estim.Scenario.remarks` (what is known about an
         estimator class on it), used by :meth:`notes`.
+    parallel : str
+        With ``n_jobs != 1``, how the runs were distributed and why ("serial: ..."
+        or "parallel (...): ..."), printed under the table; empty with ``n_jobs=1``.
     """
 
     scenario: str
@@ -133,8 +136,6 @@ class Comparison:
     rmse: dict[str, np.ndarray]
     logs: dict[str, list[Log]] = field(default_factory=dict)
     remarks: dict[str, str] = field(default_factory=dict)
-    #: How the runs were distributed with ``n_jobs != 1`` ("serial: ..." or
-    #: "parallel: ..."), printed under the table; empty with ``n_jobs=1``.
     parallel: str = ""
 
     #: What the columns mean, printed under the table.
