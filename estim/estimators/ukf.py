@@ -8,22 +8,17 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
-from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
+from estim.estimators.base import SUSPECT_TAIL, chi2_limit
+from estim.estimators.fused import FusedKalman, matrix
 from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
-
-
-def _matrix(v, n: int, diagonal: bool):
-    """The ``(n, n)`` matrix stored column-major in ``v`` (its diagonal only if asked)."""
-    return ca.diag(v[[i * n + i for i in range(n)]]) if diagonal else ca.reshape(v, n, n)
-
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
 POINTS = ("merwe", "julier", "cubature")
 
 
-class UKF(Estimator):
+class UKF(FusedKalman):
     r"""Unscented Kalman filter (discrete time, additive noise).
 
     Same constructor, ``step`` and ``reset`` as :class:`~estim.EKF`; the
@@ -142,8 +137,8 @@ class UKF(Estimator):
         u = ca.SX.sym("u", m.nw)
         y = ca.SX.sym("y", ny)
         tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
-        Q, R = (_matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
-                _matrix(tun[nx * nx:], ny, self._diagonal["R"]))
+        Q, R = (matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
+                matrix(tun[nx * nx:], ny, self._diagonal["R"]))
         p = ca.DM(m.p)
         mask = ca.fabs(y) < ca.inf  # 0 for NaN (missing) and for +-inf (rejected)
         y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
@@ -208,11 +203,6 @@ class UKF(Estimator):
                                                                   gated),
                                              s_prior],
                            ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
-
-    def _tuning_changed(self) -> None:
-        nx = self.model.nx
-        self._tun[:nx * nx] = self.Q.ravel(order="F")
-        self._tun[nx * nx:] = self.R.ravel(order="F")
 
     def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
         r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
@@ -303,68 +293,12 @@ class UKF(Estimator):
         nx = self.model.nx
         return self._s[nx:].reshape(nx, nx, order="F").copy()
 
-    def _reset(self) -> None:
-        nx = self.model.nx
-        self._s[:nx] = self.x0
-        self._s[nx:] = self.P0.ravel(order="F")
-        # the anchor of a failed step: the filter state after the last step reported "ok"
-        # (the prior to begin with), in _s while every step is ok, else in _s_trusted
-        self._s_trusted = self._s.copy()
-        self._trusted = True  # _s holds the anchor
-
-    def _step(self, y, u, first):
-        self._y[:] = y
-        if self._u.size:
-            self._u[:] = self._transition(u)
-        fun = self._update if first else self._predict_update
-        s_new, e, flags, s_prior = fun.evaluate()
-        if flags[3]:
-            raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
-        if not flags[1]:
-            return self._recover(flags, s_prior)
-        nx = self.model.nx
-        suspect = flags[6] or flags[7]
-        if suspect and self._trusted:
-            self._s_trusted[:] = self._s
-        self._trusted = not suspect
-        if flags[7]:  # gated: the prediction, with P0 added
-            self._s[:] = s_prior
-            self._s[nx:] += self.P0.ravel(order="F")
-        else:
-            self._s[:] = s_new
-        info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
-                              innovation=e.copy(),
-                              nis=float(flags[0]) if flags[4] else float("nan"))  # no output
-        if suspect:
-            info.__dict__["status"] = self._consistency(float(flags[0]), int(flags[4]),
-                                                        bool(flags[7]))
-        return self._s[:nx].copy(), info
-
-    def _recover(self, flags, s_prior):
-        """A failed update: keep the prediction of a trusted estimate, or re-anchor on
-        the last trusted estimate with ``P + P0`` and update with this measurement."""
-        if self._trusted:
-            self._s_trusted[:] = self._s
-        if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
-            self._s[:] = s_prior
-            status = ("failed: update non-finite or its covariance not positive definite; "
-                      "kept the prediction")
-        else:
-            what = ("update non-finite or its covariance not positive definite" if flags[2]
-                    else "prediction F(x, u): covariance not positive definite" if flags[5]
-                    else "non-finite prediction F(x, u) at the sigma points")
-            nx = self.model.nx
-            x, P = self._anchor(self._s_trusted[:nx],
-                                self._s_trusted[nx:].reshape(nx, nx, order="F"))
-            self._s[:nx] = x
-            self._s[nx:] = P.ravel(order="F")
-            s_new, _, flags, _ = self._update.evaluate()
-            if flags[1]:
-                self._s[:] = s_new
-            status = (f"failed: {what}; re-anchored on the last trusted estimate "
-                      f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
-        self._trusted = False
-        return self.x, StepInfo(status=status, success=False, P=self.P)
+    def _failure_texts(self, flags) -> tuple[str, str]:
+        return ("failed: update non-finite or its covariance not positive definite; "
+                "kept the prediction",
+                "update non-finite or its covariance not positive definite" if flags[2]
+                else "prediction F(x, u): covariance not positive definite" if flags[5]
+                else "non-finite prediction F(x, u) at the sigma points")
 
 
 def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
