@@ -1,4 +1,5 @@
-"""EKF.filter: a whole record in one compiled call gives what the step loop (replay) gives."""
+"""EKF.filter and UKF.filter: a whole record in one compiled call gives what the step
+loop (replay) gives."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import pytest
 import estim
 
 TOL = 1e-12
+FILTERS = pytest.mark.parametrize("F", [estim.EKF, estim.UKF], ids=["ekf", "ukf"])
 
 
 def _same(est, Y, U=None, t=None):
@@ -57,25 +59,28 @@ def _missing(Y, rows=(3, 17, 18), single=(8, 25)):
 
 @pytest.mark.parametrize("name, n_steps", [("van_der_pol", 200), ("batch_reactor", 400)])
 @pytest.mark.parametrize("clip", [False, True])
-def test_scenarios_equal_the_step_loop(name, n_steps, clip):
+@FILTERS
+def test_scenarios_equal_the_step_loop(name, n_steps, clip, F):
     sc = getattr(estim.scenarios, name)(n_steps=n_steps)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=1, warn=False)
-    est = estim.EKF(sc.model, **sc.tuning, clip=clip)
+    est = F(sc.model, **sc.tuning, clip=clip)
     _same(est, log.y, log.u)
     _same(est, _missing(log.y), log.u)
 
 
-def test_a_record_of_one_sample_and_all_missing():
+@FILTERS
+def test_a_record_of_one_sample_and_all_missing(F):
     sc = estim.scenarios.van_der_pol(n_steps=20)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
-    est = estim.EKF(sc.model, **sc.tuning)
+    est = F(sc.model, **sc.tuning)
     _same(est, log.y[:1])
     res = _same(est, np.full((20, sc.model.ny), np.nan))
     assert np.isnan(res.nis).all() and (res.innovation == 0).all()
 
 
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
-def test_a_model_with_inputs(hold):
+@FILTERS
+def test_a_model_with_inputs(hold, F):
     m = estim.Model(states=["q", "v"], outputs=["q"], inputs=["u"],
                     ode=lambda x, u, p: ca.vertcat(x[1], -49 * x[0] - 1.4 * x[1] + 3 * u[0]),
                     output=lambda x, u, p: x[0] + 0.1 * u[0], dt=0.05, hold=hold)
@@ -84,12 +89,13 @@ def test_a_model_with_inputs(hold):
     tuning = dict(Q=1e-4, R=1e-3, x0=[0.2, 0.0], P0=0.5)
     truth = estim.simulate(m, estim.EKF(m, **tuning), x0=[0.0, 0.0], n_steps=T, Q=1e-4,
                            R=1e-3, inputs=U, seed=0)
-    est = estim.EKF(m, **tuning)
+    est = F(m, **tuning)
     _same(est, truth.y, U if hold == "foh" else U[:-1])
     _same(est, _missing(truth.y), U if hold == "foh" else U[:-1])
 
 
-def test_irregular_time_stamps():
+@FILTERS
+def test_irregular_time_stamps(F):
     m = estim.Model(states=["x1", "x2"], outputs=["y"], inputs=["u"],
                     ode=lambda x, u, p: ca.vertcat(x[1], (1 - x[0] ** 2) * x[1] - x[0] + u[0]),
                     output=lambda x, u, p: x[0], dt=0.1, variable_dt=True)
@@ -98,17 +104,18 @@ def test_irregular_time_stamps():
     t = np.concatenate([[0.0], np.cumsum(rng.uniform(0.02, 0.3, T - 1))])
     Y = np.sin(t)[:, None] + 0.05 * rng.standard_normal((T, 1))
     U = 0.1 * rng.standard_normal((T - 1, 1))
-    _same(estim.EKF(m, Q=1e-3, R=1e-2, x0=[0.0, 1.0], P0=1.0), Y, U, t)
+    _same(F(m, Q=1e-3, R=1e-2, x0=[0.0, 1.0], P0=1.0), Y, U, t)
 
 
 @pytest.mark.parametrize("gate", [None, 1e-6])
-def test_outliers_suspect_and_gated(gate):
+@FILTERS
+def test_outliers_suspect_and_gated(gate, F):
     sc = estim.scenarios.van_der_pol(n_steps=120)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
     Y = _missing(log.y)
     Y[30] += 50.0  # beyond both tails
     Y[31:34, 1] += 50.0  # one output: the NIS with one degree of freedom
-    est = estim.EKF(sc.model, **sc.tuning, gate=gate)
+    est = F(sc.model, **sc.tuning, gate=gate)
     res = _same(est, Y)
     word = "suspect" if gate is None else "rejected"
     assert res.status[30].startswith(word) and res.status[31].startswith(word)
@@ -125,7 +132,8 @@ def _two_tanks():
 
 
 @pytest.mark.parametrize("gate", [None, 1e-6])
-def test_non_finite_updates_finish_with_the_step_loop(gate):
+@FILTERS
+def test_non_finite_updates_finish_with_the_step_loop(gate, F):
     """Suspect or gated steps, then an estimate clipped to an empty tank: the recovery
     (re-anchoring on the last trusted estimate) is the step loop's."""
     m = _two_tanks()
@@ -136,20 +144,23 @@ def test_non_finite_updates_finish_with_the_step_loop(gate):
                            R=1e-4, inputs=U, seed=0, warn=False)
     Y = truth.y.copy()
     Y[15] += 0.5  # suspect (or rejected)
-    Y[20:23] = -5.0  # drives h2 below 0: clipped to the empty tank
-    res = _same(estim.EKF(m, **tuning, clip=True, gate=gate), Y, U[:-1])
+    Y[20:23] = -5.0  # drives h2 below 0: clipped to the empty tank (the EKF)
+    _same(F(m, **tuning, clip=True, gate=gate), Y, U[:-1])
+    Y[20:30] = -0.3  # within reach of the gate too: the UKF fails as well
+    res = _same(F(m, **tuning, clip=True, gate=gate), Y, U[:-1])
     failed = [k for k, s in enumerate(res.status) if s.startswith("failed")]
     assert failed and not res.success
     assert any(s.startswith("suspect" if gate is None else "rejected")
                for s in res.status[:failed[0]])
     # from the first sample on
-    _same(estim.EKF(m, Q=1e-4, R=1e-4, x0=[0.0, 0.0], P0=1.0, clip=True), Y, U[:-1])
+    _same(F(m, Q=1e-4, R=1e-4, x0=[0.0, 0.0], P0=1.0, clip=True), Y, U[:-1])
 
 
-def test_tuning_is_data():
+@FILTERS
+def test_tuning_is_data(F):
     sc = estim.scenarios.van_der_pol(n_steps=60)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
-    est = estim.EKF(sc.model, **sc.tuning, gate=1e-6)
+    est = F(sc.model, **sc.tuning, gate=1e-6)
     est.filter(log.y)
     est.set_tuning(Q=2 * np.asarray(sc.tuning["Q"]), P0=3 * np.asarray(sc.tuning["P0"]))
     Y = log.y.copy()
@@ -157,10 +168,11 @@ def test_tuning_is_data():
     _same(est, Y)
 
 
-def test_a_few_record_lengths_are_kept():
+@FILTERS
+def test_a_few_record_lengths_are_kept(F):
     sc = estim.scenarios.van_der_pol(n_steps=40)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
-    est = estim.EKF(sc.model, **sc.tuning)
+    est = F(sc.model, **sc.tuning)
     for T in range(5, 40, 3):
         _same(est, log.y[:T])
     assert len(est._whole_records) == 8 and 38 in est._whole_records

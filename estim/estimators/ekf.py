@@ -7,17 +7,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
-from estim._scan import blocked_scan
-from estim._validate import as_bool, as_inputs, as_intervals, as_record
-from estim.estimators.base import SUSPECT_TAIL, StepInfo, chi2_limit
-from estim.estimators.filtering import FilterResult
+from estim._validate import as_bool
+from estim.estimators.base import SUSPECT_TAIL, chi2_limit
 from estim.estimators.fused import FusedKalman, matrix
 from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
-
-#: :meth:`EKF.filter` keeps its compiled Function for this many record lengths.
-_RECORD_LENGTHS_KEPT = 8
 
 
 class EKF(FusedKalman):
@@ -213,134 +208,6 @@ class EKF(FusedKalman):
         clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
             else None
         return rts(self, Y, U, t, predict, clip)
-
-    def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
-               t: ArrayLike | None = None) -> FilterResult:
-        r"""Filter a whole record in one compiled call.
-
-        The fused step (prediction, Jacobians, update, clipping, the NIS and its
-        flags) is scanned over the record by one CasADi Function (``mapaccum`` in
-        blocks of about :math:`\sqrt T` steps, built once per record length and
-        kept), which gives what :func:`~estim.replay` or :meth:`step` at every sample
-        gives, to rounding: the same inputs (held or sampled), missing outputs (NaN)
-        and ``t``. A suspect step keeps its update; a step beyond ``gate`` keeps the
-        prediction with ``P0`` added, inside the scan too. A non-finite update (the
-        model or its Jacobian not finite where it is evaluated), whose recovery
-        depends on the filter's history, ends the compiled part: the filter
-        restarts from the state before that step as the step loop left it (its
-        last trusted estimate included) and finishes the record step by step.
-
-        Parameters
-        ----------
-        Y : (T, ny) array
-            Measurements, NaN where missing.
-        U : (T-1, nu) or (T, nu) array, optional
-            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
-            the input at each sample), as in ``FullInformation.fit``. Zero if omitted.
-        t : (T,) array, optional
-            Sample times, for a model built with ``variable_dt=True``.
-
-        Returns
-        -------
-        FilterResult
-            ``x (T, nx)``, ``P (T, nx, nx)``, ``innovation (T, ny)``, ``nis (T,)``,
-            ``status`` and ``success``. The filter is left at the end of the record
-            (after a :meth:`reset` at its start), as by the step loop.
-        """
-        m = self.model
-        nx, ny = m.nx, m.ny
-        Y = as_record(Y, ny, "Y", names=m.output_names, what="outputs")
-        T = Y.shape[0]
-        U = as_inputs(U, T, m)
-        dts = as_intervals(t, T, m)
-        # step's input u at every sample (the input since the previous sample, or at this
-        # one for sampled inputs) and the transitions' inputs w as step makes them
-        before = np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        steps_u = U if m.sampled else before
-        W = np.hstack([before, U]) if m.sampled else before
-        if m.variable_dt:
-            W = np.hstack([W, np.concatenate([[m.dt], dts])[:, None]])
-        self.reset()
-        S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
-            self._s, Y.T, W.T, self._tun, self.P0.ravel(order="F")))
-        failed = np.flatnonzero(F[1] == 0)
-        n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
-        X, P = np.empty((T, nx)), np.full((T, nx, nx), np.nan)
-        X[:n] = S[:nx, :n].T
-        P[:n] = S[nx:, :n].T.reshape(n, nx, nx).transpose(0, 2, 1)  # column-major
-        innovation, nis = np.full((T, ny), np.nan), np.full(T, np.nan)
-        innovation[:n] = E[:, :n].T
-        measured = F[4, :n] > 0
-        nis[:n][measured] = F[0, :n][measured]
-        suspect = (F[6, :n] + F[7, :n]) > 0
-        status = np.full(n, "ok", dtype=object)
-        for k in np.flatnonzero(suspect):
-            status[k] = self._consistency(float(F[0, k]), int(F[4, k]), bool(F[7, k]))
-        status = status.tolist()
-        if n:  # the filter as the step loop leaves it after sample n - 1
-            trusted = np.flatnonzero(~suspect)
-            self._s[:] = S[:, n - 1]
-            if trusted.size:
-                self._s_trusted[:] = S[:, trusted[-1]]
-            self._trusted = not suspect[-1]
-            self._first, self._k = False, n
-            if m.sampled:
-                self._u_last = U[n - 1].copy()
-            self._info = StepInfo._fast(P=P[n - 1].copy(), innovation=innovation[n - 1].copy(),
-                                        nis=float(nis[n - 1]), status=status[-1])
-        success = True
-        for k in range(n, T):  # from a non-finite update on: the step loop
-            dt = None if dts is None or k == 0 else float(dts[k - 1])
-            X[k] = self.step(Y[k].copy(), steps_u[k].copy(), dt=dt)
-            info = self.info
-            if info.P is not None:
-                P[k] = info.P
-            if info.innovation is not None:
-                innovation[k] = info.innovation
-            nis[k] = info.nis
-            status.append(info.status)
-            success = success and info.success
-        return FilterResult(x=X, P=P, innovation=innovation, nis=nis, status=tuple(status),
-                            success=success)
-
-    def _whole_record(self, T: int) -> FastFunction:
-        """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
-        (the first an update), the filter state, innovation and flags of every sample
-        side by side; a gated step keeps the prediction with ``P0`` added. Kept for the
-        last :data:`_RECORD_LENGTHS_KEPT` record lengths."""
-        cache = self.__dict__.setdefault("_whole_records", {})
-        if T in cache:
-            return cache[T]
-        m = self.model
-        nx, ny, nw = m.nx, m.ny, m.nw
-
-        def scanned(predict: bool) -> ca.Function:
-            s, w = ca.SX.sym("s", nx + nx * nx), ca.SX.sym("w", nw)
-            y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nx * nx + ny * ny)
-            P0 = ca.SX.sym("P0", nx * nx)
-            s_new, e, flags, s_prior = self._build(predict)(s, w, y, tun)
-            s_next = ca.if_else(flags[7], s_prior + ca.vertcat(ca.SX(nx, 1), P0), s_new)
-            return ca.Function("ekf_record_step" if predict else "ekf_record_first",
-                               [s, w, y, tun, P0], [s_next, s_next, e, flags],
-                               ["s", "w", "y", "tuning", "P0"],
-                               ["s_next", "s_out", "innovation", "flags"])
-
-        s0 = ca.MX.sym("s0", nx + nx * nx)
-        Y, W = ca.MX.sym("Y", ny, T), ca.MX.sym("W", nw, T)
-        tun, P0 = ca.MX.sym("tuning", nx * nx + ny * ny), ca.MX.sym("P0", nx * nx)
-        s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
-        S, E, F = s1, e0, f0
-        if T > 1:
-            scan = blocked_scan(scanned(True), T - 1, (1, 2))
-            _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
-            S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
-        fun = FastFunction(ca.Function(f"ekf_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
-                                       ["s0", "Y", "W", "tuning", "P0"],
-                                       ["S", "innovation", "flags"]))
-        if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
-            del cache[next(iter(cache))]
-        cache[T] = fun
-        return fun
 
     @property
     def x(self) -> np.ndarray:

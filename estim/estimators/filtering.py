@@ -1,4 +1,5 @@
-"""The result of a whole record filtered in one call (:meth:`EKF.filter <estim.EKF.filter>`)."""
+"""The result of a whole record filtered in one call (:meth:`EKF.filter <estim.EKF.filter>`,
+:meth:`UKF.filter <estim.UKF.filter>`)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FilterResult:
-    """A record filtered by :meth:`EKF.filter <estim.EKF.filter>`: what
-    :func:`~estim.replay` (``step`` at every sample) gives, sample by sample.
+    """A record filtered by :meth:`EKF.filter <estim.EKF.filter>` or
+    :meth:`UKF.filter <estim.UKF.filter>`: what :func:`~estim.replay` (``step`` at
+    every sample) gives, sample by sample.
 
     Attributes
     ----------
@@ -19,8 +21,8 @@ class FilterResult:
     P : (T, nx, nx) array
         Their covariances.
     innovation : (T, ny) array
-        The innovations :math:`y_k - h(\\bar x_k)` (0 where an output is missing, NaN
-        at a failed step).
+        The innovations :math:`y_k - h(\\bar x_k)` (for the UKF, :math:`y_k` less the
+        sigma-point mean of :math:`h`; 0 where an output is missing, NaN at a failed step).
     nis : (T,) array
         Normalised innovations squared (NaN without any output measured, or at a
         failed step).
