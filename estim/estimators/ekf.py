@@ -8,7 +8,6 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool
-from estim.estimators.base import SUSPECT_TAIL, chi2_limit
 from estim.estimators.fused import FusedKalman, matrix
 from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
@@ -137,23 +136,9 @@ class EKF(FusedKalman):
         ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
         ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
         ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
-        measured = ca.sum1(mask) if ny else ca.SX(0)
-        # beyond the chi-square tail for the number of outputs measured (see SUSPECT_TAIL)
-        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
-
-        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
-            if not ny or tail is None:
-                return ca.SX(0)
-            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
-            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
-
-        suspect, gated = beyond(SUSPECT_TAIL), beyond(self.gate)
         name = "ekf_predict_update" if predict else "ekf_update"
-        return ca.Function(name, [s, u, y, tun], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
-                                                                  measured, ok_mean, suspect,
-                                                                  gated),
-                                             s_prior],
-                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
+        return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
+                                    ok_mean, mask, s_prior)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> SmoothResult:

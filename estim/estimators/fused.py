@@ -20,7 +20,7 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction
 from estim._scan import blocked_scan
 from estim._validate import as_inputs, as_intervals, as_record
-from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
 from estim.estimators.filtering import FilterResult
 
 #: :meth:`~FusedKalman.filter` keeps its compiled Function for this many record lengths.
@@ -40,6 +40,27 @@ class FusedKalman(Estimator):
     which :meth:`filter` also scans over whole records) and say what a failed step was
     in :meth:`_failure_texts`.
     """
+
+    def _fused_function(self, name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf,
+                        ok_mean, mask, s_prior) -> ca.Function:
+        r"""The step's CasADi Function ``(s, u, y, tuning) -> (s_new, innovation, flags,
+        s_prior)`` from the filter's expressions: the flags (see the module) with the
+        suspect and gate tests, NIS beyond the :math:`\chi^2` tail of the number of
+        outputs measured (``SUSPECT_TAIL``, and ``gate`` when set)."""
+        ny = self.model.ny
+        measured = ca.sum1(mask) if ny else ca.SX(0)
+        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
+
+        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
+            if not ny or tail is None:
+                return ca.SX(0)
+            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
+            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
+
+        flags = ca.vertcat(nis, ok, ok_prior, y_inf, measured, ok_mean,
+                           beyond(SUSPECT_TAIL), beyond(self.gate))
+        return ca.Function(name, inputs, [s_new, e, flags, s_prior],
+                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
 
     def _tuning_changed(self) -> None:
         nx = self.model.nx

@@ -8,7 +8,6 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_float
-from estim.estimators.base import SUSPECT_TAIL, chi2_limit
 from estim.estimators.fused import FusedKalman, matrix
 from estim.estimators.nlp import is_diagonal
 from estim.estimators.smoothing import SmoothResult, rts, transitions
@@ -187,22 +186,9 @@ class UKF(FusedKalman):
         s_prior = ca.vertcat(xb, ca.vec(Pb))
         # finite, and a covariance the next sigma points can be drawn from
         ok = ca.logic_and(_finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
-        measured = ca.sum1(mask) if ny else ca.SX(0)
-        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
-
-        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
-            if not ny or tail is None:
-                return ca.SX(0)
-            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
-            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
-
-        suspect, gated = beyond(SUSPECT_TAIL), beyond(self.gate)
         name = "ukf_predict_update" if predict else "ukf_update"
-        return ca.Function(name, [s, u, y, tun], [s_new, e, ca.vertcat(nis, ok, ok_prior, y_inf,
-                                                                  measured, ok_mean, suspect,
-                                                                  gated),
-                                             s_prior],
-                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
+        return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
+                                    ok_mean, mask, s_prior)
 
     def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
         r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
