@@ -6,10 +6,8 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._fast import FastFunction
 from estim._validate import as_bool
-from estim.estimators.fused import FusedKalman, matrix
-from estim.estimators.nlp import is_diagonal
+from estim.estimators.fused import FusedKalman
 from estim.estimators.smoothing import SmoothResult, rts, transitions
 from estim.model import Model
 
@@ -83,32 +81,12 @@ class EKF(FusedKalman):
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
-        nx = model.nx
-        # the filter state [x; vec(P)] lives where both compiled functions read it
-        self._s = np.zeros(nx + nx * nx)
-        self._u = np.zeros(model.nw)  # the transition's input (both ends if sampled)
-        self._y = np.zeros(model.ny)
-        self._tun = np.zeros(nx * nx + model.ny ** 2)  # Q and R, read by both functions
-        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
-        bound = [self._s, self._u, self._y, self._tun]
-        self._update = FastFunction(self._build(predict=False), bound)
-        self._predict_update = FastFunction(self._build(predict=True), bound)
-        self._tuning_changed()
-        self._reset()
+        self._compile()
 
     def _build(self, predict: bool) -> ca.Function:
         m = self.model
-        nx, ny = m.nx, m.ny
-        s = ca.SX.sym("s", nx + nx * nx)
-        x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
-        u = ca.SX.sym("u", m.nw)
-        y = ca.SX.sym("y", ny)
-        tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
-        Q, R = (matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
-                matrix(tun[nx * nx:], ny, self._diagonal["R"]))
-        p = ca.DM(m.p)
-        mask = ca.fabs(y) < ca.inf  # 0 for NaN (missing) and for +-inf (rejected)
-        y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
+        nx = m.nx
+        s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
         if predict:
             xb = m.F(x, u, p)
             A = m.F_x(x, u, p)

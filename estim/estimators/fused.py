@@ -22,6 +22,7 @@ from estim._scan import blocked_scan
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
 from estim.estimators.filtering import FilterResult
+from estim.estimators.nlp import is_diagonal
 
 #: :meth:`~FusedKalman.filter` keeps its compiled Function for this many record lengths.
 _RECORD_LENGTHS_KEPT = 8
@@ -40,6 +41,40 @@ class FusedKalman(Estimator):
     which :meth:`filter` also scans over whole records) and say what a failed step was
     in :meth:`_failure_texts`.
     """
+
+    def _compile(self) -> None:
+        """The buffers both compiled steps read (filter state ``[x; vec(P)]``, the
+        transition's input, ``y``, the tuning ``[vec(Q); vec(R)]``), the two steps
+        (first: update only; later: predict and update), then tuning and reset."""
+        m = self.model
+        nx = m.nx
+        self._s = np.zeros(nx + nx * nx)
+        self._u = np.zeros(m.nw)  # the transition's input (both ends if sampled)
+        self._y = np.zeros(m.ny)
+        self._tun = np.zeros(nx * nx + m.ny ** 2)
+        self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
+        bound = [self._s, self._u, self._y, self._tun]
+        self._update = FastFunction(self._build(predict=False), bound)
+        self._predict_update = FastFunction(self._build(predict=True), bound)
+        self._tuning_changed()
+        self._reset()
+
+    def _symbols(self):
+        """The symbols of a step: ``s, x, P, u, y, tuning``, the ``Q, R`` read from the
+        tuning (diagonal only where built diagonal), the parameters ``p``, the mask of
+        measured outputs (0 for NaN and for ±inf) and the count of ±inf in ``y``."""
+        m = self.model
+        nx, ny = m.nx, m.ny
+        s = ca.SX.sym("s", nx + nx * nx)
+        x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
+        u = ca.SX.sym("u", m.nw)
+        y = ca.SX.sym("y", ny)
+        tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
+        Q, R = (matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
+                matrix(tun[nx * nx:], ny, self._diagonal["R"]))
+        mask = ca.fabs(y) < ca.inf
+        y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
+        return s, x, P, u, y, tun, Q, R, ca.DM(m.p), mask, y_inf
 
     def _fused_function(self, name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf,
                         ok_mean, mask, s_prior) -> ca.Function:
