@@ -39,20 +39,12 @@ from dataclasses import dataclass
 import casadi
 import filterpy
 import numpy as np
+from ekf import rk4, tuning  # the same RK4 and full-array tuning as benchmarks/ekf.py
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 import estim
 
 K1, KM1, K2, KM2, GAIN = 0.5, 0.05, 0.2, 0.01, 32.84
-
-
-def rk4(f: Callable, x: np.ndarray, h: float) -> np.ndarray:
-    """One classic RK4 step of size ``h``."""
-    k1 = f(x)
-    k2 = f(x + h / 2 * k1)
-    k3 = f(x + h / 2 * k2)
-    k4 = f(x + h * k3)
-    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 def reactor_ode(x: np.ndarray) -> np.ndarray:
@@ -93,18 +85,6 @@ def check_model(p: Problem, n_points: int = 20) -> float:
         for a, b in ((p.fx(x, m.dt), m.f(x)), (p.hx(x), m.h(x))):
             worst = max(worst, float(np.max(np.abs(a - b)) / max(1.0, np.max(np.abs(b)))))
     return worst
-
-
-def tuning(sc: estim.Scenario) -> dict[str, np.ndarray]:
-    """The scenario's tuning as full arrays (what filterpy wants)."""
-    m, t = sc.model, sc.tuning
-
-    def cov(v, n):
-        v = np.asarray(v, float)
-        return v if v.ndim == 2 else np.diag(np.broadcast_to(v, (n,))).astype(float)
-
-    return {"Q": cov(t["Q"], m.nx), "R": cov(t["R"], m.ny),
-            "x0": np.asarray(t["x0"], float).copy(), "P0": cov(t["P0"], m.nx)}
 
 
 def make_filterpy_ukf(p: Problem) -> UnscentedKalmanFilter:
