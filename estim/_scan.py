@@ -8,7 +8,8 @@ import casadi as ca
 import numpy as np
 
 
-def blocked_scan(step: ca.Function, N: int, sequences: Collection[int]) -> ca.Function:
+def blocked_scan(step: ca.Function, N: int, sequences: Collection[int], *,
+                 expand: bool = True) -> ca.Function:
     r"""``step`` (``(s, ...) -> (s_new, ...)``) scanned over ``N`` samples.
 
     The inputs numbered in ``sequences`` take one column per sample (``N`` columns);
@@ -18,7 +19,8 @@ def blocked_scan(step: ca.Function, N: int, sequences: Collection[int]) -> ca.Fu
     It is built as blocks of about :math:`\sqrt N` steps (``mapaccum``) scanned in turn,
     so that the graph and those of its derivatives hold :math:`O(\sqrt N)` calls instead
     of :math:`N` (whose construction would dominate a short run). An ``SXFunction``
-    step is expanded within each block: no call overhead per step.
+    step is expanded within each block (no call overhead per step) unless ``expand``
+    is False (for C code generation: the step's code once, called in loops).
     """
     B = max(8, int(np.sqrt(N)))
     n_blocks, rest = divmod(N, B)
@@ -39,7 +41,7 @@ def blocked_scan(step: ca.Function, N: int, sequences: Collection[int]) -> ca.Fu
     parts, s = [], args[0]
     if n_blocks:
         block = last_state(step.mapaccum(f"{step.name()}_{B}", B))
-        if step.is_a("SXFunction"):
+        if expand and step.is_a("SXFunction"):
             block = block.expand()
         outer = last_state(block.mapaccum(f"{step.name()}_{n_blocks}x{B}", n_blocks))
         s, *out = run(outer, s, 0, n_blocks * B)

@@ -128,6 +128,9 @@ class Comparison:
     parallel : str
         With ``n_jobs != 1``, how the runs were distributed and why ("serial: ..."
         or "parallel (...): ..."), printed under the table; empty with ``n_jobs=1``.
+    batched : str
+        Which estimators ran all seeds in one batched call (``compare(batch=)``) and
+        how long that took, printed under the table; empty when none did.
     """
 
     scenario: str
@@ -137,6 +140,7 @@ class Comparison:
     logs: dict[str, list[Log]] = field(default_factory=dict)
     remarks: dict[str, str] = field(default_factory=dict)
     parallel: str = ""
+    batched: str = ""
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
@@ -201,6 +205,8 @@ class Comparison:
                                        subsequent_indent="    ")
         if self.parallel:
             lines += [""] + textwrap.wrap(f"Runs: {self.parallel}", width=len(head))
+        if self.batched:
+            lines += [""] + textwrap.wrap(f"Batched: {self.batched}", width=len(head))
         return "\n".join(lines)
 
     def plot(self, path: str | os.PathLike[str] | None = None, *, kind: str = "overview",
@@ -272,7 +278,9 @@ class Comparison:
                 f"<p><small>{html.escape(self.LEGEND)}</small></p>"
                 + (f"<p><b>Notes</b></p><ul>{notes}</ul>" if notes else "")
                 + (f"<p><small>Runs: {html.escape(self.parallel)}</small></p>"
-                   if self.parallel else ""))
+                   if self.parallel else "")
+                + (f"<p><small>Batched: {html.escape(self.batched)}</small></p>"
+                   if self.batched else ""))
 
 
 def _fmt_time(seconds: float) -> str:
@@ -358,6 +366,30 @@ def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_lo
     return os.getpid(), start, [_run_seed(scenario, est, s, burn_in, keep_logs) for s in seeds]
 
 
+def _simulate_plant(scenario: Scenario, seeds: list[int]):
+    from estim.batch import simulate_plant
+
+    return simulate_plant(scenario, seeds)
+
+
+def _threads(n: int) -> int:
+    from estim.batch import threads
+
+    return threads(n)
+
+
+def _run_batch(scenario: Scenario, est: Estimator, plant, burn_in: int, keep_logs: bool
+               ) -> tuple[list[dict], float, str]:
+    """Every seed's summary from the batched path (and the call's seconds and how it
+    ran); the seeds it cannot take (a plant
+    that left the finite numbers, a failed update) by :func:`_run_seed`."""
+    from estim.batch import run_seeds
+
+    runs, seconds, how = run_seeds(scenario, est, plant, burn_in, keep_logs)
+    return [r if r is not None else _run_seed(scenario, est, s, burn_in, keep_logs)
+            for s, r in zip(plant.seeds, runs, strict=True)], seconds, how
+
+
 def _peak(log: Log, seed: int) -> tuple[float, str]:
     """The largest absolute estimation error of a run after the start-up transient (the
     first 10 % of the samples, as the error plots shade it), and where:
@@ -387,15 +419,20 @@ def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
         se = float(np.std(ne, ddof=1) / np.sqrt(len(ne))) if len(ne) > 1 else np.inf
         consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
     size, where = max((r["peak"] for r in done), key=lambda p: -np.inf if p[0] != p[0] else p[0])
-    t = np.concatenate([r["times"] for r in done])
+    uniform = {r.get("step") for r in done}
+    if len(uniform) == 1 and None not in uniform:  # batched: one time per step for all
+        median = p90 = float(uniform.pop())
+    else:
+        t = np.concatenate([r["times"] for r in done])
+        median, p90 = float(np.median(t)), float(np.percentile(t, 90))
     return ComparisonRow(
         name=name, rmse_mean=float(errs.mean()),
         rmse_std=float(errs.std(ddof=1)) if len(errs) > 1 else 0.0,
         rmse_per_state=dict(zip(names, np.mean([r["per_state"] for r in done], axis=0)
                                 .tolist(), strict=True)),
         nees_mean=float(np.mean(ne)) if np.isfinite(ne).all() else nan,
-        consistent=consistent, step_median=float(np.median(t)),
-        step_p90=float(np.percentile(t, 90)), failures=sum(r["failures"] for r in done),
+        consistent=consistent, step_median=median, step_p90=p90,
+        failures=sum(r["failures"] for r in done),
         runs=len(done), flagged=sum(r["flagged"] for r in done),
         steps=sum(r["steps"] for r in done), errors=errors, nees_se=se,
         largest_error=f"{size:.3g} {where}" if where else "", kind=done[0]["kind"],
@@ -496,7 +533,8 @@ def _fmt_s(seconds: float) -> str:
 def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estimator],
             seeds: Iterable[int] = range(5), *, n_jobs: int = 1, backend: str = "loky",
             keep_logs: bool = False, burn_in: int = 0, progress: bool | None = None,
-            min_parallel_seconds: float | None = None) -> Comparison:
+            min_parallel_seconds: float | None = None, batch: bool | None = None
+            ) -> Comparison:
     """Run every estimator on the scenario for every seed (same noise per seed).
 
     Parameters
@@ -534,6 +572,16 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         when the estimated serial time of the other runs is at least that many
         seconds (``0``: always). :attr:`Comparison.parallel` says what was done
         and why. The numbers are the same either way.
+    batch : bool, optional
+        Run the filters that support it (:class:`~estim.EKF`, :class:`~estim.UKF`)
+        over all seeds at once (see :mod:`estim.batch`): the plant of every seed
+        in one compiled call, then each such filter over every record in one
+        compiled call, on the machine's cores. The numbers are those of the
+        per-run path (a seed whose filter meets a failed update is run per run);
+        their ``step`` time is that call's time per sample. By default (None)
+        whenever the scenario's inputs are known in advance (no controller);
+        ``False``: never; ``True``: a ValueError if the scenario cannot be batched.
+        :attr:`Comparison.batched` says what was batched.
 
     Returns
     -------
@@ -546,6 +594,15 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
     if min_parallel_seconds is not None:
         min_parallel_seconds = as_float(min_parallel_seconds, "min_parallel_seconds",
                                         minimum=0.0)
+    batch = as_bool(batch, "batch", allow_none=True)
+    if batch is not False:
+        from estim.batch import unsupported
+
+        why = unsupported(scenario)
+        if why and batch:
+            raise ValueError(f"batch=True: the runs of {scenario.name} cannot be batched: "
+                             f"{why}")
+        batch = not why
     workers = (os.cpu_count() or 1) if n_jobs < 0 else int(n_jobs)
     total = len(estimators) * len(seeds)
     show = progress if progress is not None else (total > 20 and sys.stderr.isatty())
@@ -555,10 +612,19 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
     # timed (build + first run, then a run), to decide whether workers pay
     built, costs = {}, {}
     pilot = seeds if n_jobs == 1 else seeds[:2]
+    plant, batched = None, []
     for name, spec in estimators.items():
         t0 = time.perf_counter()
         built[name] = _build(spec, scenario)
         build = time.perf_counter() - t0
+        if batch and hasattr(built[name], "_filter_seeds"):
+            plant = plant or _simulate_plant(scenario, seeds)
+            per_name[name], seconds, how = _run_batch(scenario, built[name], plant,
+                                                      burn_in, keep_logs)
+            batched.append(f"{name} ({_fmt_s(seconds)}, {how})")
+            costs[name] = (0.0, 0.0, 0)
+            bar.update(len(seeds))
+            continue
         times = []
         for s in pilot:
             t1 = time.perf_counter()
@@ -567,7 +633,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
             bar.update(1)
         setup = build + (times[0] - times[-1] if len(times) > 1 else 0.0)
         costs[name] = (max(setup, 0.0), times[-1], len(seeds) - len(pilot))
-    rest = seeds[len(pilot):]
+    rest = seeds[len(pilot):] if any(n for _, _, n in costs.values()) else []
     note = ""
     if rest:
         serial_s = sum(per * n for _, per, n in costs.values())
@@ -584,6 +650,8 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         if not go:
             note = f"serial: {estimate}"
             for name in estimators:
+                if not costs[name][2]:
+                    continue
                 for s in rest:
                     per_name[name].append(_run_seed(scenario, built[name], s, burn_in,
                                                     keep_logs))
@@ -622,8 +690,14 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         how = "forced, " if min_parallel_seconds is not None else ""
         note = (f"parallel ({how}{len(tasks)} chunks): {estimate}; took {_fmt_s(wall)}, "
                 f"the workers started in {_fmt_s(rec['warm' if warm else 'cold'])}")
-    elif n_jobs != 1 and not rest:
+    elif n_jobs != 1 and not rest and len(batched) < len(estimators):
         note = "serial: every run was one of the first runs, timed in this process"
+    batch_note = ""
+    if batched:
+        batch_note = (f"{', '.join(batched)}: the {len(seeds)} runs of each in one compiled "
+                      f"call over the seeds on {_threads(len(seeds))} thread(s), after the "
+                      f"plant's ({_fmt_s(plant.seconds)}, {plant.how}); their step time is "
+                      f"that call's time per sample")
     rows, all_rmse, logs = [], {}, {}
     names = scenario.model.state_names
     order = {s: i for i, s in enumerate(seeds)}
@@ -634,7 +708,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seeds, rows, all_rmse, logs, remarks=scenario.remarks,
-                      parallel=note)
+                      parallel=note, batched=batch_note)
 
 
 class _NoBar:

@@ -47,7 +47,7 @@ def test_local_dask_cluster_equals_serial():
     with distributed.Client(n_workers=2, threads_per_worker=1, processes=False,
                             dashboard_address=None):
         on_dask = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(3), n_jobs=2,
-                                backend="dask", min_parallel_seconds=0)
+                                backend="dask", min_parallel_seconds=0, batch=False)
     assert on_dask.parallel.startswith("parallel")
     _check_same(serial, on_dask)
 
@@ -58,13 +58,14 @@ def test_small_workload_runs_serially(monkeypatch):
     sc = estim.scenarios.van_der_pol(n_steps=60)
     serial = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(4))
     assert serial.parallel == "" and "Runs:" not in serial.table()
-    res = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(4), n_jobs=2)
+    res = estim.compare(sc, {"ekf": estim.EKF}, seeds=range(4), n_jobs=2, batch=False)
     assert res.parallel.startswith("serial: 2 runs estimated at ")
     assert "starting cold workers: about 1 s" in res.parallel
     assert "Runs: serial:" in res.table() and "Runs: serial:" in res._repr_html_()
     _check_same(serial, res)
     # every run among the timed first ones
-    assert estim.compare(sc, {"ekf": estim.EKF}, seeds=[3, 1], n_jobs=2).parallel == (
+    assert estim.compare(sc, {"ekf": estim.EKF}, seeds=[3, 1], n_jobs=2,
+                         batch=False).parallel == (
         "serial: every run was one of the first runs, timed in this process")
 
 

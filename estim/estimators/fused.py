@@ -13,6 +13,8 @@ re-anchors on the last trusted estimate with ``P + P0`` (see
 
 from __future__ import annotations
 
+import time
+
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
@@ -259,14 +261,15 @@ class FusedKalman(Estimator):
         return FilterResult(x=X, P=P, innovation=innovation, nis=nis, status=tuple(status),
                             success=success)
 
-    def _whole_record(self, T: int) -> FastFunction:
+    def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
         (the first an update), the filter state, innovation and flags of every sample
         side by side; a gated step keeps the prediction with ``P0`` added. Kept for the
-        last :data:`_RECORD_LENGTHS_KEPT` record lengths."""
+        last :data:`_RECORD_LENGTHS_KEPT` record lengths. Not ``expand``: the step is
+        called in loops instead of inlined (the form to compile to C)."""
         cache = self.__dict__.setdefault("_whole_records", {})
-        if T in cache:
-            return cache[T]
+        if (T, expand) in cache:
+            return cache[T, expand]
         m = self.model
         nx, ny, nw = m.nx, m.ny, m.nw
 
@@ -287,7 +290,7 @@ class FusedKalman(Estimator):
         s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
         S, E, F = s1, e0, f0
         if T > 1:
-            scan = blocked_scan(scanned(True), T - 1, (1, 2))
+            scan = blocked_scan(scanned(True), T - 1, (1, 2), expand=expand)
             _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
             S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
         fun = FastFunction(ca.Function(f"{self.name}_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
@@ -295,5 +298,69 @@ class FusedKalman(Estimator):
                                        ["S", "innovation", "flags"]))
         if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
             del cache[next(iter(cache))]
-        cache[T] = fun
+        cache[T, expand] = fun
         return fun
+
+    def _filter_seeds(self, Y: np.ndarray, u_step: np.ndarray) -> dict:
+        r"""Filter the records of several seeds at once, as :meth:`step` at every sample
+        after a :meth:`reset` (the batched path of :func:`~estim.compare`).
+
+        Parameters
+        ----------
+        Y : (S, T, ny) array
+            The seeds' measurements.
+        u_step : (T, nu) array
+            The input given to :meth:`step` with each sample (the same for every seed).
+
+        Returns
+        -------
+        dict
+            ``x (S, T, nx)``, ``P (S, T, nx, nx)``, ``nis (S, T)``, ``status`` (per
+            seed the status of every sample that is not ``"ok"``, ``{k: status}``; None
+            for a seed whose filter met a failed update: its recovery depends on the
+            filter's history, so that seed must be run step by step), ``seconds`` (wall
+            time of the call over the seeds), ``total`` (with the set-up and the
+            statuses) and ``how`` (``"compiled"`` or ``"interpreted"``, see
+            :func:`estim.batch.seed_map`).
+        """
+        from estim.batch import seed_map
+
+        m = self.model
+        nx = m.nx
+        S, T = Y.shape[:2]
+        t0 = time.perf_counter()
+        W = self._step_transitions(u_step)
+        self.reset()
+        key = ("filter", self._predict_update.fun.serialize(), self._update.fun.serialize(), T)
+        fun = seed_map(key, lambda expand: self._whole_record(T, expand).fun, S * T)
+        t1 = time.perf_counter()
+        Sx, _, F = fun([self._s, Y.reshape(S, -1), W.ravel(), self._tun,
+                        self.P0.ravel(order="F")], S)
+        seconds = time.perf_counter() - t1
+        Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
+        X = Sx[:, :, :nx]
+        P = Sx[:, :, nx:].reshape(S, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
+        nis = np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan)
+        failed = (F[:, :, 1] == 0).any(axis=1)
+        suspect = (F[:, :, 6] + F[:, :, 7]) > 0
+        status: list[dict[int, str] | None] = []
+        for i in range(S):
+            status.append(None if failed[i] else {
+                int(k): self._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
+                for k in np.flatnonzero(suspect[i])})
+        self.reset()
+        return {"x": X, "P": P, "nis": nis, "status": status, "seconds": seconds,
+                "total": time.perf_counter() - t0, "how": fun.how}
+
+    def _step_transitions(self, u_step: np.ndarray) -> np.ndarray:
+        """The transitions' inputs ``(T, nw)`` that :meth:`step` makes from the inputs it
+        is given at each sample (after a reset, with the model's ``dt``)."""
+        u_step = np.asarray(u_step, dtype=float).reshape(len(u_step), self.model.nu)
+        if self._plain:
+            return u_step
+        last, rows = self._u_zero, []
+        for u in u_step:
+            rows.append(self.model.transition(last, u, None))
+            if self._sampled:
+                last = u
+        return np.array(rows).reshape(len(u_step), self.model.nw)

@@ -1,0 +1,177 @@
+r"""CasADi Functions compiled to machine code once per machine, kept in a user cache.
+
+:func:`compiled` generates the C code of a Function (CasADi's code generator),
+compiles it into a shared library with the system C compiler and loads it
+(``casadi.external``). The library is kept in a per-user cache directory under a
+key that hashes the generated code, the compiler (its path and version), the
+flags and the CasADi version, so a later process, or a parallel worker, loads it
+instead of compiling (a few milliseconds against seconds).
+
+The cache directory is ``$ESTIM_CACHE_DIR`` if set, else
+``$XDG_CACHE_HOME/estim`` (``~/.cache/estim``; ``%LOCALAPPDATA%\estim`` on
+Windows), created with private permissions (``0700``); never the current
+directory. Each entry is a library and a small JSON record holding its key and the
+SHA-256 of the library: an entry whose record is missing, unreadable, of another
+key, or whose library does not match its hash or does not load is compiled again.
+Libraries are written under a temporary name and renamed into place, so processes
+compiling the same Function at once never see a partial file.
+
+Without a C compiler (``$CC``, else ``cc``, ``gcc`` or ``clang`` on the ``PATH``)
+:func:`compiled` raises :class:`CompilerUnavailable`, whose message says what to
+install; callers that have an interpreted path fall back to it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import casadi as ca
+
+#: Flags of every compilation: optimised, position-independent, no fast-math (the
+#: generated code then computes what CasADi's interpreter computes, operation for
+#: operation).
+FLAGS = ("-O2", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
+
+_LOCK = threading.Lock()
+_COMPILER: dict[str, tuple[str, str] | None] = {}
+_LOADED: dict[str, ca.Function] = {}
+
+
+class CompilerUnavailable(RuntimeError):
+    """No C compiler was found (or it failed): the interpreted path is used instead."""
+
+
+def cache_directory() -> Path:
+    """The cache directory (created, mode 0700): ``$ESTIM_CACHE_DIR``, else the user's
+    cache directory followed by ``estim``."""
+    env = os.environ.get("ESTIM_CACHE_DIR")
+    if env:
+        path = Path(env).expanduser()
+    elif sys.platform == "win32":
+        path = Path(os.environ.get("LOCALAPPDATA", Path.home() / "AppData" / "Local")) / "estim"
+    else:
+        base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+        path = Path(base) / "estim"
+    path = path.absolute()
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    return path
+
+
+def compiler() -> tuple[str, str] | None:
+    """``(path, version line)`` of the C compiler (``$CC``, ``cc``, ``gcc``, ``clang``),
+    or None when there is none."""
+    cc = os.environ.get("CC", "")
+    with _LOCK:
+        if cc in _COMPILER:
+            return _COMPILER[cc]
+    found = None
+    for name in ([cc] if cc else []) + ["cc", "gcc", "clang"]:
+        path = shutil.which(name.split()[0]) if name else None
+        if path is None:
+            continue
+        try:
+            run = subprocess.run([path, "--version"], capture_output=True, text=True,
+                                 timeout=30, check=False)
+        except (OSError, subprocess.SubprocessError):
+            continue
+        if run.returncode == 0:
+            found = (path, (run.stdout.strip().splitlines() or [""])[0])
+            break
+    with _LOCK:
+        _COMPILER[cc] = found
+    return found
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def compiled(fun: ca.Function) -> ca.Function:
+    """``fun`` as a compiled library, from the cache or compiled now (then cached).
+
+    Parameters
+    ----------
+    fun : casadi.Function
+        Any Function CasADi can generate C code for.
+
+    Returns
+    -------
+    casadi.Function
+        The loaded library's Function (same name, inputs and outputs).
+
+    Raises
+    ------
+    CompilerUnavailable
+        No C compiler, or the compilation failed (the message says why).
+    """
+    cc = compiler()
+    if cc is None:
+        raise CompilerUnavailable(
+            "no C compiler found ($CC, cc, gcc or clang): install one (e.g. "
+            "'apt install gcc', Xcode's command line tools, or MSVC/MinGW) to compile; "
+            "the interpreted CasADi path is used meanwhile")
+    name = fun.name()
+    gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
+    gen.add(fun)
+    code = gen.dump()
+    key = hashlib.sha256("\n".join(
+        [code, *cc, " ".join(FLAGS), ca.__version__, platform.machine(), sys.platform]
+    ).encode()).hexdigest()
+    with _LOCK:
+        if key in _LOADED:
+            return _LOADED[key]
+    root = cache_directory()
+    lib = root / f"{name}-{key[:24]}{'.dll' if sys.platform == 'win32' else '.so'}"
+    record = lib.with_suffix(".json")
+    loaded = _load(lib, record, key, name)
+    if loaded is None:
+        _build(code, lib, record, key, cc[0], root)
+        loaded = _load(lib, record, key, name)
+        if loaded is None:
+            raise CompilerUnavailable(f"the library compiled for {name} does not load")
+    with _LOCK:
+        _LOADED[key] = loaded
+    return loaded
+
+
+def _load(lib: Path, record: Path, key: str, name: str) -> ca.Function | None:
+    """The cached library if its record names ``key`` and its hash matches, else None."""
+    try:
+        meta = json.loads(record.read_text())
+        if meta.get("key") != key or meta.get("sha256") != _sha256(lib):
+            return None
+        return ca.external(name, str(lib))
+    except (OSError, ValueError, RuntimeError):
+        return None
+
+
+def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path) -> None:
+    """Compile ``code`` into ``lib`` (through a temporary name) and write its record."""
+    with tempfile.TemporaryDirectory(dir=root, prefix="build-") as tmp:
+        src = Path(tmp) / "code.c"
+        src.write_text(code)
+        out = Path(tmp) / lib.name
+        try:
+            # relative names, so that every build of the same code gives the same bytes
+            run = subprocess.run([cc, *FLAGS, src.name, "-o", out.name, "-lm"], cwd=tmp,
+                                 capture_output=True, text=True, timeout=600, check=False)
+        except (OSError, subprocess.SubprocessError) as exc:
+            raise CompilerUnavailable(f"running the C compiler {cc} failed: {exc}") from None
+        if run.returncode != 0:
+            raise CompilerUnavailable(f"the C compiler {cc} failed: "
+                                      f"{(run.stderr or run.stdout).strip()[:500]}")
+        digest = _sha256(out)
+        os.replace(out, lib)
+    tmp_record = record.with_name(f"{record.name}.{os.getpid()}.{threading.get_ident()}")
+    tmp_record.write_text(json.dumps({"key": key, "sha256": digest, "compiler": cc,
+                                      "flags": list(FLAGS), "casadi": ca.__version__}))
+    os.replace(tmp_record, record)
