@@ -16,7 +16,7 @@ key, or whose library does not match its hash or does not load is compiled again
 Libraries are written under a temporary name and renamed into place, so processes
 compiling the same Function at once never see a partial file.
 
-Without a C compiler (``$CC``, else ``cc``, ``gcc`` or ``clang`` on the ``PATH``)
+Without a C compiler (``$CC`` if set, else ``cc``, ``gcc`` or ``clang`` on the ``PATH``)
 :func:`compiled` raises :class:`CompilerUnavailable`, whose message says what to
 install; callers that have an interpreted path fall back to it.
 """
@@ -67,15 +67,15 @@ def cache_directory() -> Path:
 
 
 def compiler() -> tuple[str, str] | None:
-    """``(path, version line)`` of the C compiler (``$CC``, ``cc``, ``gcc``, ``clang``),
-    or None when there is none."""
+    """``(path, version line)`` of the C compiler: ``$CC`` when it is set, else the first
+    of ``cc``, ``gcc`` and ``clang`` on the ``PATH``; None when there is none."""
     cc = os.environ.get("CC", "")
     with _LOCK:
         if cc in _COMPILER:
             return _COMPILER[cc]
     found = None
-    for name in ([cc] if cc else []) + ["cc", "gcc", "clang"]:
-        path = shutil.which(name.split()[0]) if name else None
+    for name in [cc] if cc else ["cc", "gcc", "clang"]:  # $CC, when set, and only it
+        path = shutil.which(name)
         if path is None:
             continue
         try:
@@ -115,10 +115,12 @@ def compiled(fun: ca.Function) -> ca.Function:
     """
     cc = compiler()
     if cc is None:
+        looked = f"$CC = {os.environ['CC']!r}" if os.environ.get("CC") else \
+            "cc, gcc or clang on the PATH"
         raise CompilerUnavailable(
-            "no C compiler found ($CC, cc, gcc or clang): install one (e.g. "
-            "'apt install gcc', Xcode's command line tools, or MSVC/MinGW) to compile; "
-            "the interpreted CasADi path is used meanwhile")
+            f"no C compiler found ({looked}): install one (e.g. 'apt install gcc', Xcode's "
+            "command line tools, or MSVC/MinGW) to compile; the interpreted CasADi path is "
+            "used meanwhile")
     name = fun.name()
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     gen.add(fun)

@@ -34,6 +34,7 @@ import hashlib
 import os
 import threading
 import time
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -277,7 +278,7 @@ def _plant_scan(scenario: Scenario, T: int, expand: bool) -> ca.Function:
     x_next = m.F(x, w, p) + wn
     if scenario.clip:
         x_next = ca.fmin(ca.fmax(x_next, ca.DM(m.lower)), ca.DM(m.upper))
-    step = ca.Function(f"{m.name}_plant", [x, w, p, u, wn, v], [x_next, x, y],
+    step = ca.Function("plant", [x, w, p, u, wn, v], [x_next, x, y],
                        ["x", "w", "p", "u", "noise_w", "noise_v"], ["x_next", "x_k", "y"])
     return blocked_scan(step, T, (1, 2, 3, 4, 5), expand=expand)
 
@@ -309,7 +310,8 @@ def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
         e = err[:, burn_in:][ok]
         ne[ok] = np.einsum("ki,ki->k", e, np.linalg.solve(P[ok], e[..., None])[..., 0])
     has_p = np.isfinite(out["P"]).any(axis=(1, 2, 3))
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
         nees = np.nanmean(ne, axis=1) / nx
     # per state: each seed's squared errors of a state contiguous, as rmse() sums them
     per_state = np.sqrt(np.mean(np.ascontiguousarray(
@@ -335,8 +337,8 @@ def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
             rec.x_hat, rec.P, rec.nis = out["x"][j], out["P"][j], out["nis"][j]
             rec.solve_time[:] = per_step
             rec.status[:] = "ok"
-            for k, text in status.items():
-                rec.status[k] = text
+            for sample, text in status.items():
+                rec.status[sample] = text
             rec.extra[:] = [{} for _ in range(T)]
             rec.done = T
             log = rec.log(m, estimator, plant.t, plant.x[i], plant.y[i], plant.u)

@@ -694,10 +694,10 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         note = "serial: every run was one of the first runs, timed in this process"
     batch_note = ""
     if batched:
-        batch_note = (f"{', '.join(batched)}: the {len(seeds)} runs of each in one compiled "
-                      f"call over the seeds on {_threads(len(seeds))} thread(s), after the "
-                      f"plant's ({_fmt_s(plant.seconds)}, {plant.how}); their step time is "
-                      f"that call's time per sample")
+        batch_note = (f"{', '.join(batched)}: the {len(seeds)} runs of each filtered at once "
+                      f"(whole records over all seeds, on {_threads(len(seeds))} thread(s)), "
+                      f"after the plant of every seed ({_fmt_s(plant.seconds)}, {plant.how}); "
+                      f"their step time is that call's time per sample")
     rows, all_rmse, logs = [], {}, {}
     names = scenario.model.state_names
     order = {s: i for i, s in enumerate(seeds)}
