@@ -122,9 +122,10 @@ class EKF(FusedKalman):
                t: ArrayLike | None = None) -> SmoothResult:
         r"""Extended Rauch-Tung-Striebel smoother over a whole record.
 
-        The filter runs forward over the record with :meth:`step` (after a
-        :meth:`reset`; inputs, missing outputs, gating and clipping as in
-        :func:`~estim.replay`), then the backward pass from
+        The filter runs forward over the record with :meth:`filter` (one compiled
+        call, equal to :meth:`step` at every sample after a :meth:`reset`; inputs,
+        missing outputs, gating and clipping as in :func:`~estim.replay`), then the
+        backward pass from
         :math:`x^s_{T-1} = \hat x_{T-1}`, :math:`P^s_{T-1} = P_{T-1}`, with
         :math:`A_k = \partial F/\partial x` at the filtered :math:`\hat x_k`:
 

@@ -1,11 +1,12 @@
 r"""Rauch-Tung-Striebel smoothing of a whole record by a Kalman-type filter.
 
 :meth:`EKF.smooth <estim.EKF.smooth>` and :meth:`UKF.smooth <estim.UKF.smooth>`
-run the filter forward over the record with its own ``step`` (inputs, missing
-outputs, gating and clipping as in :func:`~estim.replay`), then go back from the
-last sample. For each transition :math:`k \to k+1` the prediction from the
-filtered estimate gives a mean :math:`\bar x_{k+1}`, a covariance
-:math:`\bar P_{k+1}` and a cross-covariance :math:`D_{k+1}` between
+run the filter forward over the record (its whole-record ``filter``, equal to its
+``step`` at every sample: inputs, missing outputs, gating and clipping as in
+:func:`~estim.replay`), then go back from the last sample. For each transition
+:math:`k \to k+1` the prediction from the filtered estimate gives a mean
+:math:`\bar x_{k+1}`, a covariance :math:`\bar P_{k+1}` and a cross-covariance
+:math:`D_{k+1}` between
 :math:`x_k` and :math:`x_{k+1}`; then
 
 .. math::
@@ -112,7 +113,9 @@ def record(model, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None
 def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None,
         predict: Predictor, clip: Callable[[np.ndarray], np.ndarray] | None = None
         ) -> SmoothResult:
-    r"""Filter the record with ``estimator.step`` (after a reset), then the backward pass.
+    r"""Filter the record (with ``estimator.filter``, the whole record in one compiled
+    call, where the estimator has it; else ``step`` at every sample after a reset),
+    then the backward pass.
 
     Parameters
     ----------
@@ -129,22 +132,27 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
     m = estimator.model
     Y, steps, W = record(m, Y, U, t)
     T, nx = Y.shape[0], m.nx
-    Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
-    status, success = [], True
-    estimator.reset()
-    for k in range(T):
-        u, dt = steps[k]
-        Xf[k] = estimator.step(Y[k].copy(), u, dt=dt)
-        info = estimator.info
-        Pf[k] = np.nan if info.P is None else info.P
-        status.append(info.status)
-        success = success and info.success
+    if hasattr(estimator, "filter"):  # the whole record in one compiled call
+        res = estimator.filter(Y, U, t=t)
+        Xf, Pf, status, success = res.x, res.P, list(res.status), res.success
+    else:
+        Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
+        status, success = [], True
+        estimator.reset()
+        for k in range(T):
+            u, dt = steps[k]
+            Xf[k] = estimator.step(Y[k].copy(), u, dt=dt)
+            info = estimator.info
+            Pf[k] = np.nan if info.P is None else info.P
+            status.append(info.status)
+            success = success and info.success
     xb, Pb, D = predict(Xf[:-1], Pf[:-1], W) if T > 1 else \
         (np.empty((0, nx)), np.empty((0, nx, nx)), np.empty((0, nx, nx)))
-    Xs, Ps, G = Xf.copy(), Pf.copy(), np.empty((T - 1, nx, nx))
+    Xs, Ps = Xf.copy(), Pf.copy()
+    # G = D Pb^{-1} by a solve (Pb and so Pb^{-T} symmetric), all transitions at once
+    G = np.linalg.solve(Pb, D.transpose(0, 2, 1)).transpose(0, 2, 1) if T > 1 else \
+        np.empty((0, nx, nx))
     for k in range(T - 2, -1, -1):
-        # G = D Pb^{-1} by a solve (Pb and so Pb^{-T} symmetric)
-        G[k] = np.linalg.solve(Pb[k], D[k].T).T
         Xs[k] = Xf[k] + G[k] @ (Xs[k + 1] - xb[k])
         if clip is not None:
             Xs[k] = clip(Xs[k])

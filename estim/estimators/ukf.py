@@ -186,10 +186,11 @@ class UKF(FusedKalman):
                t: ArrayLike | None = None) -> SmoothResult:
         r"""Unscented Rauch-Tung-Striebel smoother over a whole record (Särkkä 2008).
 
-        The filter runs forward over the record with :meth:`step` (after a
-        :meth:`reset`; inputs, missing outputs, gating and clipping as in
-        :func:`~estim.replay`). Backwards from :math:`x^s_{T-1} = \hat x_{T-1}`,
-        :math:`P^s_{T-1} = P_{T-1}`: the filter's sigma points
+        The filter runs forward over the record with :meth:`filter` (one compiled
+        call, equal to :meth:`step` at every sample after a :meth:`reset`; inputs,
+        missing outputs, gating and clipping as in :func:`~estim.replay`). Backwards
+        from :math:`x^s_{T-1} = \hat x_{T-1}`, :math:`P^s_{T-1} = P_{T-1}`: the
+        filter's sigma points
         :math:`\mathcal X^{(i)}` of :math:`(\hat x_k, P_k)` (weights
         :math:`W^m_i, W^c_i`) go through :math:`F` with the input :math:`u_k`,
 
