@@ -79,6 +79,11 @@ class FastFunction:
                      for i, b in enumerate(self._bound)]
         self.out = [np.zeros(fun.numel_out(i)) for i in range(fun.n_out())]
         self._buf, self._eval = fun.buffer()
+        self._build_views()
+
+    def _build_views(self) -> None:
+        """Point the buffer at :attr:`args` and :attr:`out` (again, after a caller
+        pointed it elsewhere)."""
         for i, a in enumerate(self.args):
             self._buf.set_arg(i, memoryview(a))
         for i, r in enumerate(self.out):

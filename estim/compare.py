@@ -422,8 +422,9 @@ def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
     uniform = {r.get("step") for r in done}
     if len(uniform) == 1 and None not in uniform:  # batched: one time per step for all
         median = p90 = float(uniform.pop())
-    else:
-        t = np.concatenate([r["times"] for r in done])
+    else:  # a batched run's steps each took its call's time per sample
+        t = np.concatenate([r["times"] if r.get("step") is None else
+                            np.full(r["steps"], r["step"]) for r in done])
         median, p90 = float(np.median(t)), float(np.percentile(t, 90))
     return ComparisonRow(
         name=name, rmse_mean=float(errs.mean()),
