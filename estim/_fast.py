@@ -10,31 +10,34 @@ reads in place.
 
 from __future__ import annotations
 
-import atexit
-import shutil
-import tempfile
 import threading
+import warnings
 
 import casadi as ca
 import numpy as np
 
-_JIT_DIRECTORY: list[str] = []
-_JIT_LOCK = threading.Lock()
+_WARNED: set[str] = set()
+_WARN_LOCK = threading.Lock()
 
 
-def jit_options(flags: tuple[str, ...] = ("-O2",)) -> dict:
-    """Function options that compile with the system C compiler (CasADi's ``shell``
-    importer) in a private temporary directory of this process (mode 0700, removed at
-    exit), never the current directory; file names carry a random suffix, so threads
-    and processes never share a file."""
-    with _JIT_LOCK:
-        if not _JIT_DIRECTORY:
-            path = tempfile.mkdtemp(prefix="estim-jit-")
-            atexit.register(shutil.rmtree, path, ignore_errors=True)
-            _JIT_DIRECTORY.append(path)
-    return {"jit": True, "compiler": "shell", "jit_temp_suffix": True,
-            "jit_options": {"flags": list(flags), "verbose": False,
-                            "directory": _JIT_DIRECTORY[0] + "/"}}
+def jitted(fun: ca.Function) -> ca.Function:
+    """``fun`` compiled to machine code through the per-machine cache
+    (:func:`estim._compile.compiled`: compiled once, loaded by later processes), or
+    ``fun`` itself, with one :class:`~estim.EstimationWarning` per process saying why,
+    when no C compiler is available."""
+    from estim._compile import CompilerUnavailable, compiled
+
+    try:
+        return compiled(fun)
+    except CompilerUnavailable as exc:
+        with _WARN_LOCK:
+            first = str(exc) not in _WARNED
+            _WARNED.add(str(exc))
+        if first:
+            from estim.estimators.base import EstimationWarning
+
+            warnings.warn(f"jit=True: {exc}", EstimationWarning, stacklevel=3)
+        return fun
 
 
 class FastFunction:

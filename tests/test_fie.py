@@ -119,9 +119,12 @@ def test_mapped_and_unrolled_modes_agree():
 @pytest.mark.skipif(shutil.which("cc") is None and shutil.which("gcc") is None,
                     reason="jit needs a C compiler")
 def test_jit_compiled_graph_gives_the_same_fit(tmp_path, monkeypatch):
-    """Same fit compiled; the compiler's files go to a private directory, not the
-    current one."""
-    monkeypatch.chdir(tmp_path)
+    """Same fit compiled; the libraries go to the per-machine cache (here
+    $ESTIM_CACHE_DIR), not the current directory, and a second estimator loads them."""
+    cwd, cache = tmp_path / "cwd", tmp_path / "cache"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    monkeypatch.setenv("ESTIM_CACHE_DIR", str(cache))
     log = _lorenz_record(40, seed=2)
     m = estim.models.lorenz()
     fits = [estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3), solver_options=opts).fit(
@@ -129,7 +132,14 @@ def test_jit_compiled_graph_gives_the_same_fit(tmp_path, monkeypatch):
     assert fits[1].success
     np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-9)
     np.testing.assert_allclose(fits[0].P_last, fits[1].P_last, rtol=1e-9)
-    assert list(tmp_path.iterdir()) == []
+    assert list(cwd.iterdir()) == []
+    libraries = sorted(cache.glob("*.so"))
+    assert libraries
+    stamps = [lib.stat().st_mtime_ns for lib in libraries]
+    again = estim.FullInformation(m, Q=np.eye(3) / 20, R=np.eye(3),
+                                  solver_options={"jit": True}).fit(log.y)
+    np.testing.assert_array_equal(again.x, fits[1].x)
+    assert [lib.stat().st_mtime_ns for lib in sorted(cache.glob("*.so"))] == stamps
 
 
 def test_singular_system_falls_back_to_the_ridge():

@@ -67,7 +67,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from estim._fast import FastFunction, jit_options
+from estim._fast import FastFunction, jitted
 from estim.model import Model
 
 #: Gauss-Newton steps that shrink by less than this factor switch to Newton steps.
@@ -546,9 +546,10 @@ class StructuredGaussNewton:
                 scaled = -g / (diag + 1e-300)
                 directions = [ca.if_else(1 - free, scaled, d) for d in directions]
             outs = [cost, g] + directions[::-1]  # Newton's first, Gauss-Newton's last
-        opts = jit_options() if self.jit and key not in ("cov", "covs") else {}
         name = f"gn_{key}" + ("_complete" if complete else "")
-        fun = ca.Function(name, ins, outs).expand(name, opts)
+        fun = ca.Function(name, ins, outs).expand(name)
+        if self.jit and key not in ("cov", "covs"):
+            fun = jitted(fun)
         bufs = [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else [])
         if key == "roll":
             return FastFunction(fun, [self._xbuf, self._pbuf, self._dbuf, self._abuf])
@@ -958,7 +959,7 @@ class _Chunked:
             self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
         # transitions 0..N-2 in chunks, for the backward pass and the rollout
         self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
-        self.opts = jit_options() if jit else {}
+        self.jit = jit
         self._funs: dict[tuple, ca.Function] = {}
         self._bufs: dict[tuple, tuple] = {}
         nx, ny, nu = self.nx, self.ny, self.nu
@@ -988,13 +989,13 @@ class _Chunked:
     # ---------------------------------------------------------------- building
     def _compiled(self, key, build):
         """``build()``'s function with dense outputs (the buffers are read as dense
-        arrays), compiled with ``jit``."""
+        arrays), compiled with ``jit`` (through the per-machine cache)."""
         if key not in self._funs:
             t0 = time.perf_counter()
             fun = build()
             ins = fun.sx_in()
-            self._funs[key] = ca.Function(fun.name(), ins,
-                                          [ca.densify(o) for o in fun.call(ins)], self.opts)
+            dense = ca.Function(fun.name(), ins, [ca.densify(o) for o in fun.call(ins)])
+            self._funs[key] = jitted(dense) if self.jit else dense
             self.gn.build_seconds += time.perf_counter() - t0
         return self._funs[key]
 
