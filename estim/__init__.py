@@ -22,6 +22,7 @@ from estim.scenarios import Record, Scenario
 from estim.simulate import replay, simulate
 
 if TYPE_CHECKING:
+    from estim import codegen as codegen  # not in __all__: imported on first use
     from estim import observability, smooth, tuning
     from estim.estimators.ekf import EKF
     from estim.estimators.fie import FitResult, FullInformation
@@ -44,8 +45,8 @@ __version__ = "0.1.0"
 _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
-         "observability": "estim.observability", "smooth": "estim.smooth",
-         "tuning": "estim.tuning",
+         "codegen": "estim.codegen", "observability": "estim.observability",
+         "smooth": "estim.smooth", "tuning": "estim.tuning",
          "ParameterEstimates": "estim.uncertainty",
          "parameter_uncertainty": "estim.uncertainty"}
 

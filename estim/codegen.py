@@ -207,11 +207,13 @@ def _describe(estimator) -> str:
 
 def _fill(template: str, name: str, dims: dict, values: dict, estimator) -> str:
     from estim import __version__
+    from estim.estimators.base import SUSPECT_TAIL
 
     m = estimator.model
     text = (template.replace("@name@", name).replace("@NAME@", name.upper())
             .replace("@filter@", _describe(estimator)).replace("@model@", m.name)
             .replace("@version@", __version__).replace("@CFLAGS@", CFLAGS)
+            .replace("@TAIL@", f"{SUSPECT_TAIL:g}")
             .replace("@states@", ", ".join(m.state_names))
             .replace("@outputs@", ", ".join(m.output_names))
             .replace("@inputs@", ", ".join(m.input_names) or "none"))
@@ -244,7 +246,7 @@ _HEADER = r"""/* @name@.h -- @filter@ of the model "@model@" (estim @version@).
  *
  * Status of a step (what estim's step reports in info.status):
  *    0  ok
- *    1  suspect: NIS beyond the 1e-9 tail of chi2(outputs measured); update kept
+ *    1  suspect: NIS beyond the @TAIL@ tail of chi2(outputs measured); update kept
  *    2  rejected by the gate: the prediction, with P0 added to its covariance
  *    3  failed: non-finite update (or, UKF, a covariance that is not positive
  *       definite); the prediction of a trusted estimate is kept
@@ -525,7 +527,7 @@ Exported by `estim.codegen.export` (estim @version@). The code steps as
 `estim`'s `step` does: prediction and update in CasADi's generated code
 (`@name@_functions.c`), and in `@name@.c` what a step does with their flags: a
 measurement beyond the gate keeps the prediction with `P0` added, a suspect one
-(NIS beyond the 1e-9 tail of its chi-square distribution) keeps its update, and a
+(NIS beyond the @TAIL@ tail of its chi-square distribution) keeps its update, and a
 failed update keeps the prediction of a trusted estimate or re-anchors on the last
 trusted estimate with `P + P0`. NaN in `y` marks an output not measured.
 
