@@ -9,13 +9,14 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._fast import FastFunction
-from estim._validate import as_choice, as_int
+from estim._fast import FastFunction, jitted
+from estim._validate import as_bool, as_choice, as_int
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.nlp import (
     LeastSquaresNLP,
     check_solver_options,
     is_diagonal,
+    measurement_weights,
     resolve_solver,
     weight_factor,
 )
@@ -114,6 +115,17 @@ class MHE(Estimator):
     max_lag : int
         How many of the latest steps a late (out-of-sequence) measurement may
         belong to (0: none are kept). See :meth:`insert`.
+    rti : bool
+        Real-time iteration: once the window is full, one Gauss-Newton step per
+        sample from the shifted previous window instead of a converged solve, split
+        into :meth:`prepare` (the linearisation and elimination along the window,
+        before the measurement arrives) and the feedback in :meth:`step` (the new
+        measurement's part, :math:`O(N n_x^2)`; see :mod:`estim.estimators.rti`).
+        Bounds by projection of the step. Needs the Gauss-Newton solver, the squared
+        loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time,
+        ``info.extra["preparation_time"]`` the preparation's; ``info.cost`` is not
+        computed (NaN) and the status is ``"ok"`` unless the step is not finite (then
+        the window is solved to convergence, and the status says so).
 
     Attributes
     ----------
@@ -144,8 +156,10 @@ class MHE(Estimator):
                  x0: ArrayLike, P0: ArrayLike | None = None, arrival_cost: str = "filtering",
                  lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
-                 loss: str = "squared", f_scale: float | None = None, max_lag: int = 0):
+                 loss: str = "squared", f_scale: float | None = None, max_lag: int = 0,
+                 rti: bool = False):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
+        self.rti = as_bool(rti, "rti")
         self._loss = as_loss(loss, f_scale)
         self.max_lag = as_int(max_lag, "max_lag", minimum=0)
         self._requires_P0 = arrival_cost != "none"
@@ -165,6 +179,8 @@ class MHE(Estimator):
                                     solver_options or {}, diagonal_Q=self._diagonal["Q"],
                                     diagonal_R=self._diagonal["R"], loss=self._loss)
         self._cov_step = FastFunction(self._build_cov_step())
+        if self.rti:
+            self._build_rti(solver, solver_options or {})
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._tuning_changed()
         self._reset()
@@ -202,6 +218,67 @@ class MHE(Estimator):
         return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P), ca.vec(Q), ca.vec(R)],
                            [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
 
+    def _build_rti(self, solver: str, options: dict) -> None:
+        """The real-time iteration's two compiled phases (see :mod:`~estim.estimators.rti`)."""
+        from estim.estimators import rti
+
+        if solver != "gauss-newton":
+            raise ValueError(f"rti=True takes one Gauss-Newton step per sample: give "
+                             f"solver='gauss-newton' (or 'auto'), got {solver!r}")
+        if self._loss is not None:
+            raise ValueError("rti=True needs loss='squared' (a robust loss reweights "
+                             "between iterations)")
+        if self.max_lag:
+            raise ValueError("rti=True does not keep the states that max_lag needs: "
+                             "give max_lag=0")
+        prepare, feedback = rti.build(self.model, self.horizon)
+        if options.get("jit"):
+            prepare, feedback = jitted(prepare), jitted(feedback)
+        self._rti_prepare = FastFunction(prepare)
+        # the feedback reads the preparation's results where it wrote them
+        out = self._rti_prepare.out
+        self._rti_y, self._rti_wy = np.zeros(self.model.ny), np.zeros(self.model.ny ** 2)
+        self._rti_feedback = FastFunction(feedback, [out[0], out[1], out[2], out[3],
+                                                     self._rti_y, self._rti_wy, out[4], out[5]])
+        self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
+
+    def prepare(self, u: ArrayLike | None = None) -> None:
+        r"""The preparation phase of the real-time iteration (``rti=True``): before the
+        next measurement arrives, shift the window, predict its newest state and
+        linearise and eliminate the window up to that state, with the input ``u`` that
+        :meth:`step` will get with the measurement.
+
+        The following :meth:`step` then only adds the measurement (the feedback
+        phase). Calling :meth:`step` without :meth:`prepare` does both. Until the
+        window is full (the first ``horizon`` samples) a step solves the window to
+        convergence, and :meth:`prepare` does nothing.
+        """
+        if not self.rti:
+            raise ValueError("prepare() is the preparation phase of the real-time "
+                             "iteration: build the MHE with rti=True")
+        u = self._check_u(u)
+        self._prepared = None
+        if self._first or self._n < self.horizon:
+            return
+        t0 = time.perf_counter()
+        self._shift(u)
+        m, N = self.model, self.horizon
+        mask = np.isfinite(self._Y[:N - 1])
+        wy = measurement_weights(mask, self.R, self._WR)
+        W0 = self._arrival_weight()
+        args = self._rti_prepare.args  # each input flat, column-major
+        args[0][:] = self._X.ravel()
+        args[1][:] = np.where(mask, self._Y[:N - 1], 0.0).ravel()
+        args[2][:] = wy.transpose(0, 2, 1).ravel()
+        args[3][:] = self._U[:N - 1].ravel()
+        args[4][:-m.nu or None] = self._Uprev[:N - 1].ravel()
+        args[4][args[4].size - m.nu:] = u
+        args[5][:] = self._xbar
+        args[6][:] = 0.0 if W0 is None else W0.ravel(order="F")
+        args[7][:] = self._WQ.ravel(order="F")
+        self._rti_prepare.evaluate()
+        self._prepared = (u.copy(), time.perf_counter() - t0)
+
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
         m, N = self.model, self.horizon
@@ -220,6 +297,7 @@ class MHE(Estimator):
         self._nlp.reset()
         # the state before each of the last max_lag steps, with the step's data
         self._past: deque = deque(maxlen=self.max_lag)
+        self._prepared = None  # the real-time iteration's preparation: (u, its time)
 
     # ------------------------------------------------------- late measurements
     def _state(self) -> dict:
@@ -330,21 +408,39 @@ class MHE(Estimator):
         if self.arrival_cost in ("filtering", "smoothing"):
             self._Pbar = P
 
-    def _step(self, y, u, first):
+    def _shift(self, u: np.ndarray) -> None:
+        """Make room for the arriving sample: the window's data one slot left (the
+        arrival cost moved on when the window was full) and the new slot's warm start,
+        the prediction of the previous estimate."""
         m, N = self.model, self.horizon
+        self._U[N - 1] = self._transition(u)  # from the newest slot to the one arriving
+        if self._n == N:
+            self._slide(u)
+        else:  # window still growing: shift the data one slot left
+            for arr in (self._Y, self._U, self._Uprev, self._X):
+                arr[:-1] = arr[1:]
+        pred = self._F(self._X[N - 2], self._U[N - 2], m.p)[0]
+        self._X[N - 1] = pred if np.isfinite(pred).all() else self._X[N - 2]
+
+    def _step(self, y, u, first):
+        N = self.horizon
         t0 = time.perf_counter()
-        if self.max_lag:  # the state before this step, for a late measurement
+        if self.rti and not first and (self._prepared is not None or self._n == N):
+            if self._prepared is None:
+                self.prepare(u)
+            elif not np.array_equal(self._prepared[0], u):
+                raise ValueError(f"step got u = {u}, but prepare() prepared the window for "
+                                 f"u = {self._prepared[0]}: give step the input given to "
+                                 f"prepare")
+            out = self._feedback(y, u)
+            if out is not None:
+                return out
+            t0 = time.perf_counter()  # not finite: the window solved to convergence
+        elif self.max_lag:  # the state before this step, for a late measurement
             self._past.append((self._state(), y.copy(), u.copy(), self._dt))
-        if not first:
-            self._U[N - 1] = self._transition(u)  # from the newest slot to the one arriving
-            if self._n == N:
-                self._slide(u)
-            else:  # window still growing: shift the data one slot left
-                for arr in (self._Y, self._U, self._Uprev, self._X):
-                    arr[:-1] = arr[1:]
-            # warm start: the new slot is the prediction of the previous estimate
-            pred = self._F(self._X[N - 2], self._U[N - 2], m.p)[0]
-            self._X[N - 1] = pred if np.isfinite(pred).all() else self._X[N - 2]
+        if not first and self._prepared is None:
+            self._shift(u)
+        self._prepared = None
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
         self._n += 1
@@ -379,3 +475,41 @@ class MHE(Estimator):
                    **({} if self._loss is None or self._nlp.weights is None else
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})
+
+    def _feedback(self, y: np.ndarray, u: np.ndarray):
+        """The feedback phase of the real-time iteration: the prepared window with the
+        measurement ``y``; None (the window prepared, to be solved) if the step is not
+        finite."""
+        N = self.horizon
+        t0 = time.perf_counter()
+        preparation = self._prepared[1]
+        mask = np.isfinite(y)
+        if mask.all():
+            self._rti_y[:] = y
+            self._rti_wy[:] = self._WR.ravel(order="F")
+        else:
+            self._rti_y[:] = np.where(mask, y, 0.0)
+            self._rti_wy[:] = measurement_weights(mask[None], self.R,
+                                                  self._WR)[0].ravel(order="F")
+        dX, P = self._rti_feedback.evaluate()
+        X = self._X + dX.reshape(N, -1)
+        if self._bounded:
+            X = np.clip(X, self.lower, self.upper)
+        if not (np.isfinite(X).all() and np.isfinite(P).all()):
+            return None
+        self._prepared = None
+        self._X[:] = X
+        self._Y[N - 1] = y
+        self._Uprev[N - 1] = u
+        self._n = N
+        x_hat = X[-1].copy()
+        nx = self.model.nx
+        P = P.reshape(nx, nx, order="F").copy()
+        self._trusted = (x_hat.copy(), P)
+        self._history.append(x_hat.copy())
+        elapsed = time.perf_counter() - t0
+        return x_hat, StepInfo(
+            status="ok", success=True, iterations=1, solve_time=elapsed, P=P,
+            extra={"window": self._X.copy(), "arrival_mean": self._xbar.copy(),
+                   "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
+                   "preparation_time": preparation, "solver": "gauss-newton (rti)"})
