@@ -16,7 +16,6 @@ from estim.estimators.nlp import (
     LeastSquaresNLP,
     check_solver_options,
     is_diagonal,
-    measurement_weights,
     resolve_solver,
     weight_factor,
 )
@@ -191,6 +190,9 @@ class MHE(Estimator):
             raise ValueError("Q must be positive definite for MHE (the weights are Q^-1)")
 
     def _tuning_changed(self) -> None:
+        self._rti_Qinv = np.linalg.inv(self.Q).ravel(order="F")
+        if hasattr(self, "_rti_R"):
+            self._rti_R[:] = self.R.ravel(order="F")
         self._WQ = weight_factor(self.Q)
         self._WR = weight_factor(self.R)
         if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
@@ -231,15 +233,18 @@ class MHE(Estimator):
         if self.max_lag:
             raise ValueError("rti=True does not keep the states that max_lag needs: "
                              "give max_lag=0")
-        prepare, feedback = rti.build(self.model, self.horizon)
+        m = self.model
+        prepare, feedback = rti.build(m, self.horizon)
         if options.get("jit"):
             prepare, feedback = jitted(prepare), jitted(feedback)
         self._rti_prepare = FastFunction(prepare)
         # the feedback reads the preparation's results where it wrote them
         out = self._rti_prepare.out
-        self._rti_y, self._rti_wy = np.zeros(self.model.ny), np.zeros(self.model.ny ** 2)
+        self._rti_y, self._rti_mask = np.zeros(m.ny), np.zeros(m.ny)
+        self._rti_R = np.zeros(m.ny * m.ny)
         self._rti_feedback = FastFunction(feedback, [out[0], out[1], out[2], out[3],
-                                                     self._rti_y, self._rti_wy, out[4], out[5]])
+                                                     self._rti_y, self._rti_mask,
+                                                     self._rti_R, out[4], out[5]])
         self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
 
     def prepare(self, u: ArrayLike | None = None) -> None:
@@ -258,26 +263,44 @@ class MHE(Estimator):
                              "iteration: build the MHE with rti=True")
         u = self._check_u(u)
         self._prepared = None
-        if self._first or self._n < self.horizon:
+        if self._first or self._n < self.horizon:  # filling: step solves the window
             return
         t0 = time.perf_counter()
         self._shift(u)
+        self._linearise(u)
+        self._prepared = (u.copy(), time.perf_counter() - t0)
+
+    def _linearise(self, u: np.ndarray) -> None:
+        """Evaluate the preparation Function for the window as it will be once the
+        arriving sample (input ``u``) is in: its ``n + 1`` newest slots used, any unused
+        ones before them chained to the first used one."""
         m, N = self.model, self.horizon
+        nx = m.nx
+        s0 = N - (self._n + 1)  # the first used slot
         mask = np.isfinite(self._Y[:N - 1])
-        wy = measurement_weights(mask, self.R, self._WR)
-        W0 = self._arrival_weight()
+        mask[:s0] = False
+        U, Up = self._U[:N - 1].copy(), np.vstack([self._Uprev[:N - 1], u])
+        if s0:  # the unused slots evaluate the model at the first used one's inputs
+            U[:s0] = U[s0] if s0 < N - 1 else 0.0
+            Up[:s0] = Up[s0]
         args = self._rti_prepare.args  # each input flat, column-major
         args[0][:] = self._X.ravel()
         args[1][:] = np.where(mask, self._Y[:N - 1], 0.0).ravel()
-        args[2][:] = wy.transpose(0, 2, 1).ravel()
-        args[3][:] = self._U[:N - 1].ravel()
-        args[4][:-m.nu or None] = self._Uprev[:N - 1].ravel()
-        args[4][args[4].size - m.nu:] = u
-        args[5][:] = self._xbar
-        args[6][:] = 0.0 if W0 is None else W0.ravel(order="F")
-        args[7][:] = self._WQ.ravel(order="F")
+        args[2][:] = mask.ravel()
+        args[3][:] = U.ravel()
+        args[4][:] = Up.ravel()
+        args[5][:] = 0.0
+        args[5][s0] = 1.0
+        args[6][:] = 0.0
+        args[6][s0:] = 1.0
+        args[7][:] = self._xbar
+        arrival = self.arrival_cost != "none"
+        Pbar = self.P0 if self.arrival_cost == "fixed" else self._Pbar
+        args[8][:] = (Pbar if arrival else np.eye(nx)).ravel(order="F")
+        args[9][:] = float(arrival)
+        args[10][:] = self._rti_Qinv
+        args[11][:] = self.R.ravel(order="F")
         self._rti_prepare.evaluate()
-        self._prepared = (u.copy(), time.perf_counter() - t0)
 
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
@@ -432,7 +455,7 @@ class MHE(Estimator):
                 raise ValueError(f"step got u = {u}, but prepare() prepared the window for "
                                  f"u = {self._prepared[0]}: give step the input given to "
                                  f"prepare")
-            out = self._feedback(y, u)
+            out = self._feedback(y, u, self._prepared[1])
             if out is not None:
                 return out
             t0 = time.perf_counter()  # not finite: the window solved to convergence
@@ -476,25 +499,19 @@ class MHE(Estimator):
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})
 
-    def _feedback(self, y: np.ndarray, u: np.ndarray):
+    def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float):
         """The feedback phase of the real-time iteration: the prepared window with the
         measurement ``y``; None (the window prepared, to be solved) if the step is not
         finite."""
-        N = self.horizon
+        m, N = self.model, self.horizon
         t0 = time.perf_counter()
-        preparation = self._prepared[1]
         mask = np.isfinite(y)
-        if mask.all():
-            self._rti_y[:] = y
-            self._rti_wy[:] = self._WR.ravel(order="F")
-        else:
-            self._rti_y[:] = np.where(mask, y, 0.0)
-            self._rti_wy[:] = measurement_weights(mask[None], self.R,
-                                                  self._WR)[0].ravel(order="F")
+        self._rti_y[:] = np.where(mask, y, 0.0)
+        self._rti_mask[:] = mask
         dX, P = self._rti_feedback.evaluate()
         X = self._X + dX.reshape(N, -1)
         if self._bounded:
-            X = np.clip(X, self.lower, self.upper)
+            np.clip(X, self.lower, self.upper, out=X)
         if not (np.isfinite(X).all() and np.isfinite(P).all()):
             return None
         self._prepared = None
@@ -503,8 +520,7 @@ class MHE(Estimator):
         self._Uprev[N - 1] = u
         self._n = N
         x_hat = X[-1].copy()
-        nx = self.model.nx
-        P = P.reshape(nx, nx, order="F").copy()
+        P = P.reshape(m.nx, m.nx, order="F").copy()
         self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
         elapsed = time.perf_counter() - t0
