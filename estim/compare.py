@@ -618,7 +618,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         t0 = time.perf_counter()
         built[name] = _build(spec, scenario)
         build = time.perf_counter() - t0
-        if batch and hasattr(built[name], "_filter_seeds"):
+        if batch and hasattr(built[name], "_batchable") and built[name]._batchable():
             plant = plant or _simulate_plant(scenario, seeds)
             per_name[name], seconds, how = _run_batch(scenario, built[name], plant,
                                                       burn_in, keep_logs)

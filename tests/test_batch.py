@@ -174,3 +174,21 @@ def test_without_a_compiler_the_batch_is_interpreted(monkeypatch):
     assert "interpreted (no C compiler found ($CC = '/nonexistent/cc')" in res.batched
     ref = estim.compare(sc, {"EKF": estim.EKF}, seeds=range(3), batch=False)
     _same(res, ref)
+
+
+class _Counting(estim.EKF):
+    """An EKF whose step does something of its own: it must be run step by step."""
+
+    steps = 0
+
+    def _step(self, y, u, first):
+        type(self).steps += 1
+        return super()._step(y, u, first)
+
+
+def test_a_filter_with_its_own_step_runs_per_run():
+    sc = estim.scenarios.van_der_pol(n_steps=30)
+    res = estim.compare(sc, {"EKF": estim.EKF, "counting": _Counting}, seeds=range(3))
+    assert res.batched.startswith("EKF (") and "counting" not in res.batched
+    assert _Counting.steps == 3 * 30
+    np.testing.assert_array_equal(res.rmse["EKF"], res.rmse["counting"])

@@ -175,4 +175,4 @@ def test_a_few_record_lengths_are_kept(F):
     est = F(sc.model, **sc.tuning)
     for T in range(5, 40, 3):
         _same(est, log.y[:T])
-    assert len(est._whole_records) == 8 and 38 in est._whole_records
+    assert len(est._whole_records) == 8 and (38, True) in est._whole_records

@@ -301,6 +301,15 @@ class FusedKalman(Estimator):
         cache[T, expand] = fun
         return fun
 
+    @classmethod
+    def _batchable(cls) -> bool:
+        """Whether a batch of records can stand for this class's :meth:`step`: its step,
+        update and recovery are this module's (a subclass that changes any of them is
+        run step by step)."""
+        return all(getattr(cls, name) is getattr(FusedKalman, name)
+                   for name in ("step", "_step", "_recover", "filter", "_whole_record",
+                                "_filter_seeds"))
+
     def _filter_seeds(self, Y: np.ndarray, u_step: np.ndarray) -> dict:
         r"""Filter the records of several seeds at once, as :meth:`step` at every sample
         after a :meth:`reset` (the batched path of :func:`~estim.compare`).
