@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import shutil
 from pathlib import Path
 
 import pytest
@@ -176,3 +177,13 @@ def test_tune_noise_covariances(tmp_path, capsys):
     # the second ALS pass, from a filter near the optimal one, is far more precise
     assert max(rows["ALS, two passes"]["stderr_Q"]) < 0.5 * min(rows["ALS, one pass"]["stderr_Q"])
     assert "ALS, two passes" in capsys.readouterr().out
+
+
+@pytest.mark.skipif(not any(shutil.which(c) for c in ("cc", "gcc", "clang")),
+                    reason="the example builds C code: no C compiler")
+def test_deploy_van_der_pol_ekf(tmp_path, capsys):
+    res = load("deploy_van_der_pol_ekf").main(["--out", str(tmp_path / "vdp")])
+    assert res["difference"] == 0.0  # the same numbers as the Python filter
+    assert res["rejected"] == 1 and res["samples"] == 300
+    assert (tmp_path / "vdp" / "vdp_ekf_run").exists()
+    assert "largest |x_C - x_Python| = 0" in capsys.readouterr().out
