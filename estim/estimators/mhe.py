@@ -24,6 +24,11 @@ from estim.model import Model
 
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
 
+#: While the window fills, the real-time iteration's projected Gauss-Newton steps stop
+#: below this step (relative to ``1 + max|X|``) or after this many iterations.
+RTI_STARTUP_XTOL = 1e-10
+RTI_STARTUP_ITERATIONS = 50
+
 
 class MHE(Estimator):
     r"""Moving horizon estimator with Ipopt, Gauss-Newton SQP or fatrop.
@@ -234,17 +239,21 @@ class MHE(Estimator):
             raise ValueError("rti=True does not keep the states that max_lag needs: "
                              "give max_lag=0")
         m = self.model
-        prepare, feedback = rti.build(m, self.horizon)
+        prepare, feedback, cost = rti.build(m, self.horizon)
         if options.get("jit"):
-            prepare, feedback = jitted(prepare), jitted(feedback)
+            prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
         self._rti_prepare = FastFunction(prepare)
-        # the feedback reads the preparation's results where it wrote them
-        out = self._rti_prepare.out
+        # the feedback reads the preparation's results where it wrote them, and the cost
+        # its arguments
+        out, args = self._rti_prepare.out, self._rti_prepare.args
         self._rti_y, self._rti_mask = np.zeros(m.ny), np.zeros(m.ny)
-        self._rti_R = np.zeros(m.ny * m.ny)
+        self._rti_R, self._rti_free = np.zeros(m.ny * m.ny), np.ones(m.nx)
         self._rti_feedback = FastFunction(feedback, [out[0], out[1], out[2], out[3],
                                                      self._rti_y, self._rti_mask,
-                                                     self._rti_R, out[4], out[5]])
+                                                     self._rti_R, out[4], out[5],
+                                                     self._rti_free])
+        self._rti_cost = FastFunction(cost, [None] + args[1:12] + [self._rti_y,
+                                                                   self._rti_mask])
         self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
 
     def prepare(self, u: ArrayLike | None = None) -> None:
@@ -270,10 +279,11 @@ class MHE(Estimator):
         self._linearise(u)
         self._prepared = (u.copy(), time.perf_counter() - t0)
 
-    def _linearise(self, u: np.ndarray) -> None:
+    def _linearise(self, u: np.ndarray, free: np.ndarray | None = None) -> None:
         """Evaluate the preparation Function for the window as it will be once the
         arriving sample (input ``u``) is in: its ``n + 1`` newest slots used, any unused
-        ones before them chained to the first used one."""
+        ones before them chained to the first used one; ``free`` (N, nx): the variables
+        that may move (default all)."""
         m, N = self.model, self.horizon
         nx = m.nx
         s0 = N - (self._n + 1)  # the first used slot
@@ -300,6 +310,8 @@ class MHE(Estimator):
         args[9][:] = float(arrival)
         args[10][:] = self._rti_Qinv
         args[11][:] = self.R.ravel(order="F")
+        args[12][:] = 1.0 if free is None else free.ravel()
+        self._rti_free[:] = 1.0 if free is None else free[-1]
         self._rti_prepare.evaluate()
 
     # ------------------------------------------------------------------ state
@@ -448,7 +460,13 @@ class MHE(Estimator):
     def _step(self, y, u, first):
         N = self.horizon
         t0 = time.perf_counter()
-        if self.rti and not first and (self._prepared is not None or self._n == N):
+        if self.rti and self._prepared is None and (first or self._n < N):
+            out = self._startup(y, u, first)  # the window fills: projected Gauss-Newton
+            if out is not None:
+                return out
+            t0 = time.perf_counter()  # not finite: the converged solver
+            self._prepared = (u.copy(), 0.0)  # (the data shifted already)
+        elif self.rti and not first and (self._prepared is not None or self._n == N):
             if self._prepared is None:
                 self.prepare(u)
             elif not np.array_equal(self._prepared[0], u):
@@ -499,6 +517,74 @@ class MHE(Estimator):
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})
 
+    def _startup(self, y: np.ndarray, u: np.ndarray, first: bool):
+        """A step while the window fills (``rti=True``): projected Gauss-Newton on the
+        window with the preparation and feedback Functions, iterated to convergence.
+
+        Each iteration linearises at ``X``; the variables at a bound whose gradient
+        points out of the box are held (their step 0) and the step of the others is
+        halved (at most 30 times) until the projected point does not raise the cost.
+        Stops when the step is below ``xtol`` relative to ``1 + max|X|``, or after
+        ``max_iter`` iterations (then ``"inexact"``). None if a step is not finite (the
+        window is then solved by the converged solver)."""
+        m, N = self.model, self.horizon
+        t0 = time.perf_counter()
+        if not first:
+            self._shift(u)
+        s0 = N - (self._n + 1)
+        self._X[:s0] = self._X[s0]
+        mask = np.isfinite(y)
+        self._rti_y[:] = np.where(mask, y, 0.0)
+        self._rti_mask[:] = mask
+        X = self._X.copy()
+        ones = np.ones((N, m.nx))
+        cost = self._rti_cost
+        iteration = 0
+        while iteration < RTI_STARTUP_ITERATIONS:
+            iteration += 1
+            self._X[:] = X
+            self._linearise(u)
+            dX, P, grad_y = (o.copy() for o in self._rti_feedback.evaluate())
+            G = self._rti_prepare.out[6].reshape(N, m.nx).copy()
+            G[-1] += grad_y
+            held = ((X <= self.lower) & (G > 0)) | ((X >= self.upper) & (G < 0))
+            held[:s0] = False
+            if held.any():
+                self._linearise(u, ones - held)
+                dX = self._rti_feedback.evaluate()[0].copy()
+            dX = dX.reshape(N, m.nx)
+            cost.args[0][:] = X.ravel()
+            before = cost.evaluate()[0][0]
+            t = 1.0
+            for _ in range(31):
+                trial = np.clip(X + t * dX, self.lower, self.upper)
+                cost.args[0][:] = trial.ravel()
+                if cost.evaluate()[0][0] <= before:
+                    break
+                t *= 0.5
+            step, X = trial - X, trial
+            if not (np.isfinite(X).all() and np.isfinite(P).all()):
+                return None
+            if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
+                break
+        converged = iteration < RTI_STARTUP_ITERATIONS
+        self._X[:] = X
+        self._Y[N - 1] = y
+        self._Uprev[N - 1] = u
+        self._n += 1
+        x_hat = X[-1].copy()
+        P = P.reshape(m.nx, m.nx, order="F").copy()
+        self._trusted = (x_hat.copy(), P)
+        self._history.append(x_hat.copy())
+        status = "ok" if converged else (f"inexact: the start-up's Gauss-Newton steps did "
+                                         f"not converge in {RTI_STARTUP_ITERATIONS}")
+        return x_hat, StepInfo(
+            status=status, success=True, iterations=iteration,
+            solve_time=time.perf_counter() - t0, P=P,
+            extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
+                   "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
+                   "preparation_time": 0.0, "solver": "gauss-newton (rti start-up)"})
+
     def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float):
         """The feedback phase of the real-time iteration: the prepared window with the
         measurement ``y``; None (the window prepared, to be solved) if the step is not
@@ -508,7 +594,7 @@ class MHE(Estimator):
         mask = np.isfinite(y)
         self._rti_y[:] = np.where(mask, y, 0.0)
         self._rti_mask[:] = mask
-        dX, P = self._rti_feedback.evaluate()
+        dX, P, _ = self._rti_feedback.evaluate()
         X = self._X + dX.reshape(N, -1)
         if self._bounded:
             np.clip(X, self.lower, self.upper, out=X)

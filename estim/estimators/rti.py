@@ -35,8 +35,13 @@ H_{k,k+1}` for the back-substitution. The **feedback** (:meth:`MHE.step
 an :math:`O(N n_x^2)` computation, and :math:`S^{-1}` is the covariance of the new
 estimate (the Laplace covariance of the last state, as for the converged MHE). A ridge
 of :math:`10^{-10}` on the diagonal keeps the elimination defined when the window alone
-does not determine a state. Every weight is computed inside the two Functions from
-:math:`\bar P`, :math:`Q^{-1}` and :math:`R` (no factor computed outside them).
+does not determine a state. While the window fills (its first slots unused, chained to
+the first used one at no cost) each sample's window is solved to convergence by projected
+Gauss-Newton steps with the same Functions: variables at a bound whose gradient points out
+of the box are held, and the step is halved until the projected point does not raise the
+window's cost (:meth:`MHE._startup <estim.MHE._startup>`). Every weight is computed inside
+the Functions from :math:`\bar P`, :math:`Q^{-1}` and :math:`R`, so that code generated
+from them computes exactly what they compute.
 
 References
 ----------
@@ -56,22 +61,28 @@ from estim.model import Model
 RIDGE = 1e-10
 
 
-def build(model: Model, N: int) -> tuple[ca.Function, ca.Function]:
-    r"""The preparation and feedback Functions of a window of ``N`` slots.
+def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
+    r"""The preparation, feedback and cost Functions of a window of ``N`` slots.
 
-    ``prepare(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R) -> (S0, g0, C, h,
-    v, M)``: ``X (nx, N)`` the window to linearise at; ``Y (ny, N-1)`` the measurements
-    of all slots but the newest (0 where missing) with ``mask`` (1 where measured);
-    ``U (nw, N-1)`` the transitions' inputs; ``Up (nu, N)`` the inputs ``h`` sees;
-    ``a (N)`` the arrival cost's slot (1 on the first used slot) and ``om (N-1)`` the
-    links that carry the model (1; 0 chains an unused slot to the next at no cost, as
+    ``prepare(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R, free) -> (S0, g0,
+    C, h, v, M, grad)``: ``X (nx, N)`` the window to linearise at; ``Y (ny, N-1)`` the
+    measurements of all slots but the newest (0 where missing) with ``mask`` (1 where
+    measured); ``U (nw, N-1)`` the transitions' inputs; ``Up (nu, N)`` the inputs ``h``
+    sees; ``a (N)`` the arrival cost's slot (1 on the first used slot) and ``om (N-1)``
+    the links that carry the model (1; 0 chains an unused slot to the next at no cost, as
     the converged MHE's growing window does); the arrival cost
     :math:`\|x - \bar x\|^2_{\bar P^{-1}}` (``arrival`` 0 without one); ``Qinv``
-    :math:`Q^{-1}`; ``R``.
+    :math:`Q^{-1}`; ``R``; ``free (nx, N)`` 1 for the variables that may move (a held
+    variable's row and column of the Gauss-Newton matrix become the identity's and its
+    gradient 0). ``grad (nx, N)`` is the cost's gradient without the newest measurement.
 
-    ``feedback(S0, g0, C, h, y, mask, R, v, M) -> (dX, P)``: the step ``dX (nx, N)``
-    and the newest state's covariance ``P (nx, nx)`` for the measurement ``y`` (0 where
-    missing, ``mask`` 1 where measured).
+    ``feedback(S0, g0, C, h, y, mask, R, v, M, free) -> (dX, P, grad_y)``: the step
+    ``dX (nx, N)`` and the newest state's covariance ``P (nx, nx)`` for the measurement
+    ``y`` (0 where missing, ``mask`` 1 where measured; ``free (nx)`` the newest slot's),
+    and the newest measurement's term of the gradient.
+
+    ``cost(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R, y, mask_y) -> cost``:
+    half the window's weighted sum of squares, the newest measurement ``y`` included.
     """
     nx, ny, nu, nw = model.nx, model.ny, model.nu, model.nw
     p = ca.DM(model.p)
@@ -103,6 +114,14 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function]:
         C = model.H_x(x, Up[:, k], p)
         Hd[k] += C.T @ Rinv @ C
         g[k] -= C.T @ (Rinv @ (Y[:, k] - model.H(x, Up[:, k], p)))
+    # the free set: a variable held at its bound has its row and column of the
+    # Gauss-Newton matrix replaced by the identity's and its gradient by 0 (step 0)
+    free = ca.SX.sym("free", nx, N)
+    Fd = [ca.diag(free[:, k]) for k in range(N)]
+    grad = ca.horzcat(*g)
+    Hd = [Fd[k] @ Hd[k] @ Fd[k] + eye - Fd[k] for k in range(N)]
+    Hoff = [Fd[k] @ Hoff[k] @ Fd[k + 1] for k in range(N - 1)]
+    g = [Fd[k] @ g[k] for k in range(N)]
     S, gt = Hd[0], g[0]
     v, M = [], []
     for k in range(1, N):
@@ -112,30 +131,49 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function]:
         S = Hd[k] - Hoff[k - 1].T @ Z[:, :nx]
         gt = g[k] - Hoff[k - 1].T @ Z[:, nx]
     xN, upN = X[:, N - 1], Up[:, N - 1]
+    names = ["X", "Y", "mask", "U", "Up", "a", "om", "xbar", "Pbar", "arrival", "Qinv", "R"]
+    inputs = [X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R]
     prepare = ca.Function(
-        "mhe_rti_prepare", [X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R],
+        "mhe_rti_prepare", inputs + [free],
         [0.5 * (S + S.T), gt, model.H_x(xN, upN, p), model.H(xN, upN, p),
-         ca.horzcat(*v) if v else ca.SX(nx, 0), ca.horzcat(*M) if M else ca.SX(nx * nx, 0)],
-        ["X", "Y", "mask", "U", "Up", "a", "om", "xbar", "Pbar", "arrival", "Qinv", "R"],
-        ["S0", "g0", "C", "h", "v", "M"])
+         ca.horzcat(*v) if v else ca.SX(nx, 0), ca.horzcat(*M) if M else ca.SX(nx * nx, 0),
+         grad],
+        names + ["free"], ["S0", "g0", "C", "h", "v", "M", "grad"])
+    # the cost of the window with the newest slot's measurement (the start-up's line search)
+    yN, mN = ca.SX.sym("yN", ny), ca.SX.sym("maskN", ny)
+    terms = [a[k] * ca.dot(X[:, k] - xbar, P0inv @ (X[:, k] - xbar)) for k in range(N)]
+    for k in range(N):
+        yk, mk = (Y[:, k], mask[:, k]) if k < N - 1 else (yN, mN)
+        r = yk - model.H(X[:, k], Up[:, k], p)
+        terms.append(ca.dot(r, _masked_inverse(R, mk) @ r))
+        if k < N - 1:
+            x, xn = X[:, k], X[:, k + 1]
+            e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x)
+            terms.append(ca.dot(e, (om[k] * Qinv + (1 - om[k]) * eye) @ e))
+    cost = ca.Function("mhe_rti_cost", inputs + [yN, mN],
+                       [0.5 * ca.sum1(ca.vertcat(*terms))], names + ["y", "mask_y"], ["cost"])
     # feedback
     S0s, g0s = ca.SX.sym("S0", nx, nx), ca.SX.sym("g0", nx)
     Cs, hs = ca.SX.sym("C", ny, nx), ca.SX.sym("h", ny)
     y, ym = ca.SX.sym("y", ny), ca.SX.sym("mask", ny)
     Rs = ca.SX.sym("R", ny, ny)
     vs, Ms = ca.SX.sym("v", nx, N - 1), ca.SX.sym("M", nx * nx, N - 1)
+    fN = ca.SX.sym("free", nx)
+    FN = ca.diag(fN)
     Rinv = _masked_inverse(Rs, ym)
-    S = S0s + Cs.T @ Rinv @ Cs
+    g_meas = -Cs.T @ (Rinv @ (y - hs))  # the newest measurement's gradient
+    S = S0s + FN @ (Cs.T @ Rinv @ Cs) @ FN
     S = 0.5 * (S + S.T)
     d = [None] * N
-    d[N - 1] = -ca.solve(S, g0s - Cs.T @ (Rinv @ (y - hs)))
+    d[N - 1] = -ca.solve(S, g0s + FN @ g_meas)
     for k in range(N - 2, -1, -1):
         d[k] = vs[:, k] - ca.reshape(Ms[:, k], nx, nx) @ d[k + 1]
     P = ca.solve(S, eye)
-    feedback = ca.Function("mhe_rti_feedback", [S0s, g0s, Cs, hs, y, ym, Rs, vs, Ms],
-                           [ca.horzcat(*d), 0.5 * (P + P.T)],
-                           ["S0", "g0", "C", "h", "y", "mask", "R", "v", "M"], ["dX", "P"])
-    return prepare, feedback
+    feedback = ca.Function("mhe_rti_feedback", [S0s, g0s, Cs, hs, y, ym, Rs, vs, Ms, fN],
+                           [ca.horzcat(*d), 0.5 * (P + P.T), g_meas],
+                           ["S0", "g0", "C", "h", "y", "mask", "R", "v", "M", "free"],
+                           ["dX", "P", "grad_y"])
+    return prepare, feedback, cost
 
 
 def _masked_inverse(R, mask):
