@@ -1,6 +1,7 @@
-"""Per-sample time of ``EKF.filter`` (a whole record in one compiled call) against the
-``step`` loop, filterpy's ``ExtendedKalmanFilter`` loop and dynamax's jitted
-``extended_kalman_filter``.
+"""Per-sample time of ``EKF.filter`` and ``UKF.filter`` (a whole record in one compiled
+call) against their ``step`` loops, filterpy's ``ExtendedKalmanFilter`` loop and dynamax's
+jitted ``extended_kalman_filter`` and ``unscented_kalman_filter`` (Merwe points with
+estim's defaults: alpha 0.1, beta 2, kappa 0).
 
 Two records, each replayed through every filter in the same process:
 
@@ -120,13 +121,19 @@ def filterpy_loop(sc: estim.Scenario, step, h, h_x, Y: np.ndarray) -> np.ndarray
     return out
 
 
-def dynamax_filter(name: str, sc: estim.Scenario):
-    """``Y -> estimates`` by dynamax's EKF under ``jax.jit``, or None without dynamax."""
+def dynamax_filter(name: str, sc: estim.Scenario, kind: str = "EKF"):
+    """``Y -> estimates`` by dynamax's EKF (or UKF, with estim's default Merwe points
+    alpha = 0.1, beta = 2, kappa = 0) under ``jax.jit``, or None without dynamax."""
     try:
         import jax
         jax.config.update("jax_enable_x64", True)
         import jax.numpy as jnp
-        from dynamax.nonlinear_gaussian_ssm import ParamsNLGSSM, extended_kalman_filter
+        from dynamax.nonlinear_gaussian_ssm import (
+            ParamsNLGSSM,
+            UKFHyperParams,
+            extended_kalman_filter,
+            unscented_kalman_filter,
+        )
     except ImportError:
         return None
 
@@ -163,7 +170,11 @@ def dynamax_filter(name: str, sc: estim.Scenario):
                           initial_covariance=jnp.asarray(tun["P0"]),
                           dynamics_function=dynamics, dynamics_covariance=jnp.asarray(tun["Q"]),
                           emission_function=emission, emission_covariance=jnp.asarray(tun["R"]))
-    run = jax.jit(lambda Y: extended_kalman_filter(params, Y).filtered_means)
+    if kind == "UKF":
+        hyper = UKFHyperParams(alpha=0.1, beta=2, kappa=0)
+        run = jax.jit(lambda Y: unscented_kalman_filter(params, Y, hyper).filtered_means)
+    else:
+        run = jax.jit(lambda Y: extended_kalman_filter(params, Y).filtered_means)
     return lambda Y: np.asarray(run(jnp.asarray(Y)).block_until_ready())
 
 
@@ -184,35 +195,38 @@ def main() -> None:
 
 def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
     """Check every filter against the step loop on one record (also a warm-up), then
-    print the median per-sample times."""
+    print the median per-sample times: the EKF's, then the UKF's."""
     Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0).y
     T = len(Y)
-    est = estim.EKF(sc.model, **sc.tuning)
-    t0 = time.perf_counter()
-    est.filter(Y)  # builds the Function for this record length
-    build = time.perf_counter() - t0
-    print(f"\n{name}: {T} samples; EKF.filter's first call (build + run) "
-          f"{build * 1e3:.1f} ms")
-    ref = step_loop(est, Y)
-    runs = {"EKF.filter": lambda: est.filter(Y).x,
-            "step loop": lambda: step_loop(est, Y),
-            "filterpy EKF loop": lambda: filterpy_loop(sc, step, h, h_x, Y)}
-    dyn = dynamax_filter(name, sc)
-    if dyn is not None:
+    for kind in ("EKF", "UKF"):
+        est = getattr(estim, kind)(sc.model, **sc.tuning)
         t0 = time.perf_counter()
-        dyn(Y)  # compiles
-        print(f"  dynamax's jit compilation {time.perf_counter() - t0:.2f} s")
-        runs["dynamax EKF (jit)"] = lambda: dyn(Y)
-    print(f"  {'filter':<20} {'max |x - step loop|':>20} {'us/sample':>10} "
-          f"{'/ EKF.filter':>13}")
-    times = {}
-    for label, run in runs.items():
-        diff = float(np.max(np.abs(run() - ref)))
-        times[label] = timed(run, repeats) / T
-        ratio = times[label] / times["EKF.filter"]
-        print(f"  {label:<20} {diff:>20.2e} {times[label] * 1e6:>10.2f} {ratio:>12.2f}x")
-    if dyn is None:
-        print("  dynamax is not installed: skipped")
+        est.filter(Y)  # builds the Function for this record length
+        build = time.perf_counter() - t0
+        print(f"\n{name}, {kind}: {T} samples; {kind}.filter's first call (build + run) "
+              f"{build * 1e3:.1f} ms")
+        ref = step_loop(est, Y)
+        runs = {f"{kind}.filter": lambda est=est: est.filter(Y).x,
+                "step loop": lambda est=est: step_loop(est, Y)}
+        if kind == "EKF":
+            runs["filterpy EKF loop"] = lambda: filterpy_loop(sc, step, h, h_x, Y)
+        dyn = dynamax_filter(name, sc, kind)
+        if dyn is not None:
+            t0 = time.perf_counter()
+            dyn(Y)  # compiles
+            print(f"  dynamax's jit compilation {time.perf_counter() - t0:.2f} s")
+            runs[f"dynamax {kind} (jit)"] = lambda dyn=dyn: dyn(Y)
+        print(f"  {'filter':<20} {'max |x - step loop|':>20} {'us/sample':>10} "
+              f"{'/ ' + kind + '.filter':>13}")
+        times = {}
+        for label, run in runs.items():
+            diff = float(np.max(np.abs(run() - ref)))
+            times[label] = timed(run, repeats) / T
+            ratio = times[label] / times[f"{kind}.filter"]
+            print(f"  {label:<20} {diff:>20.2e} {times[label] * 1e6:>10.2f} {ratio:>12.2f}x")
+        if dyn is None:
+            print("  dynamax is not installed: skipped")
+
 
 if __name__ == "__main__":
     main()
