@@ -57,7 +57,6 @@ There are no timing assertions; the numbers depend on the machine.
 from __future__ import annotations
 
 import argparse
-import gc
 import os
 import platform
 import statistics
@@ -73,24 +72,11 @@ import numpy as np
 import estim
 import estim.batch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from whole_record import timings as timed  # noqa: E402 - the timing loop of whole_record.py
+
 HERE = Path(__file__).resolve().parent
 MU, DT = 1.0, 0.1
-
-
-def timed(run, repeats: int) -> list[float]:
-    """Seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
-    times = []
-    for _ in range(repeats):
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            t0 = time.perf_counter()
-            run()
-            times.append(time.perf_counter() - t0)
-        finally:
-            if enabled:
-                gc.enable()
-    return times
 
 
 def full(v, n: int) -> np.ndarray:

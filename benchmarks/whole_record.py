@@ -85,8 +85,8 @@ def vdp_h_x(x: np.ndarray) -> np.ndarray:
     return np.eye(2)
 
 
-def timed(run, repeats: int) -> float:
-    """Median seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
+def timings(run, repeats: int) -> list[float]:
+    """Seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
     times = []
     for _ in range(repeats):
         enabled = gc.isenabled()
@@ -98,7 +98,12 @@ def timed(run, repeats: int) -> float:
         finally:
             if enabled:
                 gc.enable()
-    return statistics.median(times)
+    return times
+
+
+def timed(run, repeats: int) -> float:
+    """Median seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
+    return statistics.median(timings(run, repeats))
 
 
 def step_loop(est: estim.EKF, Y: np.ndarray) -> np.ndarray:
