@@ -1,0 +1,321 @@
+"""estim.codegen.export of the real-time iteration MHE: the generated C estimator, built
+and loaded with ctypes, steps as the Python MHE does (estimates, covariances, statuses),
+with and without the preparation phase; and its timing in a small C program."""
+
+from __future__ import annotations
+
+import ctypes
+import shutil
+import subprocess
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import estim
+from estim import codegen
+from estim._compile import compiler
+
+pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler on this machine")
+
+TOL = 1e-12
+
+
+def _code(status: str) -> int:
+    """The C status code of a Python status."""
+    return {"ok": 0, "inexact": 1}[status.split(":")[0]]
+
+
+def _vdp_record(n: int, missing: bool = False):
+    sc = estim.scenarios.van_der_pol()
+    Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0, warn=False).y[:n].copy()
+    if missing:
+        Y[3, 0] = np.nan  # while the window fills
+        Y[20:23] = np.nan  # whole samples, newest slot included
+        Y[40:50, 1] = np.nan  # one output
+        Y[n - 1, 0] = np.nan
+    return sc, Y
+
+
+def _oscillator(hold: str = "zoh"):
+    """A damped linear oscillator driven by a force."""
+    return estim.Model(
+        states=["p", "v"], outputs=["p"], inputs=["u"],
+        ode=lambda x, u, p: ca.vertcat(x[1], -x[0] - 0.2 * x[1] + u[0]),
+        output=lambda x, u, p: x[0], dt=0.1, hold=hold, name="oscillator")
+
+
+def _configuration(key: str):
+    """``(estimator, Y, U)``; ``U[k]`` acts after sample ``k`` (at sample ``k`` if sampled)."""
+    if key.startswith("vdp"):
+        parts = key.split("_")
+        arrival = parts[1] if len(parts) > 1 and parts[1] != "missing" else "filtering"
+        n, N = (120, 15) if arrival == "filtering" else (50, 8)
+        sc, Y = _vdp_record(n, missing="missing" in parts)
+        return estim.MHE(sc.model, **sc.tuning, horizon=N, rti=True,
+                         arrival_cost=arrival), Y, None
+    if key == "reactor":
+        sc = estim.scenarios.batch_reactor()
+        Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0, warn=False).y.copy()
+        return estim.MHE(sc.model, **sc.tuning, horizon=25, rti=True), Y, None
+    m = _oscillator("foh" if key.endswith("foh") else "zoh")
+    T = 80
+    U = np.sin(0.15 * np.arange(T))[:, None]
+    truth = estim.simulate(m, estim.EKF(m, Q=1e-4, R=1e-2, x0=[1.0, 0.0], P0=1.0),
+                           x0=[1.0, 0.0], n_steps=T, Q=1e-4, R=1e-2, inputs=U, seed=1,
+                           warn=False)
+    est = estim.MHE(m, Q=1e-4, R=1e-2, x0=[0.5, 0.0], P0=1.0, horizon=10, rti=True)
+    return est, truth.y.copy(), U
+
+
+def _start_build(directory, name: str) -> subprocess.Popen:
+    """Start building ``lib<name>.so`` (with the Makefile if there is make)."""
+    cc = compiler()[0]
+    if shutil.which("make"):
+        command = ["make", f"CC={cc}", f"lib{name}.so"]
+    else:
+        command = [cc, *codegen.CFLAGS.split(), "-shared", f"{name}.c",
+                   f"{name}_functions.c", "-o", f"lib{name}.so", "-lm"]
+    return subprocess.Popen(command, cwd=directory, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+
+
+def _load(directory, name: str) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(directory / f"lib{name}.so"))
+    d = ctypes.POINTER(ctypes.c_double)
+    getattr(lib, f"{name}_step").argtypes = [ctypes.c_void_p, d, d, d, d]
+    getattr(lib, f"{name}_prepare").argtypes = [ctypes.c_void_p, d]
+    getattr(lib, f"{name}_size").restype = ctypes.c_size_t
+    return lib
+
+
+class CMHE:
+    """The exported MHE, stepped through ctypes."""
+
+    def __init__(self, est, directory, name):
+        self.name, self.nx = name, est.model.nx
+        self.lib = _load(directory, name)
+        size = int(getattr(self.lib, f"{name}_size")())
+        self.memory = np.zeros(size // 8 + 1)  # 8-byte aligned
+        self.e = ctypes.c_void_p(self.memory.ctypes.data)
+        self.init()
+
+    def init(self):
+        assert getattr(self.lib, f"{self.name}_init")(self.e) == 0
+
+    @staticmethod
+    def _ptr(a):
+        return a.ctypes.data_as(ctypes.POINTER(ctypes.c_double)) if a.size else None
+
+    def prepare(self, u):
+        u = np.ascontiguousarray(u, dtype=float)
+        return getattr(self.lib, f"{self.name}_prepare")(self.e, self._ptr(u))
+
+    def step(self, y, u):
+        y = np.ascontiguousarray(y, dtype=float)
+        u = np.ascontiguousarray(u, dtype=float)
+        x, P = np.empty(self.nx), np.empty(self.nx * self.nx)
+        status = getattr(self.lib, f"{self.name}_step")(self.e, self._ptr(y), self._ptr(u),
+                                                        self._ptr(x), self._ptr(P))
+        return status, x, P.reshape(self.nx, self.nx, order="F")
+
+    def run(self, Y, U, sampled=False, prepare=False):
+        self.init()
+        nu = U.shape[1] if U is not None else 0
+        out = {"x": [], "P": [], "status": []}
+        for k, y in enumerate(Y):
+            u = _input(U, k, nu, sampled)
+            if prepare and k > 0:
+                assert self.prepare(u) == 0
+            status, x, P = self.step(y, u)
+            out["x"].append(x)
+            out["P"].append(P)
+            out["status"].append(status)
+        return {k: np.array(v) for k, v in out.items()}
+
+
+def _input(U, k, nu, sampled):
+    if U is None or (k == 0 and not sampled):
+        return np.zeros(nu)
+    return U[k] if sampled else U[k - 1]
+
+
+def _python(est, Y, U, prepare=False):
+    """The Python MHE's step loop (with ``prepare`` before every step after the first)."""
+    est.reset()
+    nu = est.model.nu
+    x, P, status = [], [], []
+    for k, y in enumerate(Y):
+        u = _input(U, k, nu, est.model.sampled)
+        if prepare and k > 0:
+            est.prepare(u)
+        x.append(est.step(y, u))
+        P.append(est.info.P)
+        status.append(est.info.status)
+    return np.array(x), np.array(P), status
+
+
+CONFIGURATIONS = ["vdp", "vdp_missing", "reactor", "vdp_smoothing", "vdp_fixed", "vdp_none",
+                  "oscillator", "oscillator_foh"]
+
+
+#: Configurations that differ from another one in their data only share its build.
+SHARED = {"vdp_missing": "vdp"}
+
+
+@pytest.fixture(scope="module")
+def exports(tmp_path_factory):
+    """``key -> (estimator, Y, U, CMHE, directory)``: every configuration exported and
+    built once, the builds side by side."""
+    data, builds = {}, {}
+    for key in CONFIGURATIONS:
+        est, Y, U = _configuration(key)
+        data[key] = est, Y, U
+        if key not in SHARED:
+            directory = tmp_path_factory.mktemp(key)
+            codegen.export(est, directory, name=key)
+            builds[key] = directory, _start_build(directory, key)
+    for _, process in builds.values():
+        _, error = process.communicate()
+        assert process.returncode == 0, error.decode()
+    loaded = {key: (CMHE(data[key][0], directory, key), directory)
+              for key, (directory, _) in builds.items()}
+    return lambda key: (*data[key], *loaded[SHARED.get(key, key)])
+
+
+@pytest.mark.parametrize("key", CONFIGURATIONS)
+def test_the_c_mhe_is_the_python_mhe(exports, key):
+    est, Y, U, cm, _ = exports(key)
+    log = estim.replay(est, Y, U, warn=False)
+    out = cm.run(Y, U, sampled=est.model.sampled)
+    assert out["status"].tolist() == [_code(s) for s in log.status]
+    difference = max(float(np.abs(out["x"] - log.x_hat).max()),
+                     float(np.abs(out["P"] - log.P).max()))
+    print(f"{key}: largest difference {difference:.3g}")
+    assert difference <= TOL
+    assert int(getattr(cm.lib, f"{cm.name}_size")()) == codegen.memory(est)
+
+
+@pytest.mark.parametrize("key", ["vdp_missing", "reactor", "oscillator_foh"])
+def test_prepare_then_step_is_step(exports, key):
+    est, Y, U, cm, _ = exports(key)
+    alone = cm.run(Y, U, sampled=est.model.sampled)
+    split = cm.run(Y, U, sampled=est.model.sampled, prepare=True)
+    for part in ("x", "P", "status"):
+        np.testing.assert_array_equal(split[part], alone[part])
+    x, P, status = _python(est, Y, U, prepare=True)
+    assert np.abs(split["x"] - x).max() <= TOL and np.abs(split["P"] - P).max() <= TOL
+    assert split["status"].tolist() == [_code(s) for s in status]
+
+
+def test_the_reactor_start_up_holds_and_halves(exports):
+    """The reactor's start-up reaches the bound x >= 0: held variables and halved steps."""
+    est, Y, U, _, _ = exports("reactor")
+    est.reset()
+    held = 0
+    for y in Y[:est.horizon]:
+        est.step(y)
+        held += int((est.info.extra["window"] <= est.lower).any())
+    assert held > 0
+
+
+def test_invalid_calls(exports):
+    key = "oscillator"
+    est, Y, U, cm, _ = exports(key)
+    cm.init()
+    for k in range(est.horizon + 2):
+        cm.step(Y[k], _input(U, k, 1, False))
+    before = cm.memory.copy()
+    assert cm.step(np.array([np.inf]), U[0])[0] == -1
+    assert cm.step(Y[0], np.array([np.nan]))[0] == -1
+    assert cm.prepare(np.array([np.nan])) == -1
+    np.testing.assert_array_equal(cm.memory, before)
+    assert cm.prepare(U[5]) == 0
+    prepared = cm.memory.copy()
+    assert cm.step(Y[5], U[5] + 1.0)[0] == -3  # not the prepared input
+    np.testing.assert_array_equal(cm.memory, prepared)
+    assert cm.step(Y[5], U[5])[0] == 0
+    # a step that is not finite: -2 until reset
+    assert cm.step(np.array([1e308]), U[6])[0] == -2
+    assert cm.step(Y[7], U[7])[0] == -2
+    assert getattr(cm.lib, f"{key}_reset")(cm.e) == 0
+    assert cm.step(Y[0], np.zeros(1))[0] == 0
+
+
+def test_what_export_refuses(tmp_path):
+    sc = estim.scenarios.van_der_pol(n_steps=10)
+    with pytest.raises(ValueError, match="rti"):
+        codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=5), tmp_path)
+    with pytest.raises(ValueError, match="horizon"):
+        codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=1, rti=True), tmp_path)
+    variable = estim.Model(states=["a"], outputs=["a"], ode=lambda x, u, p: -x,
+                           output=lambda x, u, p: x, dt=0.1, variable_dt=True)
+    with pytest.raises(ValueError, match="variable_dt"):
+        codegen.export(estim.MHE(variable, Q=1.0, R=1.0, x0=[0.0], P0=1.0, horizon=5,
+                                 rti=True), tmp_path)
+    with pytest.raises(TypeError, match="estimator"):
+        codegen.export(estim.FullInformation(sc.model, **sc.tuning), tmp_path)
+    paths = codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=5, rti=True),
+                           tmp_path / "out")
+    assert paths["h"].name == "mhe_van_der_pol.h" and paths["readme"].exists()
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make on this machine")
+def test_timing_in_c(exports, tmp_path):
+    """The preparation and the feedback once the window is full, timed in C: best and
+    median over the record's samples of many passes."""
+    key = "vdp"
+    est, Y, _, _, directory = exports(key)
+    subprocess.run(["make", f"CC={compiler()[0]}", f"lib{key}.a"], cwd=directory,
+                   check=True, capture_output=True)
+    rows = ",\n".join("{" + ", ".join(repr(float(v)) for v in y) + "}" for y in Y)
+    N, T, passes = est.horizon, len(Y), 200
+    (tmp_path / "timing.c").write_text(f"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+#include "{key}.h"
+static const double Y[{T}][{est.model.ny}] = {{{rows}}};
+static double prep[{passes * (T - N)}], feed[{passes * (T - N)}];
+static double ns(struct timespec a, struct timespec b) {{
+    return (b.tv_sec - a.tv_sec) * 1e9 + (b.tv_nsec - a.tv_nsec);
+}}
+static int order(const void *a, const void *b) {{
+    double x = *(const double *) a, y = *(const double *) b;
+    return (x > y) - (x < y);
+}}
+int main(void) {{
+    static {key}_t e;
+    double x[{est.model.nx}], P[{est.model.nx ** 2}];
+    struct timespec t0, t1, t2;
+    int r, k, m = 0;
+    for (r = 0; r < {passes}; ++r) {{
+        {key}_init(&e);
+        for (k = 0; k < {T}; ++k) {{
+            if (k < {N}) {{ {key}_step(&e, Y[k], NULL, x, P); continue; }}
+            clock_gettime(CLOCK_MONOTONIC, &t0);
+            {key}_prepare(&e, NULL);
+            clock_gettime(CLOCK_MONOTONIC, &t1);
+            {key}_step(&e, Y[k], NULL, x, P);
+            clock_gettime(CLOCK_MONOTONIC, &t2);
+            prep[m] = ns(t0, t1);
+            feed[m++] = ns(t1, t2);
+        }}
+    }}
+    qsort(prep, m, sizeof(double), order);
+    qsort(feed, m, sizeof(double), order);
+    printf("%.17g %g %g %g %g\\n", x[0], prep[0], prep[m / 2], feed[0], feed[m / 2]);
+    return 0;
+}}
+""")
+    cc = compiler()[0]
+    subprocess.run([cc, "-O2", "-I", directory, "timing.c", f"{directory}/lib{key}.a",
+                    "-lm", "-o", "timing"], cwd=tmp_path, check=True, capture_output=True)
+    run = subprocess.run([str(tmp_path / "timing")], check=True, capture_output=True,
+                         text=True)
+    x_last, prep_best, prep_median, feed_best, feed_median = map(float, run.stdout.split())
+    print(f"van der Pol, N = {N}: prepare {prep_best:.0f} ns best, {prep_median:.0f} ns "
+          f"median; feedback {feed_best:.0f} ns best, {feed_median:.0f} ns median")
+    log = estim.replay(est, Y, warn=False)
+    assert x_last == log.x_hat[-1, 0]
+    assert 0 < feed_best <= feed_median < 1e6 and 0 < prep_best <= prep_median < 1e6
