@@ -7,6 +7,13 @@ small hand-written driver that does what :meth:`~estim.Estimator.step` does with
 their results (the gate, the suspect flag, the recovery of a failed update with its
 last trusted estimate), a ``Makefile`` and a ``README.md``. The code is plain C99
 with ``<math.h>`` and ``<string.h>`` only: no allocation, no CasADi runtime.
+
+The real-time iteration of the moving horizon estimator (:class:`~estim.MHE` with
+``rti=True``) is exported the same way: CasADi's generated code of the window's
+preparation, feedback and cost (:func:`estim.estimators.rti.build`), of the arrival
+covariance's step and of the model's transition, and a driver that does the window's
+bookkeeping as the Python estimator does, in the same order (see
+``docs/deployment.md``).
 """
 
 from __future__ import annotations
@@ -33,7 +40,8 @@ _FILTER_IN = ["s", "w", "y", "tuning"]
 
 def export(estimator, directory: str | Path, *, name: str | None = None,
            overwrite: bool = False) -> dict[str, Path]:
-    r"""Write C code of an EKF or UKF that steps as :meth:`~estim.Estimator.step` does.
+    r"""Write C code of an EKF, a UKF or a real-time iteration MHE that steps as
+    :meth:`~estim.Estimator.step` does.
 
     Files written into ``directory`` (created if needed):
 
@@ -64,10 +72,22 @@ def export(estimator, directory: str | Path, *, name: str | None = None,
     NaN in ``y`` marks a missing output, as in Python. For a model with sampled
     inputs (``hold="foh"``) the driver keeps the previous input, as ``step`` does.
 
+    For an :class:`~estim.MHE` with ``rti=True`` the same six files hold the
+    generated ``<name>_prepare_window``, ``<name>_feedback_window``,
+    ``<name>_window_cost``, ``<name>_cov_step`` and ``<name>_transition``, and a
+    driver with ``<name>_init``, ``<name>_reset``, ``<name>_prepare(e, u)`` (the
+    preparation phase, :meth:`~estim.MHE.prepare`), ``<name>_step(e, y, u, x_hat,
+    P)`` (0 ok, 1 inexact start-up, -1 invalid argument, -2 a non-finite step, where
+    Python falls back to its converged solver: reset needed, -3 ``u`` is not the
+    input given to prepare), ``<name>_iterations`` and ``<name>_size``. The window,
+    the arrival cost (every ``arrival_cost``), the start-up's projected Gauss-Newton
+    iterations and the bounds are those of the estimator.
+
     Parameters
     ----------
-    estimator : EKF or UKF
-        The filter (its tuning, options and bounds are what the code does).
+    estimator : EKF, UKF or MHE
+        The estimator (its tuning, options and bounds are what the code does); an
+        MHE with ``rti=True``.
     directory : str or Path
         Where the files go.
     name : str, optional
@@ -85,11 +105,14 @@ def export(estimator, directory: str | Path, *, name: str | None = None,
     Raises
     ------
     TypeError
-        ``estimator`` is not an :class:`~estim.EKF` or :class:`~estim.UKF`.
+        ``estimator`` is not an :class:`~estim.EKF`, :class:`~estim.UKF` or
+        :class:`~estim.MHE`.
     ValueError
         An invalid ``name``; a model with ``variable_dt=True`` (the interval of each
         step would be an argument of the C step: not supported) or integrated by
-        CVODES (``integrator="cvodes"``, which needs the CasADi runtime).
+        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); an MHE
+        without ``rti=True`` (its error is also a ``TypeError``) or with
+        ``horizon=1``.
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
