@@ -111,8 +111,7 @@ def export(estimator, directory: str | Path, *, name: str | None = None,
         An invalid ``name``; a model with ``variable_dt=True`` (the interval of each
         step would be an argument of the C step: not supported) or integrated by
         CVODES (``integrator="cvodes"``, which needs the CasADi runtime); an MHE
-        without ``rti=True`` (its error is also a ``TypeError``) or with
-        ``horizon=1``.
+        without ``rti=True`` or with ``horizon=1``.
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
@@ -633,15 +632,11 @@ MHE_STATUS = {0: "ok", 1: "inexact: the start-up's Gauss-Newton steps did not co
 _ARRIVAL = {"none": 0, "fixed": 1, "filtering": 2, "smoothing": 3}
 
 
-class _NotExported(TypeError, ValueError):
-    """An estimator of an exported class in a configuration that is not exported."""
-
-
 def _check_mhe(estimator) -> None:
     """Refuse the MHE configurations that have no C counterpart."""
     m = estimator.model
     if not estimator.rti:
-        raise _NotExported("estimator: an MHE is exported as its real-time iteration only "
+        raise ValueError("estimator: an MHE is exported as its real-time iteration only "
                            "(the converged solve has no C counterpart): build it with "
                            "rti=True")
     if m.variable_dt:
@@ -1245,8 +1240,14 @@ static void take_input(est_t *e, const double *u) {
 }
 
 int @name@_prepare(est_t *e, const double *u) {
+    int k;
     if (!e || !valid_input(u)) return @NAME@_INVALID;
     if (e->failed) return @NAME@_NONFINITE;
+    if (e->prepared) { /* prepared already: the same input is a no-op */
+        for (k = 0; k < NU; ++k)
+            if (e->u_prepared[k] != (u ? u[k] : 0.0)) return @NAME@_INPUT_MISMATCH;
+        return @NAME@_OK;
+    }
     take_input(e, u);
     e->prepared = 0;
     if (e->first || e->n < N) return @NAME@_OK; /* filling: the step solves the window */

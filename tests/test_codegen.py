@@ -291,7 +291,7 @@ int main(void) {{
 
 def test_what_export_refuses(tmp_path):
     sc = estim.scenarios.van_der_pol(n_steps=10)
-    with pytest.raises(TypeError, match="estimator"):
+    with pytest.raises(ValueError, match="rti=True"):
         codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=5), tmp_path)
     with pytest.raises(TypeError, match="estimator"):
         codegen.export("ekf", tmp_path)

@@ -254,6 +254,9 @@ def test_invalid_calls(exports):
     np.testing.assert_array_equal(cm.memory, before)
     assert cm.prepare(U[5]) == 0
     prepared = cm.memory.copy()
+    assert cm.prepare(U[5]) == 0  # again: nothing more happens
+    assert cm.prepare(U[5] + 1.0) == -3  # another input: refused
+    np.testing.assert_array_equal(cm.memory, prepared)
     assert cm.step(Y[5], U[5] + 1.0)[0] == -3  # not the prepared input
     np.testing.assert_array_equal(cm.memory, prepared)
     assert cm.step(Y[5], U[5])[0] == 0

@@ -85,8 +85,10 @@ def test_prepare_then_step_is_step():
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=1)
     a = estim.MHE(sc.model, horizon=10, rti=True, **sc.tuning)
     b = estim.MHE(sc.model, horizon=10, rti=True, **sc.tuning)
-    for y in log.y:
+    for k, y in enumerate(log.y):
         b.prepare()
+        if k % 7 == 3:
+            b.prepare()  # again before the step: nothing more happens
         np.testing.assert_array_equal(a.step(y), b.step(y))
         np.testing.assert_array_equal(a.info.P, b.info.P)
     assert b.info.extra["preparation_time"] > 0 and b.info.solve_time > 0
@@ -110,5 +112,7 @@ def test_wrong_uses_are_refused():
     for k in range(5):
         mhe.step(log.y[k], log.u[k])
     mhe.prepare([1.0])
+    with pytest.raises(ValueError, match="called already with u"):
+        mhe.prepare([2.0])
     with pytest.raises(ValueError, match="the input given to prepare"):
         mhe.step(log.y[5], [2.0])

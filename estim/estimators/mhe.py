@@ -265,13 +265,18 @@ class MHE(Estimator):
         The following :meth:`step` then only adds the measurement (the feedback
         phase). Calling :meth:`step` without :meth:`prepare` does both. Until the
         window is full (the first ``horizon`` samples) a step solves the window to
-        convergence, and :meth:`prepare` does nothing.
+        convergence, and :meth:`prepare` does nothing. Calling it again before the
+        step does nothing (a different ``u`` then raises a ValueError).
         """
         if not self.rti:
             raise ValueError("prepare() is the preparation phase of the real-time "
                              "iteration: build the MHE with rti=True")
         u = self._check_u(u)
-        self._prepared = None
+        if self._prepared is not None:  # prepared already: the window has moved
+            if not np.array_equal(self._prepared[0], u):
+                raise ValueError(f"prepare() was called already with u = "
+                                 f"{self._prepared[0]}: step with that input first")
+            return
         if self._first or self._n < self.horizon:  # filling: step solves the window
             return
         t0 = time.perf_counter()
