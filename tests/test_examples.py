@@ -181,9 +181,12 @@ def test_tune_noise_covariances(tmp_path, capsys):
 
 @pytest.mark.skipif(not any(shutil.which(c) for c in ("cc", "gcc", "clang")),
                     reason="the example builds C code: no C compiler")
-def test_deploy_van_der_pol_ekf(tmp_path, capsys):
-    res = load("deploy_van_der_pol_ekf").main(["--out", str(tmp_path / "vdp")])
-    assert res["difference"] == 0.0  # the same numbers as the Python filter
+def test_deploy_van_der_pol(tmp_path, capsys):
+    res = load("deploy_van_der_pol").main(["--out", str(tmp_path / "vdp")])
+    for name in ("vdp_mhe", "vdp_ekf"):  # the same numbers as the Python estimators
+        assert res[name]["difference"] == 0.0
+        assert (tmp_path / "vdp" / name / f"{name}_run").exists()
+    assert (res["vdp_mhe"]["statuses"] == 0).all()
     assert res["rejected"] == 1 and res["samples"] == 300
-    assert (tmp_path / "vdp" / "vdp_ekf_run").exists()
-    assert "largest |x_C - x_Python| = 0" in capsys.readouterr().out
+    assert res["vdp_mhe"]["memory"] == 8624
+    assert capsys.readouterr().out.count("largest |x_C - x_Python| = 0;") == 2
