@@ -1036,6 +1036,22 @@ static void shift(est_t *e) {
     copy(e->X + (N - 1) * NX, all_finite(e->pred, NX) ? e->pred : e->X + (N - 2) * NX, NX);
 }
 
+/* the arguments the preparation and cost Functions share: the window at X and its data */
+static void window_args(est_t *e, const double *X) {
+    e->arg[0] = X;
+    e->arg[1] = e->a_Y;
+    e->arg[2] = e->a_mask;
+    e->arg[3] = e->a_U;
+    e->arg[4] = e->a_Up;
+    e->arg[5] = e->a_a;
+    e->arg[6] = e->a_om;
+    e->arg[7] = e->xbar;
+    e->arg[8] = e->a_Pbar;
+    e->arg[9] = e->a_arrival;
+    e->arg[10] = e->Qinv;
+    e->arg[11] = e->R;
+}
+
 /* MHE._linearise: the preparation Function at X for the window with the arriving
  * sample; free_vars (N*NX) the variables that may move (NULL: all) */
 static void linearise(est_t *e, const double *free_vars) {
@@ -1060,18 +1076,7 @@ static void linearise(est_t *e, const double *free_vars) {
     e->a_arrival[0] = arrival_cost != NONE ? 1.0 : 0.0;
     if (!free_vars) free_vars = e->ones;
     copy(e->free_new, free_vars + (N - 1) * NX, NX);
-    e->arg[0] = e->X;
-    e->arg[1] = e->a_Y;
-    e->arg[2] = e->a_mask;
-    e->arg[3] = e->a_U;
-    e->arg[4] = e->a_Up;
-    e->arg[5] = e->a_a;
-    e->arg[6] = e->a_om;
-    e->arg[7] = e->xbar;
-    e->arg[8] = e->a_Pbar;
-    e->arg[9] = e->a_arrival;
-    e->arg[10] = e->Qinv;
-    e->arg[11] = e->R;
+    window_args(e, e->X);
     e->arg[12] = free_vars;
     e->res[0] = e->S0;
     e->res[1] = e->g0;
@@ -1103,18 +1108,7 @@ static void feedback(est_t *e, double *dX, double *P) {
 
 /* the window's cost at X with the newest measurement */
 static double window_cost(est_t *e, const double *X) {
-    e->arg[0] = X;
-    e->arg[1] = e->a_Y;
-    e->arg[2] = e->a_mask;
-    e->arg[3] = e->a_U;
-    e->arg[4] = e->a_Up;
-    e->arg[5] = e->a_a;
-    e->arg[6] = e->a_om;
-    e->arg[7] = e->xbar;
-    e->arg[8] = e->a_Pbar;
-    e->arg[9] = e->a_arrival;
-    e->arg[10] = e->Qinv;
-    e->arg[11] = e->R;
+    window_args(e, X);
     e->arg[12] = e->yv;
     e->arg[13] = e->ymask;
     e->res[0] = e->cost;
