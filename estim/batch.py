@@ -131,6 +131,13 @@ class SeedMap:
                                          else self.fun.map(n))
         return self._maps[n]
 
+    def build(self, S: int) -> None:
+        """Build the maps a call over ``S`` seeds uses (so that timing a call does not
+        time their construction)."""
+        with self.lock:
+            for lo in range(0, S, CHUNK):
+                self._map(min(CHUNK, S - lo))
+
     def __call__(self, inputs: list[np.ndarray], S: int) -> list[np.ndarray]:
         """Evaluate over ``S`` seeds: each input either the same for all seeds (a flat
         array of the input's size) or ``(S, size)``, one row per seed (column-major

@@ -342,6 +342,7 @@ class FusedKalman(Estimator):
         self.reset()
         key = ("filter", self._predict_update.fun.serialize(), self._update.fun.serialize(), T)
         fun = seed_map(key, lambda expand: self._whole_record(T, expand).fun, S * T)
+        fun.build(S)
         t1 = time.perf_counter()
         Sx, _, F = fun([self._s, Y.reshape(S, -1), W.ravel(), self._tun,
                         self.P0.ravel(order="F")], S)
