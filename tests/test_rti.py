@@ -116,3 +116,10 @@ def test_wrong_uses_are_refused():
         mhe.prepare([2.0])
     with pytest.raises(ValueError, match="the input given to prepare"):
         mhe.step(log.y[5], [2.0])
+
+
+def test_the_step_time_counts_the_preparation_it_did():
+    sc = estim.scenarios.van_der_pol(n_steps=40)
+    log = estim.simulate(sc, estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning), seed=0)
+    prep = np.array([d["preparation_time"] for d in log.diagnostics[8:]])
+    assert (prep > 0).all() and (log.solve_time[8:] > prep).all()

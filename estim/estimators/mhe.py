@@ -126,10 +126,12 @@ class MHE(Estimator):
         before the measurement arrives) and the feedback in :meth:`step` (the new
         measurement's part, :math:`O(N n_x^2)`; see :mod:`estim.estimators.rti`).
         Bounds by projection of the step. Needs the Gauss-Newton solver, the squared
-        loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time,
-        ``info.extra["preparation_time"]`` the preparation's; ``info.cost`` is not
-        computed (NaN) and the status is ``"ok"`` unless the step is not finite (then
-        the window is solved to convergence, and the status says so).
+        loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time (with the
+        preparation's when :meth:`step` prepared the window itself, as in
+        :func:`~estim.simulate`), ``info.extra["preparation_time"]`` the
+        preparation's; ``info.cost`` is not computed (NaN) and the status is ``"ok"``
+        unless the step is not finite (then the window is solved to convergence, and
+        the status says so).
 
     Attributes
     ----------
@@ -472,13 +474,14 @@ class MHE(Estimator):
             t0 = time.perf_counter()  # not finite: the converged solver
             self._prepared = (u.copy(), 0.0)  # (the data shifted already)
         elif self.rti and not first and (self._prepared is not None or self._n == N):
-            if self._prepared is None:
+            inside = self._prepared is None  # this step prepares the window itself
+            if inside:
                 self.prepare(u)
             elif not np.array_equal(self._prepared[0], u):
                 raise ValueError(f"step got u = {u}, but prepare() prepared the window for "
                                  f"u = {self._prepared[0]}: give step the input given to "
                                  f"prepare")
-            out = self._feedback(y, u, self._prepared[1])
+            out = self._feedback(y, u, self._prepared[1], inside)
             if out is not None:
                 return out
             t0 = time.perf_counter()  # not finite: the window solved to convergence
@@ -590,10 +593,11 @@ class MHE(Estimator):
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "preparation_time": 0.0, "solver": "gauss-newton (rti start-up)"})
 
-    def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float):
+    def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float, inside: bool):
         """The feedback phase of the real-time iteration: the prepared window with the
         measurement ``y``; None (the window prepared, to be solved) if the step is not
-        finite."""
+        finite. Its ``solve_time`` is the feedback's time, with the preparation's when
+        this step prepared the window itself (``inside``)."""
         m, N = self.model, self.horizon
         t0 = time.perf_counter()
         mask = np.isfinite(y)
@@ -614,7 +618,7 @@ class MHE(Estimator):
         P = P.reshape(m.nx, m.nx, order="F").copy()
         self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
-        elapsed = time.perf_counter() - t0
+        elapsed = time.perf_counter() - t0 + (preparation if inside else 0.0)
         return x_hat, StepInfo(
             status="ok", success=True, iterations=1, solve_time=elapsed, P=P,
             extra={"window": self._X.copy(), "arrival_mean": self._xbar.copy(),
