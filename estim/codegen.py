@@ -1188,6 +1188,9 @@ static int startup(est_t *e, const double *y) {
     }
     e->iterations = iteration;
     copy(e->X, e->Xs, N * NX);
+    linearise(e, NULL); /* the covariance at the window found */
+    feedback(e, e->dX, e->P);
+    if (!all_finite(e->P, NX * NX)) return @NAME@_NONFINITE;
     accept(e, y);
     e->n += 1;
     return iteration < max_iterations ? @NAME@_OK : @NAME@_INEXACT;

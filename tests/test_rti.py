@@ -37,7 +37,13 @@ def test_one_step_solves_a_quadratic_window(arrival_cost):
     full = estim.replay(estim.MHE(m, solver_options={"xtol": 1e-14}, **kw), y, log.u)
     rti = estim.replay(estim.MHE(m, rti=True, **kw), y, log.u)
     np.testing.assert_allclose(rti.x_hat, full.x_hat, rtol=0, atol=1e-8)
-    np.testing.assert_allclose(rti.P[8:], full.P[8:], rtol=1e-7, atol=1e-12)
+    # the covariance of every window, the filling ones included; where the converged MHE
+    # has none (no arrival cost: the first sample does not determine the velocity) the
+    # real-time iteration's ridge gives a finite but huge variance
+    known = np.isfinite(full.P).all(axis=(1, 2))
+    assert known[1:].all() and np.isfinite(rti.P).all()
+    np.testing.assert_allclose(rti.P[known], full.P[known], rtol=1e-7, atol=1e-12)
+    assert (np.diagonal(rti.P[~known], axis1=1, axis2=2).max(axis=1) > 1e8).all()
     assert set(rti.diagnostics[-1]) >= {"preparation_time", "window"}
     assert rti.diagnostics[-1]["solver"] == "gauss-newton (rti)"
     assert (rti.iterations[8:] == 1).all()

@@ -533,8 +533,9 @@ class MHE(Estimator):
         points out of the box are held (their step 0) and the step of the others is
         halved (at most 30 times) until the projected point does not raise the cost.
         Stops when the step is below ``xtol`` relative to ``1 + max|X|``, or after
-        ``max_iter`` iterations (then ``"inexact"``). None if a step is not finite (the
-        window is then solved by the converged solver)."""
+        ``max_iter`` iterations (then ``"inexact"``); the covariance is the one of the
+        window found (its last state's block of the inverse Gauss-Newton matrix). None if
+        a step is not finite (the window is then solved by the converged solver)."""
         m, N = self.model, self.horizon
         t0 = time.perf_counter()
         if not first:
@@ -577,6 +578,10 @@ class MHE(Estimator):
                 break
         converged = iteration < RTI_STARTUP_ITERATIONS
         self._X[:] = X
+        self._linearise(u)  # the covariance at the window found
+        P = self._rti_feedback.evaluate()[1]
+        if not np.isfinite(P).all():
+            return None
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
         self._n += 1
