@@ -26,6 +26,12 @@ estimator, and both halves can be batched:
 A seed whose plant leaves the finite numbers, or whose filter meets a failed update
 (whose recovery depends on the filter's history), is run by the per-seed path
 instead, so the numbers are those of :func:`~estim.simulate` in every case.
+
+The one-seed Functions are mapped over chunks of :data:`CHUNK` seeds, evaluated in
+threads on the machine's cores, and read and write the seeds' rows in place. Batches of
+at least :data:`COMPILE_MIN_SAMPLES` samples are compiled to C once per machine
+(:mod:`estim._compile`) with flags that keep the interpreter's arithmetic, so compiled
+and interpreted batches give the same numbers.
 """
 
 from __future__ import annotations
@@ -51,7 +57,8 @@ from estim.scenarios import Scenario
 def unsupported(scenario: Scenario) -> str:
     """Why the scenario's plant cannot be simulated for a batch of seeds ("" when it can)."""
     if scenario.controller is not None:
-        return "its input comes from a controller that sees the estimate"
+        return ("its input comes from a controller, a feedback law evaluated sample by "
+                "sample")
     return ""
 
 
