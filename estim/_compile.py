@@ -111,7 +111,8 @@ def compiled(fun: ca.Function) -> ca.Function:
     Raises
     ------
     CompilerUnavailable
-        No C compiler, or the compilation failed (the message says why).
+        No C compiler, a compilation that failed, or a cache directory that cannot be
+        written (the message says why).
     """
     cc = compiler()
     if cc is None:
@@ -131,12 +132,20 @@ def compiled(fun: ca.Function) -> ca.Function:
     with _LOCK:
         if key in _LOADED:
             return _LOADED[key]
-    root = cache_directory()
+    try:
+        root = cache_directory()
+    except OSError as exc:
+        raise CompilerUnavailable(f"the compile cache directory cannot be created ({exc}); "
+                                  f"set ESTIM_CACHE_DIR to a writable directory") from None
     lib = root / f"{name}-{key[:24]}{'.dll' if sys.platform == 'win32' else '.so'}"
     record = lib.with_suffix(".json")
     loaded = _load(lib, record, key, name)
     if loaded is None:
-        _build(code, lib, record, key, cc[0], root)
+        try:
+            _build(code, lib, record, key, cc[0], root)
+        except OSError as exc:
+            raise CompilerUnavailable(f"the compile cache {root} is not writable ({exc}); "
+                                      f"set ESTIM_CACHE_DIR to a writable directory") from None
         loaded = _load(lib, record, key, name)
         if loaded is None:
             raise CompilerUnavailable(f"the library compiled for {name} does not load")

@@ -127,3 +127,19 @@ def test_a_failing_compiler_is_reported(cache, monkeypatch, tmp_path):
     monkeypatch.setenv("CC", str(fake))
     with pytest.raises(CompilerUnavailable, match="fake: cannot compile"):
         compiled(_function("another_test"))
+
+
+@needs_cc
+def test_an_unwritable_cache_is_reported(monkeypatch, tmp_path):
+    blocker = tmp_path / "a file"
+    blocker.write_text("not a directory")
+    monkeypatch.setenv("ESTIM_CACHE_DIR", str(blocker / "cache"))
+    monkeypatch.setattr(_compile, "_LOADED", {})
+    with pytest.raises(CompilerUnavailable, match="ESTIM_CACHE_DIR to a writable"):
+        compiled(_function("unwritable_test"))
+    if getattr(os, "geteuid", lambda: 0)() != 0:  # root writes anywhere
+        readonly = tmp_path / "readonly"
+        readonly.mkdir(mode=0o500)
+        monkeypatch.setenv("ESTIM_CACHE_DIR", str(readonly))
+        with pytest.raises(CompilerUnavailable, match="not writable"):
+            compiled(_function("readonly_test"))
