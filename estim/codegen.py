@@ -77,7 +77,7 @@ def export(estimator, directory: str | Path, *, name: str | None = None,
     ``<name>_window_cost``, ``<name>_cov_step`` and ``<name>_transition``, and a
     driver with ``<name>_init``, ``<name>_reset``, ``<name>_prepare(e, u)`` (the
     preparation phase, :meth:`~estim.MHE.prepare`), ``<name>_step(e, y, u, x_hat,
-    P)`` (0 ok, 1 inexact start-up, -1 invalid argument, -2 a non-finite step, where
+    P)`` (0 ok, 1 inexact start-up, 2 suspect, -1 invalid argument, -2 a non-finite step, where
     Python falls back to its converged solver: reset needed, -3 ``u`` is not the
     input given to prepare), ``<name>_iterations`` and ``<name>_size``. The window,
     the arrival cost (every ``arrival_cost``), the start-up's projected Gauss-Newton
@@ -624,6 +624,7 @@ the same, with missing outputs, gated and suspect measurements and failed update
 # ------------------------------------------------------------ the real-time MHE
 #: Status codes of the MHE's ``<name>_step`` and ``<name>_prepare``.
 MHE_STATUS = {0: "ok", 1: "inexact: the start-up's Gauss-Newton steps did not converge",
+              2: "suspect: the window's cost beyond the 1e-9 chi-square tail",
               -1: "invalid argument (inf in y, non-finite u)",
               -2: "non-finite step: Python solves the window to convergence instead; "
                   "reset needed",
@@ -694,6 +695,7 @@ def _mhe_layout(estimator, sizes: dict) -> tuple[str, int, dict]:
         ("history", window, "the estimates of the window's times, oldest first"),
         ("u_last", nu, "the previous input (sampled inputs)"),
         ("u_prepared", nu, "the input given to prepare"),
+        ("cost_last", 1, "the window's cost at the last estimate (its chi-square statistic)"),
         ("work memory of prepare and step", None),
         ("u_in", nu, ""), ("Xs", window, ""), ("trial", window, ""), ("dX", window, ""),
         ("P", nx * nx, ""), ("P_held", nx * nx, ""), ("grad_y", nx, ""), ("G", window, ""),
@@ -732,6 +734,7 @@ def _mhe_layout(estimator, sizes: dict) -> tuple[str, int, dict]:
 
 
 def _write_mhe(estimator, directory: Path, name: str, paths: dict) -> None:
+    from estim.estimators.base import chi2_limit
     from estim.estimators.mhe import RTI_STARTUP_ITERATIONS, RTI_STARTUP_XTOL
 
     m = estimator.model
@@ -752,6 +755,7 @@ def _write_mhe(estimator, directory: Path, name: str, paths: dict) -> None:
               "BOUNDED": str(int(bool(np.isfinite(estimator.lower).any()
                                       or np.isfinite(estimator.upper).any()))),
               "XTOL": _c(RTI_STARTUP_XTOL), "ITERATIONS": str(RTI_STARTUP_ITERATIONS),
+              "CHI2": _array([chi2_limit(d) for d in range(estimator.horizon * m.ny + nx + 1)]),
               "FIELDS": fields}
     paths["h"].write_text(_fill(_MHE_HEADER, name, dims, values, estimator))
     paths["c"].write_text(_fill(_MHE_SOURCE, name, dims, values, estimator))
@@ -791,6 +795,9 @@ _MHE_HEADER = r"""/* @name@.h -- @filter@ of the model "@model@" (estim @version
  *    0  ok
  *    1  inexact: the start-up's Gauss-Newton steps did not converge in
  *       @ITERATIONS@ iterations (the estimate is the last iterate)
+ *    2  suspect: the window's cost at the estimate (e.cost_last) is beyond the
+ *       1e-9 tail of its chi-square distribution (outliers, or a model the data
+ *       contradict); the estimate is kept
  *   -1  invalid argument: inf in y, a non-finite u, a NULL e or y (nothing
  *       changes), or (from init) work sizes that do not match the functions
  *   -2  a step that is not finite: estim's Python estimator then solves the
@@ -821,6 +828,7 @@ extern "C" {
 enum {
     @NAME@_OK = 0,
     @NAME@_INEXACT = 1,
+    @NAME@_SUSPECT = 2,
     @NAME@_INVALID = -1,
     @NAME@_NONFINITE = -2,
     @NAME@_INPUT_MISMATCH = -3
@@ -888,6 +896,9 @@ static const int arrival_cost = @ARRIVAL@; /* @ARRIVAL_NAME@ */
 static const int sampled = @SAMPLED@;
 static const int bounded = @BOUNDED@;
 static const double xtol = @XTOL@;
+/* chi2_limits[d]: the value a chi-square variable with d degrees of freedom exceeds with
+ * probability 1e-9 (the suspect test of the window's cost) */
+static const double chi2_limits[] = @CHI2@;
 static const int max_iterations = @ITERATIONS@;
 static const double default_Q[] = @Q@;
 static const double default_Qinv[] = @QINV@;
@@ -1133,6 +1144,16 @@ static void accept(est_t *e, const double *y) {
     e->n_history += 1;
 }
 
+/* MHE._rti_check: the window's cost at X (the newest measurement included) and whether
+ * it is beyond the chi-square tail of its degrees of freedom */
+static int suspect(est_t *e, const double *X) {
+    int k, dof = arrival_cost != NONE ? NX : 0;
+    e->cost_last[0] = 2.0 * window_cost(e, X);
+    for (k = 0; k < (N - 1) * NY; ++k) dof += e->a_mask[k] != 0.0;
+    for (k = 0; k < NY; ++k) dof += e->ymask[k] != 0.0;
+    return e->cost_last[0] > chi2_limits[dof];
+}
+
 /* MHE._startup: a step while the window fills, solved by projected Gauss-Newton */
 static int startup(est_t *e, const double *y) {
     int s0, k, i, iteration = 0, trials, held_any;
@@ -1191,9 +1212,10 @@ static int startup(est_t *e, const double *y) {
     linearise(e, NULL); /* the covariance at the window found */
     feedback(e, e->dX, e->P);
     if (!all_finite(e->P, NX * NX)) return @NAME@_NONFINITE;
+    k = suspect(e, e->X);
     accept(e, y);
     e->n += 1;
-    return iteration < max_iterations ? @NAME@_OK : @NAME@_INEXACT;
+    return iteration < max_iterations ? (k ? @NAME@_SUSPECT : @NAME@_OK) : @NAME@_INEXACT;
 }
 
 /* MHE.prepare's work once the window is full: shift, then linearise */
@@ -1217,11 +1239,12 @@ static int feedback_step(est_t *e, const double *y) {
     if (!(all_finite(e->trial, N * NX) && all_finite(e->P, NX * NX)))
         return @NAME@_NONFINITE;
     e->prepared = 0;
+    k = suspect(e, e->trial);
     copy(e->X, e->trial, N * NX);
     accept(e, y);
     e->n = N;
     e->iterations = 1;
-    return @NAME@_OK;
+    return k ? @NAME@_SUSPECT : @NAME@_OK;
 }
 
 static int valid_input(const double *u) {
@@ -1304,7 +1327,7 @@ int @name@_init(@name@_t *e);                   /* exported tuning, empty window
 int @name@_reset(@name@_t *e);                  /* empty window, arrival cost x0, P0 */
 int @name@_prepare(@name@_t *e, const double *u);  /* before y arrives (optional) */
 int @name@_step(@name@_t *e, const double *y, const double *u,
-                double *x_hat, double *P);      /* status: 0 ok, 1 inexact start-up,
+                double *x_hat, double *P);      /* status: 0 ok, 1 inexact start-up, 2 suspect,
                     -1 invalid argument, -2 non-finite step (reset needed),
                     -3 u is not the input given to prepare */
 int @name@_iterations(const @name@_t *e);       /* Gauss-Newton iterations of the step */

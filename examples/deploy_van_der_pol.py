@@ -106,8 +106,11 @@ def main(argv: list[str] | None = None) -> dict:
                 x_py.append(est.step(y))
             assert np.array_equal(np.array(x_py), log.x_hat)
         diff = float(np.max(np.abs(c_out[:, :2] - log.x_hat)))
+        codes = {"ok": 0, "inexact": 1, "suspect": 2} if isinstance(est, estim.MHE) else \
+            {"ok": 0, "suspect": 1, "rejected": 2}
         results[name] = {"difference": diff, "memory": codegen.memory(est),
-                         "statuses": c_out[:, 2].astype(int), "directory": out / name}
+                         "statuses": c_out[:, 2].astype(int), "directory": out / name,
+                         "python_statuses": [codes[s.split(":")[0]] for s in log.status]}
         print(f"{name}: exported to {out / name}; the C program filtered {len(record)} "
               f"samples; largest |x_C - x_Python| = {diff:.3g}; {codegen.memory(est)} bytes")
     rejected = int(np.sum(results["vdp_ekf"]["statuses"] == 2))

@@ -23,7 +23,7 @@ TOL = 1e-12
 
 def _code(status: str) -> int:
     """The C status code of a Python status."""
-    return {"ok": 0, "inexact": 1}[status.split(":")[0]]
+    return {"ok": 0, "inexact": 1, "suspect": 2}[status.split(":")[0]]
 
 
 def _vdp_record(n: int, missing: bool = False):
@@ -200,6 +200,8 @@ def test_the_c_mhe_is_the_python_mhe(exports, key):
     assert difference <= TOL
     if key == "square":
         assert 1 in out["status"]  # inexact start-up steps
+    if key == "reactor":
+        assert 2 in out["status"]  # windows whose cost is beyond the chi-square tail
     assert int(getattr(cm.lib, f"{cm.name}_size")()) == codegen.memory(est)
 
 

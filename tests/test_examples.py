@@ -186,7 +186,9 @@ def test_deploy_van_der_pol(tmp_path, capsys):
     for name in ("vdp_mhe", "vdp_ekf"):  # the same numbers as the Python estimators
         assert res[name]["difference"] == 0.0
         assert (tmp_path / "vdp" / name / f"{name}_run").exists()
-    assert (res["vdp_mhe"]["statuses"] == 0).all()
+    # the outlier makes the MHE's windows suspect (2) while it is in them, as in Python
+    assert res["vdp_mhe"]["statuses"].tolist() == res["vdp_mhe"]["python_statuses"]
+    assert set(res["vdp_mhe"]["statuses"][120:135]) == {2}
     assert res["rejected"] == 1 and res["samples"] == 300
-    assert res["vdp_mhe"]["memory"] == 8624
+    assert res["vdp_mhe"]["memory"] == 8632
     assert capsys.readouterr().out.count("largest |x_C - x_Python| = 0;") == 2

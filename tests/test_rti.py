@@ -33,6 +33,7 @@ def test_one_step_solves_a_quadratic_window(arrival_cost):
     m, tuning, log = _linear()
     y = log.y.copy()
     y[[20, 33, 34]] = np.nan  # missing outputs in the window and at the newest slot
+    y[50] += 3.0  # an outlier: both find the window's cost beyond the chi-square tail
     kw = dict(horizon=8, arrival_cost=arrival_cost, **tuning)
     full = estim.replay(estim.MHE(m, solver_options={"xtol": 1e-14}, **kw), y, log.u)
     rti = estim.replay(estim.MHE(m, rti=True, **kw), y, log.u)
@@ -44,6 +45,9 @@ def test_one_step_solves_a_quadratic_window(arrival_cost):
     assert known[1:].all() and np.isfinite(rti.P).all()
     np.testing.assert_allclose(rti.P[known], full.P[known], rtol=1e-7, atol=1e-12)
     assert (np.diagonal(rti.P[~known], axis1=1, axis2=2).max(axis=1) > 1e8).all()
+    np.testing.assert_allclose(rti.cost, full.cost, rtol=1e-7, atol=1e-12)
+    assert list(rti.status) == list(full.status)
+    assert rti.status[50].startswith("suspect: cost")
     assert set(rti.diagnostics[-1]) >= {"preparation_time", "window"}
     assert rti.diagnostics[-1]["solver"] == "gauss-newton (rti)"
     assert (rti.iterations[8:] == 1).all()

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction, jitted
 from estim._validate import as_bool, as_choice, as_int
-from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.base import Estimator, StepInfo, consistency_status
 from estim.estimators.nlp import (
     LeastSquaresNLP,
     check_solver_options,
@@ -129,9 +129,9 @@ class MHE(Estimator):
         loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time (with the
         preparation's when :meth:`step` prepared the window itself, as in
         :func:`~estim.simulate`), ``info.extra["preparation_time"]`` the
-        preparation's; ``info.cost`` is not computed (NaN) and the status is ``"ok"``
-        unless the step is not finite (then the window is solved to convergence, and
-        the status says so).
+        preparation's; ``info.cost`` is the window's cost at the new estimate and the
+        status its consistency (``"suspect: ..."`` beyond the chi-square tail, as for the
+        converged MHE). A step that is not finite is solved to convergence instead.
 
     Attributes
     ----------
@@ -525,6 +525,18 @@ class MHE(Estimator):
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})
 
+    def _rti_check(self, X: np.ndarray) -> tuple[float, str]:
+        """The window's cost at ``X`` (the sum of its squared weighted residuals, the
+        newest measurement included) and its consistency: ``"suspect: ..."`` beyond the
+        chi-square tail of the measured values (and ``nx`` for an arrival cost), as for
+        the converged MHE."""
+        cost = self._rti_cost
+        cost.args[0][:] = X.ravel()
+        value = 2.0 * float(cost.evaluate()[0][0])
+        measured = int(self._rti_prepare.args[2].sum() + self._rti_mask.sum())
+        dof = measured + (self.model.nx if self.arrival_cost != "none" else 0)
+        return value, consistency_status(value, dof, "cost")
+
     def _startup(self, y: np.ndarray, u: np.ndarray, first: bool):
         """A step while the window fills (``rti=True``): projected Gauss-Newton on the
         window with the preparation and feedback Functions, iterated to convergence.
@@ -582,18 +594,21 @@ class MHE(Estimator):
         P = self._rti_feedback.evaluate()[1]
         if not np.isfinite(P).all():
             return None
+        cost, check = self._rti_check(X)
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
         self._n += 1
         x_hat = X[-1].copy()
         P = P.reshape(m.nx, m.nx, order="F").copy()
-        self._trusted = (x_hat.copy(), P)
+        if converged and check == "ok":
+            self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
-        status = "ok" if converged else (f"inexact: the start-up's Gauss-Newton steps did "
-                                         f"not converge in {RTI_STARTUP_ITERATIONS}")
+        status = self._solve_status(None, True, converged, f"the start-up's Gauss-Newton "
+                                    f"steps did not converge in {RTI_STARTUP_ITERATIONS}",
+                                    check, "window")
         return x_hat, StepInfo(
             status=status, success=True, iterations=iteration,
-            solve_time=time.perf_counter() - t0, P=P,
+            solve_time=time.perf_counter() - t0, P=P, cost=cost,
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "preparation_time": 0.0, "solver": "gauss-newton (rti start-up)"})
@@ -615,17 +630,19 @@ class MHE(Estimator):
         if not (np.isfinite(X).all() and np.isfinite(P).all()):
             return None
         self._prepared = None
+        cost, check = self._rti_check(X)
         self._X[:] = X
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
         self._n = N
         x_hat = X[-1].copy()
         P = P.reshape(m.nx, m.nx, order="F").copy()
-        self._trusted = (x_hat.copy(), P)
+        if check == "ok":
+            self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
         elapsed = time.perf_counter() - t0 + (preparation if inside else 0.0)
         return x_hat, StepInfo(
-            status="ok", success=True, iterations=1, solve_time=elapsed, P=P,
+            status=check, success=True, iterations=1, solve_time=elapsed, P=P, cost=cost,
             extra={"window": self._X.copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "preparation_time": preparation, "solver": "gauss-newton (rti)"})
