@@ -48,7 +48,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from functools import cache
+from functools import cache, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -135,9 +135,11 @@ SUSPECT_TAIL = 1e-9
 
 
 @cache
+@lru_cache(maxsize=4096)
 def chi2_limit(dof: int, tail: float = SUSPECT_TAIL) -> float:
     """The value that a chi-square variable with ``dof`` degrees of freedom exceeds
-    with probability ``tail`` (inf without any degree of freedom)."""
+    with probability ``tail`` (inf without any degree of freedom). Kept for the last
+    4096 ``(dof, tail)`` asked: every step of an optimisation-based estimator asks."""
     from scipy.special import chdtri  # imported on first use, not with estim
 
     return float(chdtri(dof, tail)) if dof > 0 else float("inf")
