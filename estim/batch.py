@@ -255,10 +255,8 @@ def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
     else:
         U_log = U.copy()
         u_step = U.copy() if m.sampled else np.vstack([U[:1], U[:-1]])
-    if m.sampled:
-        W = np.array([m.transition(U_log[k], U_log[min(k + 1, T - 1)]) for k in range(T)])
-    else:
-        W = np.array([m.transition(None, U_log[k]) for k in range(T)]).reshape(T, m.nw)
+    # into the next sample: the input applied after k (and, sampled, the next one's)
+    W = m.transitions(U_log, np.vstack([U_log[1:], U_log[-1:]]) if m.sampled else U_log)
     ts = np.arange(T) * m.dt
     changes = sorted(scenario.plant_changes or [], key=lambda c: c[0])
     P = np.empty((T, m.p.size))

@@ -342,6 +342,27 @@ class Model:
             w = np.append(w, self.dt if dt is None else dt)
         return w
 
+    def transitions(self, U_prev: np.ndarray | None, U: np.ndarray,
+                    dts: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`transition` of many transitions at once, ``(n, nw)``: row ``k`` from
+        ``U_prev[k]`` (read by sampled models only), ``U[k]`` (both ``(n, nu)``) and
+        ``dts[k]`` (``(n,)``; default the model's ``dt``)."""
+        U = np.asarray(U, dtype=float)
+        W = np.hstack([np.asarray(U_prev, dtype=float), U]) if self.sampled else U
+        if self.variable_dt:
+            d = np.full(len(U), self.dt) if dts is None else np.asarray(dts, dtype=float)
+            W = np.hstack([W, d[:, None]])
+        return W
+
+    def step_transitions(self, U_step: np.ndarray, dts: np.ndarray | None = None
+                         ) -> np.ndarray:
+        """The transitions' inputs ``(n, nw)`` an estimator's ``step`` forms from the
+        inputs ``U_step (n, nu)`` it is given at ``n`` consecutive samples after a reset:
+        each with the previous step's input (zero before the first) and ``dts``."""
+        U_step = np.asarray(U_step, dtype=float)
+        previous = np.vstack([np.zeros((1, self.nu)), U_step[:-1]])
+        return self.transitions(previous, U_step, dts)
+
     def measurement_input(self, w: ArrayLike) -> np.ndarray:
         """The input at the end of a transition whose input is ``w`` (what ``h`` sees
         at the next sample)."""

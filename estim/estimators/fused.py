@@ -213,11 +213,9 @@ class FusedKalman(Estimator):
         dts = as_intervals(t, T, m)
         # step's input u at every sample (the input since the previous sample, or at this
         # one for sampled inputs) and the transitions' inputs w as step makes them
-        before = np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        steps_u = U if m.sampled else before
-        W = np.hstack([before, U]) if m.sampled else before
-        if m.variable_dt:
-            W = np.hstack([W, np.concatenate([[m.dt], dts])[:, None]])
+        steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
+        W = m.step_transitions(steps_u, None if dts is None else
+                               np.concatenate([[m.dt], dts]))
         self.reset()
         S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
             self._s, Y.T, W.T, self._tun, self.P0.ravel(order="F")))
@@ -338,7 +336,7 @@ class FusedKalman(Estimator):
         nx = m.nx
         S, T = Y.shape[:2]
         t0 = time.perf_counter()
-        W = self._step_transitions(u_step)
+        W = m.step_transitions(u_step)
         self.reset()
         key = ("filter", self._predict_update.fun.serialize(), self._update.fun.serialize(), T)
         fun = seed_map(key, lambda expand: self._whole_record(T, expand).fun, S * T)
@@ -361,16 +359,3 @@ class FusedKalman(Estimator):
         self.reset()
         return {"x": X, "P": P, "nis": nis, "status": status, "seconds": seconds,
                 "total": time.perf_counter() - t0, "how": fun.how}
-
-    def _step_transitions(self, u_step: np.ndarray) -> np.ndarray:
-        """The transitions' inputs ``(T, nw)`` that :meth:`step` makes from the inputs it
-        is given at each sample (after a reset, with the model's ``dt``)."""
-        u_step = np.asarray(u_step, dtype=float).reshape(len(u_step), self.model.nu)
-        if self._plain:
-            return u_step
-        last, rows = self._u_zero, []
-        for u in u_step:
-            rows.append(self.model.transition(last, u, None))
-            if self._sampled:
-                last = u
-        return np.array(rows).reshape(len(u_step), self.model.nw)

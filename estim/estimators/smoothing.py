@@ -98,16 +98,12 @@ def record(model, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None
     T = Y.shape[0]
     U = as_inputs(U, T, model)
     dts = as_intervals(t, T, model)
-    steps, W = [], np.zeros((T - 1, model.nw))
+    steps = []
     for k in range(T):
         # the input since the previous sample (held), or at this one (sampled models)
         u = U[k] if model.sampled else U[k - 1] if k else np.zeros(model.nu)
-        dt = None if dts is None or k == 0 else float(dts[k - 1])
-        steps.append((u, dt))
-        if k:
-            W[k - 1] = model.transition(U[k - 1], U[k], dt) if model.sampled else \
-                model.transition(None, U[k - 1], dt)
-    return Y, steps, W
+        steps.append((u, None if dts is None or k == 0 else float(dts[k - 1])))
+    return Y, steps, model.transitions(U[:-1], U[1:] if model.sampled else U[:-1], dts)
 
 
 def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None,

@@ -215,13 +215,8 @@ class _Record:
         self.Y = np.where(measured, Y, 0.0).T
         self.wt = (np.arange(T) >= burn).astype(float)[None, :]
         # transition inputs as the filters' step sees them (replay's convention)
-        W = np.zeros((model.nw, T))
-        prev = np.zeros(model.nu)
-        for k in range(T):
-            u = U[k] if model.sampled else (U[k - 1] if k else np.zeros(model.nu))
-            W[:, k] = model.transition(prev, u)
-            prev = u
-        self.W = W
+        steps_u = U if model.sampled else np.vstack([np.zeros((1, model.nu)), U[:-1]])
+        self.W = model.step_transitions(steps_u).T
         self.measured = measured
         if not measured[burn:].any():
             raise ValueError("Y has no measured output after the burn-in samples")
