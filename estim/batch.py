@@ -99,10 +99,6 @@ class PlantBatch:
     how: str = "interpreted"
 
 
-def _is_diagonal(M: np.ndarray) -> bool:
-    return bool(np.array_equal(M, np.diag(np.diag(M))))
-
-
 def threads(n: int) -> int:
     """Threads for a map over ``n`` seeds: the machine's cores, at most ``n``."""
     return max(1, min(n, os.cpu_count() or 1))
@@ -235,7 +231,7 @@ def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
         States ``(S, T, nx)``, measurements ``(S, T, ny)`` and the inputs; seeds whose
         plant did not stay finite are marked in ``finite``.
     """
-    from estim.simulate import _input_table, _sqrt_psd
+    from estim.simulate import _input_table, _sqrt_psd, draw_noise
 
     why = unsupported(scenario)
     if why:
@@ -266,16 +262,7 @@ def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
             p = m.with_params(**changes[nxt][1]).p
             nxt += 1
         P[k] = p
-    # the noise, drawn as simulate draws it
-    V, Wn = np.empty((S, T, ny)), np.empty((S, T, nx))
-    for i, s in enumerate(seeds):
-        rng = np.random.default_rng(s)
-        rng.standard_normal(out=V[i])
-        rng.standard_normal(out=Wn[i])
-    # as simulate's (T, n) products, row by row; by a diagonal factor, the same numbers
-    # elementwise (each product has one nonzero term)
-    V = V * np.diag(Lr) if _is_diagonal(Lr) else V @ Lr.T
-    Wn = Wn * np.diag(Lq) if _is_diagonal(Lq) else Wn @ Lq.T
+    V, Wn = draw_noise(seeds, T, Lr, Lq)  # as simulate draws it
     key = ("plant", m.F.serialize(), m.H.serialize(), bool(scenario.clip),
            m.lower.tolist(), m.upper.tolist(), T)
     fun = seed_map(key, lambda expand: _plant_scan(scenario, T, expand), S * T)

@@ -62,6 +62,26 @@ def _sqrt_psd(M: np.ndarray) -> np.ndarray:
     return V * np.sqrt(np.maximum(w, 0.0))
 
 
+def draw_noise(seeds: Sequence[int | None], T: int, Lr: np.ndarray, Lq: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The measurement and process noise of each seed's run: ``V (S, T, ny)`` and
+    ``W (S, T, nx)``, standard normal draws of ``numpy.random.default_rng(seed)`` (first
+    ``V``'s, then ``W``'s) times the square roots ``Lr``, ``Lq`` of ``R`` and ``Q``. By a
+    diagonal factor the product is taken elementwise: the same numbers as the matrix
+    product, each entry having one nonzero term."""
+    ny, nx = len(Lr), len(Lq)
+    V, W = np.empty((len(seeds), T, ny)), np.empty((len(seeds), T, nx))
+    for i, s in enumerate(seeds):
+        rng = np.random.default_rng(s)
+        rng.standard_normal(out=V[i])
+        rng.standard_normal(out=W[i])
+
+    def scaled(Z, L):
+        return Z * np.diag(L) if np.array_equal(L, np.diag(np.diag(L))) else Z @ L.T
+
+    return scaled(V, Lr), scaled(W, Lq)
+
+
 class _Recorder:
     """What an estimator reports at every step, stored time-major, and the final Log."""
 
@@ -255,9 +275,7 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     U = _input_table(inputs, T, model)
     miss = _missing(missing, T, ny, seed)
 
-    noise_rng = np.random.default_rng(seed)
-    V = noise_rng.standard_normal((T, ny)) @ Lr.T
-    W = noise_rng.standard_normal((T, nx)) @ Lq.T
+    V, W = (a[0] for a in draw_noise([seed], T, Lr, Lq))
     changes = sorted(plant_changes or [], key=lambda c: c[0])
     params = [model.with_params(**c[1]).p for c in changes]
 
