@@ -554,9 +554,7 @@ class MHE(Estimator):
             self._shift(u)
         s0 = N - (self._n + 1)
         self._X[:s0] = self._X[s0]
-        mask = np.isfinite(y)
-        self._rti_y[:] = np.where(mask, y, 0.0)
-        self._rti_mask[:] = mask
+        self._rti_measurement(y)
         X = self._X.copy()
         ones = np.ones((N, m.nx))
         cost = self._rti_cost
@@ -595,34 +593,21 @@ class MHE(Estimator):
         if not np.isfinite(P).all():
             return None
         cost, check = self._rti_check(X)
-        self._Y[N - 1] = y
-        self._Uprev[N - 1] = u
-        self._n += 1
-        x_hat = X[-1].copy()
-        P = P.reshape(m.nx, m.nx, order="F").copy()
-        if converged and check == "ok":
-            self._trusted = (x_hat.copy(), P)
-        self._history.append(x_hat.copy())
         status = self._solve_status(None, True, converged, f"the start-up's Gauss-Newton "
                                     f"steps did not converge in {RTI_STARTUP_ITERATIONS}",
                                     check, "window")
-        return x_hat, StepInfo(
-            status=status, success=True, iterations=iteration,
-            solve_time=time.perf_counter() - t0, P=P, cost=cost,
-            extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
-                   "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
-                   "preparation_time": 0.0, "solver": "gauss-newton (rti start-up)"})
+        return self._rti_accept(X, P, y, u, cost, status, converged and check == "ok",
+                                iteration, time.perf_counter() - t0, 0.0,
+                                "gauss-newton (rti start-up)")
 
     def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float, inside: bool):
         """The feedback phase of the real-time iteration: the prepared window with the
         measurement ``y``; None (the window prepared, to be solved) if the step is not
         finite. Its ``solve_time`` is the feedback's time, with the preparation's when
         this step prepared the window itself (``inside``)."""
-        m, N = self.model, self.horizon
+        N = self.horizon
         t0 = time.perf_counter()
-        mask = np.isfinite(y)
-        self._rti_y[:] = np.where(mask, y, 0.0)
-        self._rti_mask[:] = mask
+        self._rti_measurement(y)
         dX, P, _ = self._rti_feedback.evaluate()
         X = self._X + dX.reshape(N, -1)
         if self._bounded:
@@ -631,18 +616,34 @@ class MHE(Estimator):
             return None
         self._prepared = None
         cost, check = self._rti_check(X)
+        return self._rti_accept(X, P, y, u, cost, check, check == "ok", 1,
+                                time.perf_counter() - t0 + (preparation if inside else 0.0),
+                                preparation, "gauss-newton (rti)")
+
+    def _rti_measurement(self, y: np.ndarray) -> None:
+        """The newest measurement where the feedback and cost Functions read it."""
+        mask = np.isfinite(y)
+        self._rti_y[:] = np.where(mask, y, 0.0)
+        self._rti_mask[:] = mask
+
+    def _rti_accept(self, X: np.ndarray, P: np.ndarray, y: np.ndarray, u: np.ndarray,
+                    cost: float, status: str, trust: bool, iterations: int,
+                    solve_time: float, preparation: float, solver: str):
+        """Take the window ``X`` found for the arriving sample ``(y, u)``: the window's
+        data, the estimate (trusted if ``trust``) and the step's :class:`StepInfo`."""
+        m, N = self.model, self.horizon
         self._X[:] = X
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
-        self._n = N
+        self._n += 1
         x_hat = X[-1].copy()
         P = P.reshape(m.nx, m.nx, order="F").copy()
-        if check == "ok":
+        if trust:
             self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())
-        elapsed = time.perf_counter() - t0 + (preparation if inside else 0.0)
         return x_hat, StepInfo(
-            status=check, success=True, iterations=1, solve_time=elapsed, P=P, cost=cost,
-            extra={"window": self._X.copy(), "arrival_mean": self._xbar.copy(),
+            status=status, success=True, iterations=iterations, solve_time=solve_time, P=P,
+            cost=cost,
+            extra={"window": self._X[N - self._n:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
-                   "preparation_time": preparation, "solver": "gauss-newton (rti)"})
+                   "preparation_time": preparation, "solver": solver})
