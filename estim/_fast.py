@@ -85,8 +85,7 @@ class FastFunction:
         self._build_views()
 
     def _build_views(self) -> None:
-        """Point the buffer at :attr:`args` and :attr:`out` (again, after a caller
-        pointed it elsewhere)."""
+        """Point the buffer at :attr:`args` and :attr:`out`."""
         for i, a in enumerate(self.args):
             self._buf.set_arg(i, memoryview(a))
         for i, r in enumerate(self.out):
@@ -102,6 +101,19 @@ class FastFunction:
         """Evaluate on whatever is currently in :attr:`args`."""
         self._eval()
         return self.out
+
+    def evaluate_on(self, args: list[np.ndarray], out: list[np.ndarray]) -> None:
+        """Evaluate reading ``args`` and writing ``out`` in place (contiguous float64
+        arrays of the inputs' and outputs' sizes, e.g. rows of larger arrays), then point
+        the buffer back at :attr:`args` and :attr:`out`."""
+        try:
+            for i, a in enumerate(args):
+                self._buf.set_arg(i, memoryview(a))
+            for i, r in enumerate(out):
+                self._buf.set_res(i, memoryview(r))
+            self._eval()
+        finally:
+            self._build_views()
 
     def __getstate__(self):
         return {"fun": self.fun.serialize(), "bound": self._bound}

@@ -156,16 +156,9 @@ class SeedMap:
                 ff = self._map(n)
                 if n not in tiled:  # the shared inputs, once per chunk size
                     tiled[n] = [np.tile(a, n) if a.ndim == 1 else None for a in inputs]
-                views = [t if t is not None else a[lo:lo + n].reshape(-1)
-                         for a, t in zip(inputs, tiled[n], strict=True)]
-                results = [o[lo:lo + n].reshape(-1) for o in outs]
-                for i, v in enumerate(views):
-                    ff._buf.set_arg(i, memoryview(v))
-                for j, r in enumerate(results):
-                    ff._buf.set_res(j, memoryview(r))
-                ff._eval()
-            for ff in self._maps.values():  # the buffers' own arrays again
-                ff._build_views()
+                ff.evaluate_on([t if t is not None else a[lo:lo + n].reshape(-1)
+                                for a, t in zip(inputs, tiled[n], strict=True)],
+                               [o[lo:lo + n].reshape(-1) for o in outs])
         return outs
 
 
