@@ -366,18 +366,6 @@ def _run_chunk(scenario: Scenario, spec, seeds: list[int], burn_in: int, keep_lo
     return os.getpid(), start, [_run_seed(scenario, est, s, burn_in, keep_logs) for s in seeds]
 
 
-def _simulate_plant(scenario: Scenario, seeds: list[int]):
-    from estim.batch import simulate_plant
-
-    return simulate_plant(scenario, seeds)
-
-
-def _threads(n: int) -> int:
-    from estim.batch import threads
-
-    return threads(n)
-
-
 def _run_batch(scenario: Scenario, est: Estimator, plant, burn_in: int, keep_logs: bool
                ) -> tuple[list[dict], float, str]:
     """Every seed's summary from the batched path (and the call's seconds and how it
@@ -597,9 +585,9 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
                                         minimum=0.0)
     batch = as_bool(batch, "batch", allow_none=True)
     if batch is not False:
-        from estim.batch import unsupported
+        from estim import batch as batching  # numpy/CasADi batches, loaded when used
 
-        why = unsupported(scenario)
+        why = batching.unsupported(scenario)
         if why and batch:
             raise ValueError(f"batch=True: the runs of {scenario.name} cannot be batched: "
                              f"{why}")
@@ -619,7 +607,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         built[name] = _build(spec, scenario)
         build = time.perf_counter() - t0
         if batch and hasattr(built[name], "_batchable") and built[name]._batchable():
-            plant = plant or _simulate_plant(scenario, seeds)
+            plant = plant or batching.simulate_plant(scenario, seeds)
             per_name[name], seconds, how = _run_batch(scenario, built[name], plant,
                                                       burn_in, keep_logs)
             batched.append(f"{name} ({_fmt_s(seconds)}, {how})")
@@ -695,8 +683,9 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         note = "serial: every run was one of the first runs, timed in this process"
     batch_note = ""
     if batched:
+        threads = batching.threads(len(seeds))
         batch_note = (f"{', '.join(batched)}: the {len(seeds)} runs of each filtered at once "
-                      f"(whole records over all seeds, on {_threads(len(seeds))} thread(s)), "
+                      f"(whole records over all seeds, on {threads} thread(s)), "
                       f"after the plant of every seed ({_fmt_s(plant.seconds)}, {plant.how}); "
                       f"their step time is that call's time per sample")
     rows, all_rmse, logs = [], {}, {}
