@@ -257,6 +257,17 @@ def tuning(sc: estim.Scenario) -> dict[str, np.ndarray]:
 
 
 # -------------------------------------------------------------------------------- timing
+def without_gc(run: Callable):
+    """``run()`` with the garbage collector off (as it was afterwards); its result."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return run()
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def measure(make: Callable, replay: Callable, p: Problem, Y: np.ndarray,
             repeats: int) -> tuple[float, np.ndarray, object]:
     """Median seconds per step over ``repeats`` replays (construction not timed).
@@ -268,13 +279,7 @@ def measure(make: Callable, replay: Callable, p: Problem, Y: np.ndarray,
     kf = None
     for _ in range(repeats):
         kf = make()
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            times.append(replay(kf, p, Y, out) / len(Y))
-        finally:
-            if enabled:
-                gc.enable()
+        times.append(without_gc(lambda kf=kf: replay(kf, p, Y, out)) / len(Y))
     return statistics.median(times), out, kf
 
 

@@ -29,7 +29,6 @@ There are no timing assertions; the numbers depend on the machine.
 from __future__ import annotations
 
 import argparse
-import gc
 import platform
 import statistics
 import time
@@ -39,7 +38,7 @@ from dataclasses import dataclass
 import casadi
 import filterpy
 import numpy as np
-from ekf import rk4, tuning  # the same RK4 and full-array tuning as benchmarks/ekf.py
+from ekf import rk4, tuning, without_gc  # benchmarks/ekf.py's RK4, tuning and timing
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 import estim
@@ -122,22 +121,13 @@ def replay_estim(est: estim.Estimator, Y: np.ndarray, out: np.ndarray,
     return elapsed
 
 
-def measure(make: Callable, replay: Callable, Y: np.ndarray, nx: int,
-            repeats: int) -> tuple[float, np.ndarray, np.ndarray]:
-    """Median seconds per step over ``repeats`` replays (construction not timed), the
-    estimates and the last covariance of the last replay."""
+def measure(make: Callable, replay: Callable, Y: np.ndarray, nx: int
+            ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Seconds per step of one replay (construction not timed), its estimates and its
+    last covariance."""
     out, P = np.empty((len(Y), nx)), np.empty((nx, nx))
-    times = []
-    for _ in range(repeats):
-        kf = make()
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            times.append(replay(kf, Y, out, P) / len(Y))
-        finally:
-            if enabled:
-                gc.enable()
-    return statistics.median(times), out, P
+    kf = make()
+    return without_gc(lambda: replay(kf, Y, out, P)) / len(Y), out, P
 
 
 @dataclass
@@ -165,19 +155,19 @@ def run(p: Problem, repeats: int) -> Row:
         return make
 
     # untimed runs: agreement (and warm-up)
-    _, x_ukf, P_ukf = measure(fresh(ukf), replay_estim, Y, m.nx, 1)
-    _, x_fp, P_fp = measure(lambda: make_filterpy_ukf(p), replay_filterpy, Y, m.nx, 1)
-    measure(fresh(ekf), replay_estim, Y, m.nx, 1)
+    _, x_ukf, P_ukf = measure(fresh(ukf), replay_estim, Y, m.nx)
+    _, x_fp, P_fp = measure(lambda: make_filterpy_ukf(p), replay_filterpy, Y, m.nx)
+    measure(fresh(ekf), replay_estim, Y, m.nx)
     dx = float(np.max(np.abs(x_ukf - x_fp)))
     dP = float(np.max(np.abs(P_ukf - P_fp)))
     assert dx < 1e-8, f"{p.name}: estim.UKF and filterpy's UKF differ by {dx:.3g}"
     # the three filters take turns, so that a change of the machine's load affects all
     times: dict[str, list[float]] = {"ekf": [], "ukf": [], "filterpy": []}
     for _ in range(repeats):
-        times["ekf"].append(measure(fresh(ekf), replay_estim, Y, m.nx, 1)[0])
-        times["ukf"].append(measure(fresh(ukf), replay_estim, Y, m.nx, 1)[0])
+        times["ekf"].append(measure(fresh(ekf), replay_estim, Y, m.nx)[0])
+        times["ukf"].append(measure(fresh(ukf), replay_estim, Y, m.nx)[0])
         times["filterpy"].append(measure(lambda: make_filterpy_ukf(p), replay_filterpy, Y,
-                                         m.nx, 1)[0])
+                                         m.nx)[0])
     t_ekf, t_ukf, t_fp = (statistics.median(times[k]) for k in ("ekf", "ukf", "filterpy"))
     return Row(p.name, len(Y), 1e6 * t_ekf, 1e6 * t_ukf, 1e6 * t_fp, dx, dP)
 

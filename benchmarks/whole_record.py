@@ -34,7 +34,6 @@ There are no timing assertions; the numbers depend on the machine.
 from __future__ import annotations
 
 import argparse
-import gc
 import platform
 import statistics
 import sys
@@ -54,12 +53,15 @@ from ekf import (  # noqa: E402 - the numpy models of benchmarks/ekf.py
     KM1,
     KM2,
     TS,
-    NonlinearEKF,
+    Problem,
+    make_filterpy_ekf,
     reactor_h,
     reactor_h_x,
     reactor_step,
+    replay_filterpy_ekf,
     rk4_with_jacobian,
     tuning,
+    without_gc,
 )
 
 MU, TS_VDP = 1.0, 0.1
@@ -87,18 +89,12 @@ def vdp_h_x(x: np.ndarray) -> np.ndarray:
 
 def timings(run, repeats: int) -> list[float]:
     """Seconds of ``run()`` over ``repeats`` calls, the garbage collector off."""
-    times = []
-    for _ in range(repeats):
-        enabled = gc.isenabled()
-        gc.disable()
-        try:
-            t0 = time.perf_counter()
-            run()
-            times.append(time.perf_counter() - t0)
-        finally:
-            if enabled:
-                gc.enable()
-    return times
+    def once() -> float:
+        t0 = time.perf_counter()
+        run()
+        return time.perf_counter() - t0
+
+    return [without_gc(once) for _ in range(repeats)]
 
 
 def timed(run, repeats: int) -> float:
@@ -112,17 +108,10 @@ def step_loop(est: estim.EKF, Y: np.ndarray) -> np.ndarray:
     return np.array([step(y) for y in Y])
 
 
-def filterpy_loop(sc: estim.Scenario, step, h, h_x, Y: np.ndarray) -> np.ndarray:
-    tun = tuning(sc)
-    kf = NonlinearEKF(sc.model.nx, sc.model.ny, step)
-    kf.x, kf.P, kf.Q, kf.R = tun["x0"].copy(), tun["P0"].copy(), tun["Q"], tun["R"]
-    out = np.empty((len(Y), sc.model.nx))
-    kf.update(Y[0], h_x, h)
-    out[0] = kf.x
-    for k in range(1, len(Y)):
-        kf.predict()
-        kf.update(Y[k], h_x, h)
-        out[k] = kf.x
+def filterpy_loop(p: Problem, Y: np.ndarray) -> np.ndarray:
+    """filterpy's EKF over the record as benchmarks/ekf.py runs it: the estimates."""
+    out = np.empty((len(Y), p.scenario.model.nx))
+    replay_filterpy_ekf(make_filterpy_ekf(p), p, Y, out)
     return out
 
 
@@ -214,7 +203,8 @@ def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
         runs = {f"{kind}.filter": lambda est=est: est.filter(Y).x,
                 "step loop": lambda est=est: step_loop(est, Y)}
         if kind == "EKF":
-            runs["filterpy EKF loop"] = lambda: filterpy_loop(sc, step, h, h_x, Y)
+            problem = Problem(name, sc, step, h, h_x)
+            runs["filterpy EKF loop"] = lambda problem=problem: filterpy_loop(problem, Y)
         dyn = dynamax_filter(name, sc, kind)
         if dyn is not None:
             t0 = time.perf_counter()
