@@ -197,8 +197,8 @@ class MHE(Estimator):
             raise ValueError("Q must be positive definite for MHE (the weights are Q^-1)")
 
     def _tuning_changed(self) -> None:
-        self._rti_Qinv = np.linalg.inv(self.Q).ravel(order="F")
-        if hasattr(self, "_rti_R"):
+        if self.rti:
+            self._rti_Qinv[:] = np.linalg.inv(self.Q).ravel(order="F")
             self._rti_R[:] = self.R.ravel(order="F")
         self._WQ = weight_factor(self.Q)
         self._WR = weight_factor(self.R)
@@ -244,12 +244,14 @@ class MHE(Estimator):
         prepare, feedback, cost = rti.build(m, self.horizon)
         if options.get("jit"):
             prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
-        self._rti_prepare = FastFunction(prepare)
-        # the feedback reads the preparation's results where it wrote them, and the cost
-        # its arguments
+        # the tuning where every phase reads it (set by _tuning_changed), the feedback's
+        # inputs where the preparation writes them, the cost's where the preparation reads
+        self._rti_Qinv, self._rti_R = np.zeros(m.nx * m.nx), np.zeros(m.ny * m.ny)
+        self._rti_prepare = FastFunction(prepare, [None] * 10 + [self._rti_Qinv,
+                                                                 self._rti_R, None])
         out, args = self._rti_prepare.out, self._rti_prepare.args
         self._rti_y, self._rti_mask = np.zeros(m.ny), np.zeros(m.ny)
-        self._rti_R, self._rti_free = np.zeros(m.ny * m.ny), np.ones(m.nx)
+        self._rti_free = np.ones(m.nx)
         self._rti_feedback = FastFunction(feedback, [out[0], out[1], out[2], out[3],
                                                      self._rti_y, self._rti_mask,
                                                      self._rti_R, out[4], out[5],
@@ -315,8 +317,6 @@ class MHE(Estimator):
         Pbar = self.P0 if self.arrival_cost == "fixed" else self._Pbar
         args[8][:] = (Pbar if arrival else np.eye(nx)).ravel(order="F")
         args[9][:] = float(arrival)
-        args[10][:] = self._rti_Qinv
-        args[11][:] = self.R.ravel(order="F")
         args[12][:] = 1.0 if free is None else free.ravel()
         self._rti_free[:] = 1.0 if free is None else free[-1]
         self._rti_prepare.evaluate()
