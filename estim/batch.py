@@ -286,7 +286,7 @@ def _plant_scan(scenario: Scenario, T: int, expand: bool) -> ca.Function:
 
 
 def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
-              keep_logs: bool) -> tuple[list[dict | None], float]:
+              keep_logs: bool) -> tuple[list[dict | None], float, str]:
     """What :func:`~estim.compare` records of every seed's run (see ``compare._run_seed``),
     from one batched filter call over the seeds' records.
 
@@ -294,7 +294,8 @@ def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
     run (a plant that left the finite numbers, a failed update), the seconds of the
     filter call and whether it was compiled (see :func:`seed_map`).
     """
-    from estim.metrics import startup_samples
+    from estim.compare import _where
+    from estim.metrics import nees_values, startup_samples
     from estim.simulate import _Recorder
 
     m = scenario.model
@@ -304,13 +305,7 @@ def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
     out = estimator._filter_seeds(plant.y[keep], plant.u_step)
     per_step = out["seconds"] / max(len(keep) * T, 1)
     err = out["x"] - plant.x[keep]
-    # NEES e^T P^{-1} e of every sample with a finite P, in one batched solve
-    P = out["P"][:, burn_in:]
-    ok = np.isfinite(P).all(axis=(2, 3))
-    ne = np.full(ok.shape, np.nan)
-    if ok.any():
-        e = err[:, burn_in:][ok]
-        ne[ok] = np.einsum("ki,ki->k", e, np.linalg.solve(P[ok], e[..., None])[..., 0])
+    ne = nees_values(err[:, burn_in:], out["P"][:, burn_in:])  # one batched solve
     has_p = np.isfinite(out["P"]).any(axis=(1, 2, 3))
     with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -350,7 +345,7 @@ def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
             "nees": float(nees[j]) if has_p[j] else np.nan,
             "step": per_step, "failures": 0,
             "flagged": len(status), "steps": T, "log": log,
-            "peak": (float(peak), f"in {m.state_names[n]} at t = {plant.t[k]:g} (seed {seed})")
+            "peak": (float(peak), _where(m.state_names[n], plant.t[k], seed))
             if np.isfinite(peak) else (float("nan"), ""),
             "kind": type(estimator).__name__, "caveat": estimator.caveat,
         }

@@ -387,7 +387,12 @@ def _peak(log: Log, seed: int) -> tuple[float, str]:
     if not np.isfinite(err).any():
         return float("nan"), ""
     k, j = np.unravel_index(int(np.nanargmax(err)), err.shape)
-    return float(err[k, j]), f"in {log.state_names[j]} at t = {log.t[k]:g} (seed {seed})"
+    return float(err[k, j]), _where(log.state_names[j], log.t[k], seed)
+
+
+def _where(state: str, t: float, seed: int) -> str:
+    """Where a largest error is: ``"in C_C at t = 12.5 (seed 0)"``."""
+    return f"in {state} at t = {t:g} (seed {seed})"
 
 
 def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:

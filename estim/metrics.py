@@ -224,10 +224,15 @@ def nees(estimate: Log | FitResult, burn_in: int = 0, *,
         The true states; required unless ``estimate`` is a Log that has them.
     """
     data, _ = _select(estimate, burn_in, None, ("x", "x_hat", "P"), truth=truth)
-    err = data.x_hat[burn_in:] - data.x[burn_in:]
-    P = np.asarray(data.P, dtype=float)[burn_in:]
-    out = np.full(len(err), np.nan)
-    ok = np.isfinite(P).all(axis=(1, 2))
+    return nees_values(data.x_hat[burn_in:] - data.x[burn_in:],
+                       np.asarray(data.P, dtype=float)[burn_in:])
+
+
+def nees_values(err: np.ndarray, P: np.ndarray) -> np.ndarray:
+    r""":math:`e^\top P^{-1} e` of errors ``(..., nx)`` and covariances ``(..., nx, nx)``
+    (any leading shape, e.g. seeds × samples), NaN where ``P`` is not finite."""
+    out = np.full(err.shape[:-1], np.nan)
+    ok = np.isfinite(P).all(axis=(-2, -1))
     if ok.any():
         sol = np.linalg.solve(P[ok], err[ok][..., None])[..., 0]
         out[ok] = np.einsum("ki,ki->k", err[ok], sol)
