@@ -13,6 +13,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from estim import models, scenarios
+from estim._version import __version__ as __version__
 from estim.compare import Comparison, compare
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.log import Log
@@ -38,7 +39,6 @@ __all__ = [
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
     "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth", "tuning",
 ]
-__version__ = "0.1.0"
 
 #: Names imported on first use (PEP 562): the estimators and the modules that
 #: ``import estim`` does not need, so that it stays fast.

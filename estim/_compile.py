@@ -36,6 +36,8 @@ from pathlib import Path
 
 import casadi as ca
 
+from estim.exceptions import CompilerUnavailable
+
 #: Flags of every compilation: optimised, position-independent, no fast-math (the
 #: generated code then computes what CasADi's interpreter computes, operation for
 #: operation).
@@ -44,10 +46,6 @@ FLAGS = ("-O2", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
 _LOCK = threading.Lock()
 _COMPILER: dict[str, tuple[str, str] | None] = {}
 _LOADED: dict[str, ca.Function] = {}
-
-
-class CompilerUnavailable(RuntimeError):
-    """No C compiler was found (or it failed): the interpreted path is used instead."""
 
 
 def cache_directory() -> Path:

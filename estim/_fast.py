@@ -34,7 +34,7 @@ def jitted(fun: ca.Function) -> ca.Function:
             first = str(exc) not in _WARNED
             _WARNED.add(str(exc))
         if first:
-            from estim.estimators.base import EstimationWarning
+            from estim.exceptions import EstimationWarning
 
             warnings.warn(f"jit=True: {exc}", EstimationWarning, stacklevel=3)
         return fun

@@ -10,7 +10,7 @@ with ``<math.h>`` and ``<string.h>`` only: no allocation, no CasADi runtime.
 
 The real-time iteration of the moving horizon estimator (:class:`~estim.MHE` with
 ``rti=True``) is exported the same way: CasADi's generated code of the window's
-preparation, feedback and cost (:func:`estim.estimators.rti.build`), of the arrival
+preparation, feedback and cost (:func:`estim.solvers.rti.build`), of the arrival
 covariance's step and of the model's transition, and a driver that does the window's
 bookkeeping as the Python estimator does, in the same order (see
 ``docs/deployment.md``).
@@ -247,8 +247,8 @@ def _describe(estimator) -> str:
 
 
 def _fill(template: str, name: str, dims: dict, values: dict, estimator) -> str:
-    from estim import __version__
-    from estim.estimators.base import SUSPECT_TAIL
+    from estim._version import __version__
+    from estim.consistency import SUSPECT_TAIL
 
     m = estimator.model
     text = (template.replace("@name@", name).replace("@NAME@", name.upper())
@@ -653,9 +653,9 @@ def _check_mhe(estimator) -> None:
 
 def _mhe_functions(estimator, name: str) -> list[ca.Function]:
     """The Functions of the real-time MHE under C names: ``prepare``, ``feedback`` and
-    ``cost`` of :func:`estim.estimators.rti.build`, the arrival covariance's step and the
+    ``cost`` of :func:`estim.solvers.rti.build`, the arrival covariance's step and the
     model's transition ``F(x, u, p)``."""
-    from estim.estimators import rti
+    from estim.solvers import rti
 
     m = estimator.model
     prepare, feedback, cost = rti.build(m, estimator.horizon)
@@ -734,7 +734,7 @@ def _mhe_layout(estimator, sizes: dict) -> tuple[str, int, dict]:
 
 
 def _write_mhe(estimator, directory: Path, name: str, paths: dict) -> None:
-    from estim.estimators.base import chi2_limit
+    from estim.consistency import chi2_limit
     from estim.estimators.mhe import RTI_STARTUP_ITERATIONS, RTI_STARTUP_XTOL
 
     m = estimator.model

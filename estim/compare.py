@@ -37,10 +37,11 @@ import numpy as np
 from estim._validate import as_bool, as_float, as_int, check_keywords
 from estim.estimators.base import Estimator
 from estim.log import Log
-from estim.metrics import nees, rmse, startup_samples
+from estim.metrics import nees, peak_location, rmse, startup_samples
 from estim.model import Model
 from estim.scenarios import Scenario
 from estim.simulate import FAILED_FRACTION, simulate
+from estim.solvers.seeds import threads as seed_threads
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -387,12 +388,7 @@ def _peak(log: Log, seed: int) -> tuple[float, str]:
     if not np.isfinite(err).any():
         return float("nan"), ""
     k, j = np.unravel_index(int(np.nanargmax(err)), err.shape)
-    return float(err[k, j]), _where(log.state_names[j], log.t[k], seed)
-
-
-def _where(state: str, t: float, seed: int) -> str:
-    """Where a largest error is: ``"in C_C at t = 12.5 (seed 0)"``."""
-    return f"in {state} at t = {t:g} (seed {seed})"
+    return float(err[k, j]), peak_location(log.state_names[j], log.t[k], seed)
 
 
 def _row(name: str, runs: list[dict], names: list[str]) -> ComparisonRow:
@@ -688,7 +684,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Factory | type | Estima
         note = "serial: every run was one of the first runs, timed in this process"
     batch_note = ""
     if batched:
-        threads = batching.threads(len(seeds))
+        threads = seed_threads(len(seeds))
         batch_note = (f"{', '.join(batched)}: the {len(seeds)} runs of each filtered at once "
                       f"(whole records over all seeds, on {threads} thread(s)), "
                       f"after the plant of every seed ({_fmt_s(plant.seconds)}, {plant.how}); "

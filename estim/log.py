@@ -266,7 +266,7 @@ class Log:
         -------
         matplotlib.figure.Figure
         """
-        from estim.plotting import plot_log
+        from estim._figures import plot_log
 
         sigma = as_bool(sigma, "sigma")
         if isinstance(states, str):

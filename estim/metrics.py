@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from estim._validate import as_bool, as_float, as_int
-from estim.log import Log
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # annotations only: a log is told by what it holds (see _is_log)
     from estim.estimators.fie import FitResult
+    from estim.log import Log
 
 
 class RMSE(float):
@@ -54,18 +54,31 @@ def startup_samples(n: int) -> int:
     return min(max(1, n // 10), max(n - 1, 0))
 
 
+def peak_location(state: str, t: float, seed: int) -> str:
+    """Where a largest error is: ``"in C_C at t = 12.5 (seed 0)"``."""
+    return f"in {state} at t = {t:g} (seed {seed})"
+
+
+def _is_log(obj: object) -> bool:
+    """Whether ``obj`` is a :class:`~estim.Log` (or anything that records series by name
+    as one does): it has ``keys()`` and ``state_names``. Told by what it holds, so that
+    the metrics sit below the log, which uses them."""
+    return hasattr(obj, "state_names") and callable(getattr(obj, "keys", None)) \
+        and hasattr(obj, "__contains__")
+
+
 class _Series:
     """What the metrics read: ``x`` (truth), ``x_hat``, ``P``, ``nis``, ``t``, ``names``."""
 
     def __init__(self, estimate, truth, needs: Sequence[str]):
-        if isinstance(truth, Log):
+        if _is_log(truth):
             if "x" not in truth:
                 raise ValueError(f"truth is a Log without the true state 'x' (it has "
                                  f"{truth.keys()})")
             truth_log, truth = truth, truth.x
         else:
             truth_log = None
-        if isinstance(estimate, Log):
+        if _is_log(estimate):
             absent = [key for key in needs
                       if key not in estimate and not (key == "x" and truth is not None)]
             if absent:

@@ -8,8 +8,7 @@ estimator takes, so ``estim.EKF(sc.model, **sc.tuning)`` is the whole set-up.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -17,138 +16,12 @@ import numpy as np
 from estim import models
 from estim._validate import (
     as_bool,
-    as_choice,
-    as_covariance,
     as_float,
-    as_input_table,
-    as_int,
     as_vector,
     check_call,
     did_you_mean,
 )
-from estim.model import Model
-
-
-def check_plant_changes(changes, model: Model, name: str = "plant_changes") -> list:
-    """``[(time, {param: value}), ...]`` checked against ``model``; returns a list of
-    ``(float, dict)`` pairs."""
-    if changes is None:
-        return []
-    if isinstance(changes, Mapping | str) or not hasattr(changes, "__iter__"):
-        raise TypeError(f"{name} must be a list of (time, {{param: value}}) pairs, "
-                        f"got {type(changes).__name__}")
-    out = []
-    for i, entry in enumerate(changes):
-        if not isinstance(entry, tuple | list) or len(entry) != 2:
-            raise TypeError(f"{name}[{i}] must be a (time, {{param: value}}) pair, "
-                            f"got {entry!r}")
-        t, values = entry
-        t = as_float(t, f"{name}[{i}] time")
-        if not isinstance(values, Mapping):
-            raise TypeError(f"{name}[{i}] must map parameter names to values, "
-                            f"got {type(values).__name__}")
-        unknown = [k for k in values if k not in model.param_names]
-        if unknown:
-            raise ValueError(f"{name}[{i}] names unknown parameters {unknown}; the model's "
-                             f"parameters are {model.param_names}")
-        values = {k: as_float(v, f"{name}[{i}][{k!r}]") for k, v in values.items()}
-        out.append((t, values))
-    return out
-
-
-@dataclass
-class Scenario:
-    """One experiment.
-
-    Attributes
-    ----------
-    name : str
-    model : Model
-        The plant, and the model the estimators are given.
-    x0 : (nx,) array
-        True initial state.
-    n_steps : int
-        Number of samples.
-    Q : (nx, nx) array
-        Plant process-noise covariance (may be zero).
-    R : (ny, ny) array
-        Plant measurement-noise covariance.
-    tuning : dict
-        ``{"Q", "R", "x0", "P0"}`` for the estimator (``x0`` is its guess).
-    inputs : (n_steps, nu) array or callable ``t -> u``, optional
-        Open-loop input signal.
-    controller : callable ``(t, x) -> u``, optional
-        Feedback law; gets the estimate (``feedback="estimate"``) or the true
-        state (``feedback="truth"``, e.g. an attitude sensor the estimator
-        does not use).
-    feedback : {"estimate", "truth"}
-    clip : bool
-        Clip the true state to the model bounds after each step (the KU
-        Leuven course does ``x+ = max(F(x) + w, 0)``).
-    plant_changes : list of (time, {param: value})
-        Parameter changes of the plant at given times (faults).
-    description : str
-    remarks : dict of str -> str
-        What is known about an estimator class on this experiment, keyed by the
-        class name (``"EKF"``, ``"MHE"``, ...): shown under a comparison's table
-        when such an estimator is inconsistent or far behind the best.
-    """
-
-    name: str
-    model: Model
-    x0: np.ndarray
-    n_steps: int
-    Q: np.ndarray
-    R: np.ndarray
-    tuning: dict
-    inputs: np.ndarray | Callable | None = None
-    controller: Callable | None = None
-    feedback: str = "estimate"
-    clip: bool = False
-    plant_changes: list = field(default_factory=list)
-    description: str = ""
-    remarks: dict = field(default_factory=dict)
-
-    def __post_init__(self):
-        if not isinstance(self.name, str):
-            raise TypeError(f"name must be a string, got {type(self.name).__name__}")
-        if not isinstance(self.model, Model):
-            raise TypeError(f"model must be an estim.Model, got {type(self.model).__name__}")
-        m = self.model
-        self.x0 = as_vector(self.x0, m.nx, "x0")
-        self.Q = as_covariance(self.Q, m.nx, "Q", definite=False)
-        self.R = as_covariance(self.R, m.ny, "R", definite=True)
-        as_choice(self.feedback, ("estimate", "truth"), "feedback")
-        self.n_steps = as_int(self.n_steps, "n_steps", minimum=1)
-        self.clip = as_bool(self.clip, "clip")
-        if not isinstance(self.tuning, Mapping):
-            raise TypeError(f"tuning must be a dict of estimator arguments, "
-                            f"got {type(self.tuning).__name__}")
-        for key in self.tuning:
-            if not isinstance(key, str):
-                raise TypeError(f"tuning keys must be argument names, got {key!r}")
-        if self.controller is not None and not callable(self.controller):
-            raise TypeError(f"controller must be callable (t, x) -> u, "
-                            f"got {type(self.controller).__name__}")
-        if self.inputs is not None and self.controller is not None:
-            raise ValueError("give inputs= or controller=, not both")
-        if self.inputs is not None and not callable(self.inputs):
-            as_input_table(self.inputs, self.n_steps, m.nu, names=m.input_names)
-        self.plant_changes = check_plant_changes(self.plant_changes, m)
-        if not isinstance(self.remarks, Mapping) or not all(
-                isinstance(k, str) and isinstance(v, str) for k, v in self.remarks.items()):
-            raise TypeError("remarks must be a dict {estimator class name: text}")
-        self.remarks = dict(self.remarks)
-
-    def replace(self, **changes: Any) -> Scenario:
-        """A copy with some fields changed (e.g. ``n_steps``)."""
-        from dataclasses import replace
-
-        return replace(self, **changes)
-
-    def __repr__(self) -> str:
-        return (f"Scenario({self.name!r}, model={self.model.name}, n_steps={self.n_steps}, "
-                f"dt={self.model.dt:g})")
+from estim.experiment import Record, Scenario
 
 
 def lorenz(n_steps: int = 100) -> Scenario:
@@ -255,36 +128,6 @@ def satellite(excitation: bool = True, fault: bool = True, n_steps: int = 400,
     )
 
 
-@dataclass
-class Record:
-    """A recorded experiment for :func:`estim.replay`: measurements, known inputs, truth.
-
-    Attributes
-    ----------
-    name : str
-    model : Model
-        The model an estimator uses on this record.
-    t : (T,) array
-    y : (T, ny) array
-    u : (T, nu) array
-        ``u[k]`` acts after sample ``k``.
-    x : (T, nx) array
-        True states of ``model``.
-    tuning : dict
-        ``{"R", "x0", "P0"}`` suggestions for an estimator.
-    description : str
-    """
-
-    name: str
-    model: Model
-    t: np.ndarray
-    y: np.ndarray
-    u: np.ndarray
-    x: np.ndarray
-    tuning: dict
-    description: str = ""
-
-
 def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int = 400,
                       seed: int = 0, guess: Sequence[float] = (0.40, 0.50, 0.20)) -> Record:
     """Inertia identification record (Oliva & Carnevale, sec. 2.1-2.4).
@@ -298,12 +141,11 @@ def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int 
     bounded to [0.01, 10]; the suggested guess keeps ``omega`` at the first
     gyro sample and the inertias at ``guess`` (chosen, 20-25 % off).
     """
-    from estim.estimators.ekf import EKF
     from estim.simulate import simulate
 
     guess = as_vector(guess, 3, "guess")
     sc = satellite(excitation=excitation, fault=fault, n_steps=n_steps)
-    log = simulate(sc, EKF(sc.model, **sc.tuning), seed=seed)
+    log = simulate(sc, None, seed=seed)  # the plant alone: the PD law sees the truth
     nadir = np.array([models.nadir_in_body(x) for x in log.x])
     u = np.hstack([log.u, nadir])
     inertia = np.tile([sc.model.params[k] for k in ("I1", "I2", "I3")], (n_steps, 1))

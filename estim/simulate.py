@@ -43,10 +43,11 @@ from estim._validate import (
     by_name,
     check_keywords,
 )
-from estim.estimators.base import EstimationWarning, Estimator
+from estim.estimators.base import Estimator, StepInfo
+from estim.exceptions import EstimationWarning
+from estim.experiment import Scenario, check_plant_changes
 from estim.log import Log
 from estim.model import Model
-from estim.scenarios import Scenario, check_plant_changes
 
 #: :func:`simulate` and :func:`replay` warn when more than this fraction of the steps failed.
 FAILED_FRACTION = 0.02
@@ -80,6 +81,23 @@ def draw_noise(seeds: Sequence[int | None], T: int, Lr: np.ndarray, Lq: np.ndarr
         return Z * np.diag(L) if np.array_equal(L, np.diag(np.diag(L))) else Z @ L.T
 
     return scaled(V, Lr), scaled(W, Lq)
+
+
+class _PlantOnly:
+    """What stands for the estimator of a plant-only run (``simulate(..., None)``): no
+    estimate (NaN) and the status ``"no estimator"``."""
+
+    name = "none"
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.info = StepInfo(status="no estimator")
+
+    def reset(self) -> None:
+        """Nothing to reset."""
+
+    def step(self, y: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
+        return np.full(self.model.nx, np.nan)
 
 
 class _Recorder:
@@ -175,7 +193,7 @@ def output_state_map(model: Model) -> dict[int, int]:
 
 
 @check_keywords
-def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 0, *,
+def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | None = 0, *,
              x0: ArrayLike | None = None, n_steps: int | None = None,
              Q: ArrayLike | None = None, R: ArrayLike | None = None,
              inputs: ArrayLike | Callable[[float], ArrayLike] | None = None,
@@ -191,9 +209,11 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     target : Scenario or Model
         With a scenario, every keyword below defaults to the scenario's value.
         With a bare model, ``x0``, ``n_steps``, ``Q`` and ``R`` are required.
-    estimator : Estimator
+    estimator : Estimator or None
         Any estimator built for this model; it is :meth:`~Estimator.reset`
-        first, so one instance can be simulated many times.
+        first, so one instance can be simulated many times. None simulates the
+        plant alone (``log.x_hat`` is NaN, the status ``"no estimator"``): a
+        controller then needs ``feedback="truth"``.
     seed : int or None
         Seed of the noise (and of missing-data draws).
     x0 : (nx,) array
@@ -233,8 +253,9 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
         controller, or a ``KeyboardInterrupt``), it carries the log of the steps
         completed before it as ``exc.log``.
     """
-    if not isinstance(estimator, Estimator):
-        raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
+    if estimator is not None and not isinstance(estimator, Estimator):
+        raise TypeError(f"estimator must be an estim estimator or None, "
+                        f"got {type(estimator).__name__}")
     if isinstance(target, Scenario):
         sc = target
         model = sc.model
@@ -254,6 +275,8 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
                 raise ValueError(f"{name} is required when simulating a bare Model")
     else:
         raise TypeError(f"target must be a Scenario or a Model, got {type(target).__name__}")
+    if estimator is None:
+        estimator = _PlantOnly(model)
     if estimator.model.nx != model.nx or estimator.model.ny != model.ny \
             or estimator.model.nu != model.nu:
         raise ValueError("estimator was built for a model of other dimensions than the plant")
@@ -268,6 +291,9 @@ def simulate(target: Scenario | Model, estimator: Estimator, seed: int | None = 
     feedback = feedback or "estimate"
     if feedback not in ("estimate", "truth"):
         raise ValueError(f"feedback must be 'estimate' or 'truth', got {feedback!r}")
+    if isinstance(estimator, _PlantOnly) and controller is not None and feedback != "truth":
+        raise ValueError("estimator=None simulates the plant alone: its controller needs "
+                         "feedback='truth'")
     nx, nu, ny, T = model.nx, model.nu, model.ny, int(n_steps)
     x = as_vector(x0, nx, "x0")
     Lq = _sqrt_psd(as_covariance(Q, nx, "Q", definite=False))

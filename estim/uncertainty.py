@@ -52,17 +52,37 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from statistics import NormalDist
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_choice, as_float, as_vector, check_keywords
-from estim.estimators.base import EstimationWarning, Estimator
+from estim.exceptions import EstimationWarning
 from estim.model import Model
 
-if TYPE_CHECKING:
-    from estim.estimators.fie import FitResult
+if TYPE_CHECKING:  # annotations only: an estimator is told by what it reports
+    from estim.estimators.base import Estimator
+
+
+class Fit(Protocol):
+    """What this module reads of a fit (:class:`estim.FitResult`): the estimated
+    trajectory ``x (T, nx)``, the covariance of its last state, the success, status and
+    cost of the solve, the residuals ``v`` and ``_context``, ``(model, arrival term used,
+    lower, upper)`` or None. Defined here, below the estimators, so that the fit's
+    :meth:`~estim.FitResult.parameters` can call this module and not the reverse."""
+
+    x: np.ndarray
+    success: bool
+    status: str
+    cost: float
+    _context: tuple | None
+
+    @property
+    def P_last(self) -> np.ndarray | None: ...
+
+    @property
+    def v(self) -> np.ndarray: ...
 
 #: A parameter whose standard error exceeds this fraction of its magnitude is reported
 #: as poorly determined.
@@ -275,7 +295,7 @@ def _issues(names, value, cov, lower, upper) -> list[str]:
     return out
 
 
-def _fit_model(fit: FitResult) -> Model:
+def _fit_model(fit: Fit) -> Model:
     """The model a fit was made with."""
     context = getattr(fit, "_context", None)
     if context is None:
@@ -285,15 +305,28 @@ def _fit_model(fit: FitResult) -> Model:
     return context[0]
 
 
+def _is_estimator(source: object) -> bool:
+    """Whether ``source`` is an estimator (:class:`~estim.Estimator`): it has a model, a
+    ``step`` and reports ``info``. Told by what it has, so that this module sits below
+    the estimators (full-information estimation's fits call it)."""
+    return all(hasattr(source, name) for name in ("model", "step", "reset", "info"))
+
+
+def _is_fit(source: object) -> bool:
+    """Whether ``source`` is a fit (:class:`Fit`), told without evaluating its lazy
+    covariance or residuals."""
+    return (not isinstance(source, Model) and not _is_estimator(source)
+            and hasattr(source, "_context")
+            and all(hasattr(type(source), name) for name in ("P_last", "v")))
+
+
 def _source(source, x, P) -> tuple[Model, np.ndarray | None, np.ndarray | None, Any]:
     """``(model, x, P, fit or None)`` of a fit, an estimator or a model; ``x`` and ``P``
     override the source's."""
-    from estim.estimators.fie import FitResult
-
-    if isinstance(source, FitResult):
+    if _is_fit(source):
         return (_fit_model(source), source.x[-1] if x is None else x,
                 source.P_last if P is None else P, source)
-    if isinstance(source, Estimator):
+    if _is_estimator(source):
         if x is None:
             extra = source.info.extra
             traj = extra.get("window", extra.get("trajectory"))
@@ -310,7 +343,7 @@ def _source(source, x, P) -> tuple[Model, np.ndarray | None, np.ndarray | None, 
                     f"{type(source).__name__}")
 
 
-def _values(fit: FitResult) -> dict[str, float]:
+def _values(fit: Fit) -> dict[str, float]:
     """The augmented parameters' last values of a fit, by name."""
     model, x = _fit_model(fit), fit.x[-1]
     if not model.augmented:
@@ -376,7 +409,7 @@ def _estimates(source, x=None, P=None, scale: str = "none", warn: bool = True,
 
 
 @check_keywords
-def parameter_uncertainty(source: FitResult | Estimator | Model, x: ArrayLike | None = None,
+def parameter_uncertainty(source: Fit | Estimator | Model, x: ArrayLike | None = None,
                           P: ArrayLike | None = None, *, scale: str = "none",
                           warn: bool = True) -> ParameterEstimates:
     r"""Standard errors, correlations and confidence intervals of augmented parameters.

@@ -12,6 +12,7 @@ import pytest
 import estim
 from estim import batch
 from estim._compile import compiler
+from estim.solvers import seeds
 
 FILTERS = {"EKF": estim.EKF, "UKF": estim.UKF,
            "EKF gated": lambda m, t: estim.EKF(m, **t, gate=1e-3),
@@ -155,9 +156,9 @@ def test_compiled_batches_equal_interpreted_ones(monkeypatch, tmp_path):
     monkeypatch.setenv("ESTIM_CACHE_DIR", str(tmp_path / "cache"))
     sc = estim.scenarios.van_der_pol(n_steps=100)
     est = {"EKF": estim.EKF, "UKF": estim.UKF}
-    monkeypatch.setattr(batch, "COMPILE_MIN_SAMPLES", 10 ** 12)
+    monkeypatch.setattr(seeds, "COMPILE_MIN_SAMPLES", 10 ** 12)
     interpreted = estim.compare(sc, est, seeds=range(4), keep_logs=True)
-    monkeypatch.setattr(batch, "COMPILE_MIN_SAMPLES", 0)
+    monkeypatch.setattr(seeds, "COMPILE_MIN_SAMPLES", 0)
     compiled = estim.compare(sc, est, seeds=range(4), keep_logs=True)
     assert "interpreted" in interpreted.batched and "compiled" not in interpreted.batched
     assert compiled.batched.count("compiled") == 3  # the plant and both filters
@@ -167,8 +168,8 @@ def test_compiled_batches_equal_interpreted_ones(monkeypatch, tmp_path):
 
 def test_without_a_compiler_the_batch_is_interpreted(monkeypatch):
     monkeypatch.setenv("CC", "/nonexistent/cc")
-    monkeypatch.setattr(batch, "COMPILE_MIN_SAMPLES", 0)
-    monkeypatch.setattr(batch, "_MAPPED", type(batch._MAPPED)())
+    monkeypatch.setattr(seeds, "COMPILE_MIN_SAMPLES", 0)
+    monkeypatch.setattr(seeds, "_MAPPED", type(seeds._MAPPED)())
     sc = estim.scenarios.van_der_pol(n_steps=60)
     res = estim.compare(sc, {"EKF": estim.EKF}, seeds=range(3))
     assert "interpreted (no C compiler found ($CC = '/nonexistent/cc')" in res.batched

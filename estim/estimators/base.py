@@ -48,13 +48,14 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from functools import cache, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._smoothness import advice, nonsmooth_operations
 from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
+from estim.consistency import consistency_status
+from estim.exceptions import EstimationWarning
 from estim.model import Model
 
 
@@ -115,42 +116,6 @@ class StepInfo:
 
 _DEFAULTS = {f: getattr(StepInfo, f) for f in ("status", "success", "iterations", "solve_time",
                                                "P", "cost", "innovation", "nis")}
-
-class EstimationWarning(UserWarning):
-    """Something a user should know about a run or a model: many steps of a run failed
-    (the estimates are then mostly predictions or re-anchors), or the model has
-    switches that stall a gradient-based estimator.
-
-    Silence it with ``warnings.simplefilter("ignore", estim.EstimationWarning)``, or pass
-    ``warn=False`` to :func:`~estim.simulate` / :func:`~estim.replay`.
-    """
-
-
-#: A step whose normalised innovation squared (filters) or weighted least-squares cost
-#: (MHE, full information) lies beyond this tail probability of its chi-square
-#: distribution is reported ``"suspect"``. At 1e-9 a consistent estimator raises a false
-#: alarm about once in a billion steps; a 100-sigma outlier or a diverged estimate is far
-#: beyond it.
-SUSPECT_TAIL = 1e-9
-
-
-@cache
-@lru_cache(maxsize=4096)
-def chi2_limit(dof: int, tail: float = SUSPECT_TAIL) -> float:
-    """The value that a chi-square variable with ``dof`` degrees of freedom exceeds
-    with probability ``tail`` (inf without any degree of freedom). Kept for the last
-    4096 ``(dof, tail)`` asked: every step of an optimisation-based estimator asks."""
-    from scipy.special import chdtri  # imported on first use, not with estim
-
-    return float(chdtri(dof, tail)) if dof > 0 else float("inf")
-
-
-def consistency_status(statistic: float, dof: int, what: str = "NIS") -> str:
-    """``"ok"``, or ``"suspect: ..."`` when ``statistic`` is beyond :func:`chi2_limit`."""
-    if statistic > chi2_limit(dof):
-        return f"suspect: {what} {statistic:.3g} beyond the {SUSPECT_TAIL:g} tail of chi2({dof})"
-    return "ok"
-
 
 class Estimator:
     """Base class: tuning, argument checks and the ``step``/``reset`` protocol.

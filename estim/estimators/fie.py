@@ -15,7 +15,8 @@ from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
-from estim.estimators.nlp import (
+from estim.model import Model
+from estim.solvers.nlp import (
     LeastSquaresNLP,
     Solution,
     check_solver_options,
@@ -23,8 +24,7 @@ from estim.estimators.nlp import (
     resolve_solver,
     weight_factor,
 )
-from estim.estimators.robust import as_loss
-from estim.model import Model
+from estim.solvers.robust import as_loss
 
 if TYPE_CHECKING:
     from estim.uncertainty import ParameterEstimates
@@ -220,7 +220,7 @@ class FullInformation(Estimator):
     smoother.
 
     The default solver (``"auto"``) is the structure-exploiting projected Gauss-Newton/
-    Newton method of :mod:`estim.estimators.gauss_newton`: each iteration is
+    Newton method of :mod:`estim.solvers.gauss_newton`: each iteration is
     a block-tridiagonal solve (a Riccati recursion on the linearised model),
     :math:`O(T n_x^3)`, evaluated by one expanded SX graph (longer records: about
     4200 samples of a three-state model, 850 of a seven-state one; expanded chunks
@@ -406,12 +406,12 @@ class FullInformation(Estimator):
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
-        (see :mod:`estim.estimators.nlp`), so the optimum is that of the
+        (see :mod:`estim.solvers.nlp`), so the optimum is that of the
         ``T``-sample problem; one problem then serves every shorter record.
         ``prior``: ``(mean, weight factor or None)`` of the first sample (default
         ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver;
         ``weights``: ``(W_Q, W_R, R)`` (default the estimator's).
-        Returns the result and the solver's :class:`~estim.estimators.nlp.Solution`
+        Returns the result and the solver's :class:`~estim.solvers.nlp.Solution`
         (whether the trajectory is usable, the outliers of a robust loss).
         """
         m, T, C = self.model, Y.shape[0], capacity

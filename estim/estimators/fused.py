@@ -20,19 +20,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
-from estim._scan import blocked_scan
 from estim._validate import as_inputs, as_intervals, as_record
-from estim.estimators.base import SUSPECT_TAIL, Estimator, StepInfo, chi2_limit
+from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
-from estim.estimators.nlp import is_diagonal
+from estim.solvers.kalman import fused_function, record_function, step_symbols
+from estim.solvers.nlp import is_diagonal
+from estim.solvers.seeds import seed_map
 
 #: :meth:`~FusedKalman.filter` keeps its compiled Function for this many record lengths.
 _RECORD_LENGTHS_KEPT = 8
-
-
-def matrix(v, n: int, diagonal: bool):
-    """The ``(n, n)`` matrix stored column-major in ``v`` (its diagonal only if asked)."""
-    return ca.diag(v[[i * n + i for i in range(n)]]) if diagonal else ca.reshape(v, n, n)
 
 
 class FusedKalman(Estimator):
@@ -62,42 +58,15 @@ class FusedKalman(Estimator):
         self._reset()
 
     def _symbols(self):
-        """The symbols of a step: ``s, x, P, u, y, tuning``, the ``Q, R`` read from the
-        tuning (diagonal only where built diagonal), the parameters ``p``, the mask of
-        measured outputs (0 for NaN and for ±inf) and the count of ±inf in ``y``."""
-        m = self.model
-        nx, ny = m.nx, m.ny
-        s = ca.SX.sym("s", nx + nx * nx)
-        x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
-        u = ca.SX.sym("u", m.nw)
-        y = ca.SX.sym("y", ny)
-        tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
-        Q, R = (matrix(tun[:nx * nx], nx, self._diagonal["Q"]),
-                matrix(tun[nx * nx:], ny, self._diagonal["R"]))
-        mask = ca.fabs(y) < ca.inf
-        y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
-        return s, x, P, u, y, tun, Q, R, ca.DM(m.p), mask, y_inf
+        """The symbols of a step (:func:`estim.solvers.kalman.step_symbols`)."""
+        return step_symbols(self.model, self._diagonal)
 
     def _fused_function(self, name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf,
                         ok_mean, mask, s_prior) -> ca.Function:
-        r"""The step's CasADi Function ``(s, u, y, tuning) -> (s_new, innovation, flags,
-        s_prior)`` from the filter's expressions: the flags (see the module) with the
-        suspect and gate tests, NIS beyond the :math:`\chi^2` tail of the number of
-        outputs measured (``SUSPECT_TAIL``, and ``gate`` when set)."""
-        ny = self.model.ny
-        measured = ca.sum1(mask) if ny else ca.SX(0)
-        onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
-
-        def beyond(tail):  # NIS beyond the tail of chi2(outputs measured)
-            if not ny or tail is None:
-                return ca.SX(0)
-            limits = ca.DM([chi2_limit(k, tail) for k in range(1, ny + 1)])
-            return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
-
-        flags = ca.vertcat(nis, ok, ok_prior, y_inf, measured, ok_mean,
-                           beyond(SUSPECT_TAIL), beyond(self.gate))
-        return ca.Function(name, inputs, [s_new, e, flags, s_prior],
-                           ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
+        """The step's Function with its flags (:func:`estim.solvers.kalman.fused_function`),
+        the gate of this filter included."""
+        return fused_function(name, inputs, s_new, e, nis, ok, ok_prior, y_inf, ok_mean, mask,
+                              s_prior, gate=self.gate)
 
     def _tuning_changed(self) -> None:
         nx = self.model.nx
@@ -268,32 +237,8 @@ class FusedKalman(Estimator):
         cache = self.__dict__.setdefault("_whole_records", {})
         if (T, expand) in cache:
             return cache[T, expand]
-        m = self.model
-        nx, ny, nw = m.nx, m.ny, m.nw
-
-        def scanned(predict: bool) -> ca.Function:
-            s, w = ca.SX.sym("s", nx + nx * nx), ca.SX.sym("w", nw)
-            y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nx * nx + ny * ny)
-            P0 = ca.SX.sym("P0", nx * nx)
-            s_new, e, flags, s_prior = self._build(predict)(s, w, y, tun)
-            s_next = ca.if_else(flags[7], s_prior + ca.vertcat(ca.SX(nx, 1), P0), s_new)
-            return ca.Function(f"{self.name}_record_" + ("step" if predict else "first"),
-                               [s, w, y, tun, P0], [s_next, s_next, e, flags],
-                               ["s", "w", "y", "tuning", "P0"],
-                               ["s_next", "s_out", "innovation", "flags"])
-
-        s0 = ca.MX.sym("s0", nx + nx * nx)
-        Y, W = ca.MX.sym("Y", ny, T), ca.MX.sym("W", nw, T)
-        tun, P0 = ca.MX.sym("tuning", nx * nx + ny * ny), ca.MX.sym("P0", nx * nx)
-        s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
-        S, E, F = s1, e0, f0
-        if T > 1:
-            scan = blocked_scan(scanned(True), T - 1, (1, 2), expand=expand)
-            _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
-            S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
-        fun = FastFunction(ca.Function(f"{self.name}_record_{T}", [s0, Y, W, tun, P0], [S, E, F],
-                                       ["s0", "Y", "W", "tuning", "P0"],
-                                       ["S", "innovation", "flags"]))
+        fun = FastFunction(record_function(f"{self.name}_record", self.model, self._build, T,
+                                           expand=expand))
         if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
             del cache[next(iter(cache))]
         cache[T, expand] = fun
@@ -328,10 +273,8 @@ class FusedKalman(Estimator):
             filter's history, so that seed must be run step by step), ``seconds`` (wall
             time of the call over the seeds), ``total`` (with the set-up and the
             statuses) and ``how`` (``"compiled"`` or ``"interpreted"``, see
-            :func:`estim.batch.seed_map`).
+            :func:`estim.solvers.seeds.seed_map`).
         """
-        from estim.batch import seed_map
-
         m = self.model
         nx = m.nx
         S, T = Y.shape[:2]

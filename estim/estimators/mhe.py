@@ -12,15 +12,15 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction, jitted
 from estim._validate import as_bool, as_choice, as_int
 from estim.estimators.base import Estimator, StepInfo, consistency_status
-from estim.estimators.nlp import (
+from estim.model import Model
+from estim.solvers.nlp import (
     LeastSquaresNLP,
     check_solver_options,
     is_diagonal,
     resolve_solver,
     weight_factor,
 )
-from estim.estimators.robust import as_loss
-from estim.model import Model
+from estim.solvers.robust import as_loss
 
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
 
@@ -85,10 +85,10 @@ class MHE(Estimator):
     solver : {"auto", "gauss-newton", "ipopt", "sqp", "fatrop"}
         ``"auto"`` (default): the fastest solver for the problem, which for these
         least-squares problems with box bounds is ``"gauss-newton"``
-        (:func:`~estim.estimators.nlp.resolve_solver`); the choice is
+        (:func:`~estim.solvers.nlp.resolve_solver`); the choice is
         :attr:`solver` and ``info.extra["solver"]``.
         ``"gauss-newton"``: the structure-exploiting projected Newton/Gauss-Newton
-        solver of :mod:`estim.estimators.gauss_newton` (block-tridiagonal solve,
+        solver of :mod:`estim.solvers.gauss_newton` (block-tridiagonal solve,
         bounds by projection; fastest). ``"ipopt"``: interior point with the
         exact Hessian, the general-purpose path. ``"sqp"``: CasADi's
         ``sqpmethod`` with the Gauss-Newton Hessian :math:`2J^\top J` and the
@@ -111,7 +111,7 @@ class MHE(Estimator):
         :math:`r_k = W_R (y_k - h(x_k))` (:math:`W_R^\top W_R = R^{-1}`), so a few
         gross outliers no longer pull the estimate; minimised by iteratively
         reweighted least squares, inside the Gauss-Newton iterations (or by
-        reweighted solves for the NLP solvers). See :mod:`estim.estimators.robust`.
+        reweighted solves for the NLP solvers). See :mod:`estim.solvers.robust`.
     f_scale : float, optional
         Where a robust loss leaves the quadratic, in standard deviations (default:
         1.345 for huber and soft_l1, 2.385 for cauchy: 95 % efficiency on Gaussian
@@ -124,7 +124,7 @@ class MHE(Estimator):
         sample from the shifted previous window instead of a converged solve, split
         into :meth:`prepare` (the linearisation and elimination along the window,
         before the measurement arrives) and the feedback in :meth:`step` (the new
-        measurement's part, :math:`O(N n_x^2)`; see :mod:`estim.estimators.rti`).
+        measurement's part, :math:`O(N n_x^2)`; see :mod:`estim.solvers.rti`).
         Bounds by projection of the step. Needs the Gauss-Newton solver, the squared
         loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time (with the
         preparation's when :meth:`step` prepared the window itself, as in
@@ -228,8 +228,8 @@ class MHE(Estimator):
                            [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
 
     def _build_rti(self, solver: str, options: dict) -> None:
-        """The real-time iteration's two compiled phases (see :mod:`~estim.estimators.rti`)."""
-        from estim.estimators import rti
+        """The real-time iteration's two compiled phases (see :mod:`~estim.solvers.rti`)."""
+        from estim.solvers import rti
 
         if solver != "gauss-newton":
             raise ValueError(f"rti=True takes one Gauss-Newton step per sample: give "

@@ -35,8 +35,8 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction
 from estim._validate import as_choice, as_float, as_int
 from estim.estimators.base import Estimator, StepInfo, consistency_status
-from estim.estimators.nlp import _casadi_reason, measurement_weights, weight_factor
 from estim.model import Model, euler_step, rk4_step
+from estim.solvers.nlp import _casadi_reason, measurement_weights, weight_factor
 
 METHODS = ("bfgs", "lbfgsb", "ipopt", "nelder-mead", "gradient")
 

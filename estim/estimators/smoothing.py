@@ -37,12 +37,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.estimators.base import Estimator
+from estim.solvers.rts import backward
 
 #: A prediction of a whole record: from the filtered means ``(T-1, nx)``, covariances
 #: ``(T-1, nx, nx)`` and transitions' inputs ``(T-1, nw)``, the predicted means and
@@ -144,25 +144,7 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
             success = success and info.success
     xb, Pb, D = predict(Xf[:-1], Pf[:-1], W) if T > 1 else \
         (np.empty((0, nx)), np.empty((0, nx, nx)), np.empty((0, nx, nx)))
-    Xs, Ps = Xf.copy(), Pf.copy()
-    # G = D Pb^{-1} by a solve (Pb and so Pb^{-T} symmetric), all transitions at once
-    G = np.linalg.solve(Pb, D.transpose(0, 2, 1)).transpose(0, 2, 1) if T > 1 else \
-        np.empty((0, nx, nx))
-    for k in range(T - 2, -1, -1):
-        Xs[k] = Xf[k] + G[k] @ (Xs[k + 1] - xb[k])
-        if clip is not None:
-            Xs[k] = clip(Xs[k])
-        Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pb[k]) @ G[k].T
-        Ps[k] = 0.5 * (Pk + Pk.T)
+    Xs, Ps, G = backward(Xf, Pf, xb, Pb, D, clip)
     return SmoothResult(x=Xs, P=Ps, x_filtered=Xf, P_filtered=Pf, x_predicted=xb,
                         P_predicted=Pb, gain=G, status=tuple(status),
                         success=success)
-
-
-def transitions(model, X: np.ndarray, W: np.ndarray, jacobian: bool = False) -> np.ndarray:
-    """The model's ``F(x, w)`` at every row of ``X (n, nx)`` and ``W (n, nw)`` in one
-    call, ``(n, nx)``; with ``jacobian``, ``dF/dx`` there, ``(n, nx, nx)``."""
-    n, nx = X.shape
-    fun = model.F_x if jacobian else model.F
-    out = np.asarray(fun.map(n)(X.T, W.T, ca.DM(model.p)))
-    return out.reshape(nx, n, nx).transpose(1, 0, 2) if jacobian else out.T

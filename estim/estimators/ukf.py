@@ -8,8 +8,9 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
-from estim.estimators.smoothing import SmoothResult, rts, transitions
+from estim.estimators.smoothing import SmoothResult, rts
 from estim.model import Model
+from estim.solvers.rts import transitions
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
 POINTS = ("merwe", "julier", "cubature")

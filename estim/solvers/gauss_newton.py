@@ -1,6 +1,6 @@
 r"""Projected Gauss-Newton for the windowed least-squares problem, exploiting its structure.
 
-The cost :math:`f(X) = \|r(X)\|^2` of :mod:`estim.estimators.nlp` couples
+The cost :math:`f(X) = \|r(X)\|^2` of :mod:`estim.solvers.nlp` couples
 only neighbouring states, so the Gauss-Newton matrix :math:`H = J^\top J` is
 block tridiagonal: diagonal blocks :math:`D_j` and off-diagonal blocks
 :math:`E_j = \partial r^\top/\partial x_j\,\partial r/\partial x_{j+1}`. A
@@ -426,7 +426,7 @@ class StructuredGaussNewton:
     lower, upper : (N * nx,) arrays
         Bounds of ``vec(X)`` (slot-major), the same state bounds in every slot.
     slices : dict
-        Parameter layout of :class:`~estim.estimators.nlp.LeastSquaresNLP`.
+        Parameter layout of :class:`~estim.solvers.nlp.LeastSquaresNLP`.
     n_params : int
         Length of the parameter vector.
     max_iter : int
@@ -700,7 +700,7 @@ class StructuredGaussNewton:
 
         ``reweight(x)``: called at the start and at every accepted point; it may
         change the measurement weights in :attr:`_pbuf` (a robust loss's
-        iteratively reweighted least squares, see :mod:`estim.estimators.robust`).
+        iteratively reweighted least squares, see :mod:`estim.solvers.robust`).
         Each step then decreases the cost of the weights of its starting point,
         and a negligible step is a stationary point of the robust cost (only the
         step test then stops the iterations).

@@ -34,10 +34,10 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
-from estim.estimators.base import SUSPECT_TAIL, chi2_limit, consistency_status
-from estim.estimators.gauss_newton import StructuredGaussNewton, full_record_constants
-from estim.estimators.robust import RobustLoss
+from estim.consistency import SUSPECT_TAIL, chi2_limit, consistency_status
 from estim.model import Model
+from estim.solvers.gauss_newton import StructuredGaussNewton, full_record_constants
+from estim.solvers.robust import RobustLoss
 
 SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
 #: What the estimators' ``solver=`` accepts: a solver by name, or ``"auto"``.
@@ -124,7 +124,7 @@ def resolve_solver(solver, options) -> str:
 
     Moving horizon and full-information estimation pose nonlinear least-squares
     problems with box bounds, which the structured Gauss-Newton solver
-    (:mod:`estim.estimators.gauss_newton`) solves to the same optimum as Ipopt
+    (:mod:`estim.solvers.gauss_newton`) solves to the same optimum as Ipopt
     in a fraction of the time (van der Pol MHE, N = 15: 0.26 against 2.3 ms per
     step), so ``"auto"`` is ``"gauss-newton"``. Options of another solver with
     ``"auto"`` are an error that says which solver to name.
@@ -246,7 +246,7 @@ class Solution:
         self.usable = self.usable or self.success
 
     def consistency(self, dof: int, measured: int) -> str:
-        """:func:`~estim.estimators.base.consistency_status` of the cost with ``dof``
+        """:func:`~estim.consistency.consistency_status` of the cost with ``dof``
         degrees of freedom, ``measured`` of them measurements. With a robust loss
         the outliers are left out of the test (their number is reported
         elsewhere), unless they are half the measurements or more: then the
@@ -294,7 +294,7 @@ class LeastSquaresNLP:
         Gauss-Newton graph then treats the window bookkeeping as constants.
     loss : RobustLoss, optional
         A robust measurement cost, minimised by reweighted solves (see
-        :mod:`estim.estimators.robust`); least squares if omitted.
+        :mod:`estim.solvers.robust`); least squares if omitted.
     """
 
     def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
@@ -487,7 +487,7 @@ class LeastSquaresNLP:
         ``robust``: with the structured Gauss-Newton solver whatever the solver chosen
         (a descent method from any finite start: the estimators' recovery solves).
         With a robust ``loss``, the weighted problems of
-        :mod:`estim.estimators.robust` are solved until the weights settle; the
+        :mod:`estim.solvers.robust` are solved until the weights settle; the
         solution's ``weights`` are the final ones.
         """
         if self.full and n != self.N:
@@ -516,7 +516,7 @@ class LeastSquaresNLP:
 
     def _solve_reweighted(self, X0, p, Y, n, arrival, robust) -> Solution:
         """Iteratively reweighted least squares for the robust loss (see
-        :mod:`estim.estimators.robust`), from weights at ``X0``.
+        :mod:`estim.solvers.robust`), from weights at ``X0``.
 
         Gauss-Newton (and every ``robust`` solve): new weights at every accepted
         iterate, inside the solver. The NLP solvers: a weighted solve, new weights at
@@ -651,7 +651,7 @@ class LeastSquaresNLP:
     def degrees_of_freedom(self, Y: np.ndarray, n: int, arrival: bool) -> int:
         """Chi-square degrees of freedom of the cost of a window of ``n`` measured slots
         (its measured outputs, and ``nx`` for an arrival term), for the consistency test
-        of :func:`~estim.estimators.base.consistency_status`."""
+        of :func:`~estim.consistency.consistency_status`."""
         return self.measured(Y, n) + (self.model.nx if arrival else 0)
 
     def covariance(self, X: np.ndarray) -> np.ndarray | None:

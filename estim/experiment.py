@@ -1,0 +1,179 @@
+"""What an experiment is: :class:`Scenario` (a model, its plant and an estimator's
+tuning) and :class:`Record` (recorded data with the truth).
+
+:func:`~estim.simulate` runs a Scenario; :mod:`estim.scenarios` builds those of the
+source documents. The classes live here, below both, so that the simulation loop
+does not depend on the catalogue of experiments; ``estim.Scenario`` and
+``estim.scenarios.Scenario`` are these.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from estim._validate import (
+    as_bool,
+    as_choice,
+    as_covariance,
+    as_float,
+    as_input_table,
+    as_int,
+    as_vector,
+)
+from estim.model import Model
+
+
+def check_plant_changes(changes, model: Model, name: str = "plant_changes") -> list:
+    """``[(time, {param: value}), ...]`` checked against ``model``; returns a list of
+    ``(float, dict)`` pairs."""
+    if changes is None:
+        return []
+    if isinstance(changes, Mapping | str) or not hasattr(changes, "__iter__"):
+        raise TypeError(f"{name} must be a list of (time, {{param: value}}) pairs, "
+                        f"got {type(changes).__name__}")
+    out = []
+    for i, entry in enumerate(changes):
+        if not isinstance(entry, tuple | list) or len(entry) != 2:
+            raise TypeError(f"{name}[{i}] must be a (time, {{param: value}}) pair, "
+                            f"got {entry!r}")
+        t, values = entry
+        t = as_float(t, f"{name}[{i}] time")
+        if not isinstance(values, Mapping):
+            raise TypeError(f"{name}[{i}] must map parameter names to values, "
+                            f"got {type(values).__name__}")
+        unknown = [k for k in values if k not in model.param_names]
+        if unknown:
+            raise ValueError(f"{name}[{i}] names unknown parameters {unknown}; the model's "
+                             f"parameters are {model.param_names}")
+        values = {k: as_float(v, f"{name}[{i}][{k!r}]") for k, v in values.items()}
+        out.append((t, values))
+    return out
+
+
+@dataclass
+class Scenario:
+    """One experiment.
+
+    Attributes
+    ----------
+    name : str
+    model : Model
+        The plant, and the model the estimators are given.
+    x0 : (nx,) array
+        True initial state.
+    n_steps : int
+        Number of samples.
+    Q : (nx, nx) array
+        Plant process-noise covariance (may be zero).
+    R : (ny, ny) array
+        Plant measurement-noise covariance.
+    tuning : dict
+        ``{"Q", "R", "x0", "P0"}`` for the estimator (``x0`` is its guess).
+    inputs : (n_steps, nu) array or callable ``t -> u``, optional
+        Open-loop input signal.
+    controller : callable ``(t, x) -> u``, optional
+        Feedback law; gets the estimate (``feedback="estimate"``) or the true
+        state (``feedback="truth"``, e.g. an attitude sensor the estimator
+        does not use).
+    feedback : {"estimate", "truth"}
+    clip : bool
+        Clip the true state to the model bounds after each step (the KU
+        Leuven course does ``x+ = max(F(x) + w, 0)``).
+    plant_changes : list of (time, {param: value})
+        Parameter changes of the plant at given times (faults).
+    description : str
+    remarks : dict of str -> str
+        What is known about an estimator class on this experiment, keyed by the
+        class name (``"EKF"``, ``"MHE"``, ...): shown under a comparison's table
+        when such an estimator is inconsistent or far behind the best.
+    """
+
+    name: str
+    model: Model
+    x0: np.ndarray
+    n_steps: int
+    Q: np.ndarray
+    R: np.ndarray
+    tuning: dict
+    inputs: np.ndarray | Callable | None = None
+    controller: Callable | None = None
+    feedback: str = "estimate"
+    clip: bool = False
+    plant_changes: list = field(default_factory=list)
+    description: str = ""
+    remarks: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not isinstance(self.name, str):
+            raise TypeError(f"name must be a string, got {type(self.name).__name__}")
+        if not isinstance(self.model, Model):
+            raise TypeError(f"model must be an estim.Model, got {type(self.model).__name__}")
+        m = self.model
+        self.x0 = as_vector(self.x0, m.nx, "x0")
+        self.Q = as_covariance(self.Q, m.nx, "Q", definite=False)
+        self.R = as_covariance(self.R, m.ny, "R", definite=True)
+        as_choice(self.feedback, ("estimate", "truth"), "feedback")
+        self.n_steps = as_int(self.n_steps, "n_steps", minimum=1)
+        self.clip = as_bool(self.clip, "clip")
+        if not isinstance(self.tuning, Mapping):
+            raise TypeError(f"tuning must be a dict of estimator arguments, "
+                            f"got {type(self.tuning).__name__}")
+        for key in self.tuning:
+            if not isinstance(key, str):
+                raise TypeError(f"tuning keys must be argument names, got {key!r}")
+        if self.controller is not None and not callable(self.controller):
+            raise TypeError(f"controller must be callable (t, x) -> u, "
+                            f"got {type(self.controller).__name__}")
+        if self.inputs is not None and self.controller is not None:
+            raise ValueError("give inputs= or controller=, not both")
+        if self.inputs is not None and not callable(self.inputs):
+            as_input_table(self.inputs, self.n_steps, m.nu, names=m.input_names)
+        self.plant_changes = check_plant_changes(self.plant_changes, m)
+        if not isinstance(self.remarks, Mapping) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in self.remarks.items()):
+            raise TypeError("remarks must be a dict {estimator class name: text}")
+        self.remarks = dict(self.remarks)
+
+    def replace(self, **changes: Any) -> Scenario:
+        """A copy with some fields changed (e.g. ``n_steps``)."""
+        from dataclasses import replace
+
+        return replace(self, **changes)
+
+    def __repr__(self) -> str:
+        return (f"Scenario({self.name!r}, model={self.model.name}, n_steps={self.n_steps}, "
+                f"dt={self.model.dt:g})")
+
+
+@dataclass
+class Record:
+    """A recorded experiment for :func:`estim.replay`: measurements, known inputs, truth.
+
+    Attributes
+    ----------
+    name : str
+    model : Model
+        The model an estimator uses on this record.
+    t : (T,) array
+    y : (T, ny) array
+    u : (T, nu) array
+        ``u[k]`` acts after sample ``k``.
+    x : (T, nx) array
+        True states of ``model``.
+    tuning : dict
+        ``{"R", "x0", "P0"}`` suggestions for an estimator.
+    description : str
+    """
+
+    name: str
+    model: Model
+    t: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    x: np.ndarray
+    tuning: dict
+    description: str = ""
