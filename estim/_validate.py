@@ -13,7 +13,7 @@ import inspect
 import operator
 from collections.abc import Callable, Mapping, Sequence
 from numbers import Real
-from typing import Any, TypeVar, overload
+from typing import Any, Literal, TypeVar, overload
 
 import numpy as np
 
@@ -300,6 +300,14 @@ def as_intervals(t, T: int, model, name: str = "t") -> np.ndarray | None:
     return None
 
 
+@overload
+def as_bool(value, name: str, *, allow_none: Literal[False] = False) -> bool: ...
+
+
+@overload
+def as_bool(value, name: str, *, allow_none: bool) -> bool | None: ...
+
+
 def as_bool(value, name: str, *, allow_none: bool = False) -> bool | None:
     """``value`` if it is a bool (Python or numpy), else ``TypeError`` naming ``name``.
 
@@ -322,6 +330,16 @@ def _int_phrase(minimum: int | None) -> str:
     if minimum == 0:
         return "a non-negative integer"
     return f"an integer >= {minimum}"
+
+
+@overload
+def as_int(value, name: str, *, minimum: int | None = None, allow_none: Literal[False] = False,
+           expected: str | None = None) -> int: ...
+
+
+@overload
+def as_int(value, name: str, *, minimum: int | None = None, allow_none: bool,
+           expected: str | None = None) -> int | None: ...
 
 
 def as_int(value, name: str, *, minimum: int | None = None, allow_none: bool = False,
@@ -368,6 +386,18 @@ def _float_phrase(minimum, maximum, positive, finite) -> str:
     if maximum is not None:
         text += f" <= {maximum:g}"
     return text
+
+
+@overload
+def as_float(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
+             positive: bool = False, finite: bool = True, allow_none: Literal[False] = False,
+             expected: str | None = None) -> float: ...
+
+
+@overload
+def as_float(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
+             positive: bool = False, finite: bool = True, allow_none: bool,
+             expected: str | None = None) -> float | None: ...
 
 
 def as_float(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
@@ -532,7 +562,7 @@ def check_keywords(func: Callable | None = None, *, owner: str | None = None) ->
         sig.check(who, args, kwargs)
         return func(*args, **kwargs)
 
-    wrapper._checks_keywords = True
+    wrapper.__dict__["_checks_keywords"] = True  # read by the getattr above
     return wrapper
 
 
