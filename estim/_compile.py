@@ -43,6 +43,10 @@ from estim.exceptions import CompilerUnavailable
 #: operation).
 FLAGS = ("-O2", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
 
+#: The CasADi version, part of every cache key (CasADi's stubs omit the module's
+#: ``__version__``).
+CASADI_VERSION: str = ca.__version__  # type: ignore[attr-defined]
+
 _LOCK = threading.Lock()
 _COMPILER: dict[str, tuple[str, str] | None] = {}
 _LOADED: dict[str, ca.Function] = {}
@@ -125,7 +129,7 @@ def compiled(fun: ca.Function) -> ca.Function:
     gen.add(fun)
     code = gen.dump()
     key = hashlib.sha256("\n".join(
-        [code, *cc, " ".join(FLAGS), ca.__version__, platform.machine(), sys.platform]
+        [code, *cc, " ".join(FLAGS), CASADI_VERSION, platform.machine(), sys.platform]
     ).encode()).hexdigest()
     with _LOCK:
         if key in _LOADED:
@@ -182,5 +186,5 @@ def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path) ->
         os.replace(out, lib)
     tmp_record = record.with_name(f"{record.name}.{os.getpid()}.{threading.get_ident()}")
     tmp_record.write_text(json.dumps({"key": key, "sha256": digest, "compiler": cc,
-                                      "flags": list(FLAGS), "casadi": ca.__version__}))
+                                      "flags": list(FLAGS), "casadi": CASADI_VERSION}))
     os.replace(tmp_record, record)

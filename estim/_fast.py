@@ -86,10 +86,18 @@ class FastFunction:
 
     def _build_views(self) -> None:
         """Point the buffer at :attr:`args` and :attr:`out`."""
-        for i, a in enumerate(self.args):
-            self._buf.set_arg(i, memoryview(a))
-        for i, r in enumerate(self.out):
-            self._buf.set_res(i, memoryview(r))
+        self._point(self.args, self.out)
+
+    def _point(self, args: list[np.ndarray], out: list[np.ndarray]) -> None:
+        """Point the buffer at the arrays ``args`` (inputs) and ``out`` (outputs).
+
+        CasADi's stubs ask for a size in bytes after the buffer; the wrapper takes
+        one argument, a memoryview, and reads the size from it.
+        """
+        for i, a in enumerate(args):
+            self._buf.set_arg(i, a.data)  # type: ignore[call-arg]
+        for i, r in enumerate(out):
+            self._buf.set_res(i, r.data)  # type: ignore[call-arg]
 
     def __call__(self, *args) -> list[np.ndarray]:
         for dst, src in zip(self.args, args, strict=True):
@@ -107,13 +115,10 @@ class FastFunction:
         arrays of the inputs' and outputs' sizes, e.g. rows of larger arrays), then point
         the buffer back at :attr:`args` and :attr:`out`."""
         try:
-            for i, a in enumerate(args):
-                self._buf.set_arg(i, memoryview(a))
-            for i, r in enumerate(out):
-                self._buf.set_res(i, memoryview(r))
+            self._point(args, out)
             self._eval()
         finally:
-            self._build_views()
+            self._point(self.args, self.out)
 
     def __getstate__(self):
         return {"fun": self.fun.serialize(), "bound": self._bound}
@@ -126,8 +131,11 @@ class FastFunction:
 
 def _densified(fun: ca.Function) -> ca.Function:
     """Wrap ``fun`` so every output is dense."""
-    args = fun.sx_in() if fun.is_a("SXFunction") else fun.mx_in()
-    outs = fun.call(args)
-    return ca.Function(
-        fun.name() + "_dense", args, [ca.densify(o) for o in outs], fun.name_in(), fun.name_out()
-    )
+    name = fun.name() + "_dense"
+    if fun.is_a("SXFunction"):
+        sx = fun.sx_in()
+        return ca.Function(name, sx, [ca.densify(o) for o in fun.call(sx)], fun.name_in(),
+                           fun.name_out())
+    mx = fun.mx_in()
+    return ca.Function(name, mx, [ca.densify(o) for o in fun.call(mx)], fun.name_in(),
+                       fun.name_out())
