@@ -1,0 +1,116 @@
+r"""Dense blocks of the block-tridiagonal Gauss-Newton system, factored and solved in SX.
+
+The structured solver (:mod:`estim.solvers.gauss_newton`) eliminates one
+:math:`n_x \times n_x` block per slot. Each symmetric block is factored as
+:math:`S = L\,\mathrm{diag}(D)\,L^\top` without pivoting and without square roots
+(:func:`ldl`, about :math:`n^3/6` operations; indefinite nonsingular blocks of exact
+Hessians work too), and the products of the elimination are formed from the factors
+(:func:`lower_solve`, :func:`lower_transposed_solve`, :func:`ldl_solve`); symmetric
+products compute their lower triangle only (:func:`sym_product`, :func:`gram`).
+Everything here builds CasADi SX expressions, unrolled over the block's entries.
+
+References
+----------
+G. H. Golub, C. F. Van Loan, *Matrix Computations*, 4th ed., sec. 4.1 (LDLᵀ);
+J. Nocedal, S. J. Wright, *Numerical Optimization*, 2nd ed., sec. 10.3 (Levenberg-Marquardt).
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+
+__all__ = ["damp", "gram", "ldl", "ldl_solve", "lower_solve", "lower_transposed_solve",
+           "sym_product", "sym_solve", "total"]
+
+
+def total(terms) -> ca.SX:
+    """Sum of SX terms, ``SX(0)`` when there are none (adding to zero folds away)."""
+    out = ca.SX(0)
+    for t in terms:
+        out = out + t
+    return out
+
+
+def ldl(S):
+    r"""Factors of a symmetric SX block, :math:`S = L\,\mathrm{diag}(D)\,L^\top`, no pivoting.
+
+    Reads the lower triangle only. Returns ``(L, inv_D)`` as nested lists
+    (unit lower triangular ``L``, reciprocals of ``D``): about :math:`n^3/6`
+    operations and no square roots, so indefinite nonsingular blocks (exact
+    Hessians) work too. The products :math:`L_{ik} D_k` are kept from the
+    elimination rather than recomputed (Golub and Van Loan, alg. 4.1.2).
+    """
+    n = S.shape[0]
+    L = [[None] * n for _ in range(n)]
+    LD = [[None] * n for _ in range(n)]  # L[i][k] * D[k]
+    inv_D = [None] * n
+    for k in range(n):
+        Dk = S[k, k] - total(L[k][m] * LD[k][m] for m in range(k))
+        inv_D[k] = 1 / Dk
+        for i in range(k + 1, n):
+            LD[i][k] = S[i, k] - total(L[i][m] * LD[k][m] for m in range(k))
+            L[i][k] = LD[i][k] * inv_D[k]
+    return L, inv_D
+
+
+def lower_solve(L, B) -> ca.SX:
+    """:math:`L^{-1} B` for unit lower triangular ``L`` (nested list)."""
+    n = len(L)
+    cols = []
+    for c in range(B.shape[1]):
+        z = [None] * n
+        for i in range(n):
+            z[i] = B[i, c] - total(L[i][m] * z[m] for m in range(i))
+        cols.append(ca.vertcat(*z))
+    return ca.horzcat(*cols)
+
+
+def lower_transposed_solve(L, b) -> ca.SX:
+    r""":math:`L^{-\top} b` for unit lower triangular ``L`` (nested list or SX) and a vector."""
+    n = len(L) if isinstance(L, list) else L.shape[0]
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        x[i] = b[i] - total(L[m][i] * x[m] if isinstance(L, list) else L[m, i] * x[m]
+                             for m in range(i + 1, n))
+    return ca.vertcat(*x)
+
+
+def ldl_solve(L, inv_D, B) -> ca.SX:
+    r"""Solve :math:`L D L^\top X = B` column by column (``B`` an SX matrix)."""
+    Z = ca.diag(ca.vertcat(*inv_D)) @ lower_solve(L, B)
+    return ca.horzcat(*[lower_transposed_solve(L, Z[:, c]) for c in range(B.shape[1])])
+
+
+def sym_solve(S, B) -> ca.SX:
+    """Solve :math:`S X = B` for a symmetric SX block (see :func:`ldl`)."""
+    return ldl_solve(*ldl(S), B)
+
+
+def sym_product(A, B) -> ca.SX:
+    """:math:`A^\\top B` for a product known to be symmetric: the lower triangle is
+    computed, the upper one mirrors it (same SX nodes)."""
+    n = A.shape[1]
+    out = ca.SX(n, n)
+    for i in range(n):
+        for j in range(i + 1):
+            out[i, j] = ca.dot(A[:, i], B[:, j])
+            out[j, i] = out[i, j]
+    return out
+
+
+def gram(A) -> ca.SX:
+    """:math:`A^\\top A`, lower triangle computed and mirrored."""
+    return sym_product(A, A)
+
+
+def damp(D, lam) -> ca.SX:
+    """Ridge of 1e-12 of the largest diagonal entry (leaves stationary points
+    unchanged, keeps singular blocks factorable) plus Marquardt damping
+    ``lam |diag D|``.
+
+    The undamped iterations go without (fewer operations); a solve switches
+    to this form, with ``lam = 0`` for the ridge alone, once a direction comes
+    out non-finite.
+    """
+    dj = ca.fabs(ca.diag(D))
+    return D + ca.diag(1e-12 * ca.fmax(ca.mmax(dj), 1e-300) + lam * dj)

@@ -1,0 +1,479 @@
+r"""The mapped mode of the structured Gauss-Newton solver: a long record in chunks of slots.
+
+An unrolled iteration graph grows with the record; for long records
+(:data:`~estim.solvers.gauss_newton.AUTO_UNROLL_INSTRUCTIONS`) or with ``jit``, the
+solver's functions are instead compiled for one chunk of slots and called on
+consecutive slices of the solver's buffers in a Python loop (:class:`Chunked`):
+memory proportional to the record, building independent of it, results equal to the
+unrolled graph's up to rounding. :class:`ChunkedIteration`, :class:`ChunkedCost`,
+:class:`ChunkedCovariance`, :class:`ChunkedCovariances` and :class:`ChunkedRoll` stand
+for the unrolled iteration, cost, covariance and rollout functions with the same
+``evaluate()``.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from estim._fast import jitted
+
+if TYPE_CHECKING:
+    from estim.solvers.gauss_newton import StructuredGaussNewton
+
+__all__ = ["Chunked", "ChunkedCost", "ChunkedCovariance", "ChunkedCovariances",
+           "ChunkedIteration", "ChunkedRoll", "PREBIND_BYTES"]
+
+#: A chunk function whose work memory over all chunks stays below this many bytes
+#: gets one buffer per chunk, its arguments bound once: a call is then about 1
+#: microsecond instead of about 12 (binding some twenty arguments each time).
+PREBIND_BYTES = 16 * 2**20
+
+
+def _key(const) -> tuple | None:
+    """A hashable form of :meth:`Chunked._constants`."""
+    return None if const is None else tuple(tuple(v.tolist()) for v in const.values())
+
+
+class Chunked:
+    """The iteration, cost, covariance and rollout functions of a long record, evaluated
+    as a loop over chunks of slots.
+
+    Each chunk length has one compiled SX function per task (a forward elimination
+    chunk, a backward one, a cost one, a rollout one), applied to consecutive slices of
+    the buffers: the slices are bound in place (no copies), so memory holds only the
+    per-slot data, and building costs the same at any record length. A call is a
+    Python loop over the chunks (``N / chunk`` function calls per scan). The results
+    equal the unrolled graph's up to rounding.
+    """
+
+    def __init__(self, gn: StructuredGaussNewton, chunk: int, jit: bool):
+        self.gn, self.st = gn, gn._stages
+        m, N = gn.model, gn.N
+        self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, m.nw, N
+        if gn.full and N > 2:
+            # the first and last slots alone (the arrival term, the missing link): the
+            # chunks between are alike, one function for all of them
+            self.chunks = [(0, 1)] + [(lo, min(lo + chunk, N - 1))
+                                      for lo in range(1, N - 1, chunk)] + [(N - 1, N)]
+        else:
+            self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
+        # transitions 0..N-2 in chunks, for the backward pass and the rollout
+        self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
+        self.jit = jit
+        self._funs: dict[tuple, ca.Function] = {}
+        self._bufs: dict[tuple, tuple] = {}
+        nx, ny, nu = self.nx, self.ny, self.nu
+        self.xnext = np.zeros(N * nx)
+        self.om = np.zeros(N)
+        self.link = np.ones(N)
+        self.link[-1] = 0.0
+        self.a = np.zeros(N)
+        self.a0 = np.zeros(nx * nx)
+        self.full_a, self.full_om = gn.full, gn.full
+        sl = gn._slices
+        p = gn._pbuf
+        self.views = {"y": p[sl["y"]], "wy": p[sl["wy"]], "u": p[sl["u"]], "up": p[sl["up"]],
+                      "xbar": p[sl["xbar"]], "w0": p[sl["w0"]], "wq": p[sl["wq"]],
+                      "wr": p[sl["wr"]]}
+        self.sizes = {"x": nx, "xn": nx, "y": ny, "wy": ny * ny, "up": nu, "a": 1,
+                      "u": self.nw,
+                      "om": 1, "link": 1}
+        # the last slot's solve S^{-1} z, bound once: (S, z, out, call)
+        S, z, dl = np.zeros(nx * nx), np.zeros(nx), np.zeros(nx)
+        b, ev = self.st.last.buffer()
+        for i, a in enumerate((S, z)):
+            b.set_arg(i, memoryview(a))
+        b.set_res(0, memoryview(dl))
+        self.last_buf = (S, z, dl, ev, b)
+
+    # ---------------------------------------------------------------- building
+    def _compiled(self, key, build):
+        """``build()``'s function with dense outputs (the buffers are read as dense
+        arrays), compiled with ``jit`` (through the per-machine cache)."""
+        if key not in self._funs:
+            t0 = time.perf_counter()
+            fun = build()
+            ins = fun.sx_in()
+            dense = ca.Function(fun.name(), ins, [ca.densify(o) for o in fun.call(ins)])
+            self._funs[key] = jitted(dense) if self.jit else dense
+            self.gn.build_seconds += time.perf_counter() - t0
+        return self._funs[key]
+
+    def _buffer(self, fun):
+        key = id(fun)
+        if key not in self._bufs:
+            self._bufs[key] = fun.buffer()
+        return self._bufs[key]
+
+    def _constants(self, lo, hi):
+        """A full record's window bookkeeping of slots ``lo:hi`` (arrival weight ``a``,
+        ``om``, ``link``), constants of its chunk functions as in the unrolled graph
+        (they fold away); None for a window, where they are data."""
+        if not self.gn.full:
+            return None
+        a = np.zeros(hi - lo)
+        if lo == 0:
+            a[0] = 1.0
+        link = np.ones(hi - lo)
+        if hi == self.N:
+            link[-1] = 0.0
+        return {"a": a, "om": np.ones(hi - lo), "link": link}
+
+    def _fold(self, seq, const):
+        """``seq`` with the bookkeeping symbols replaced by ``const`` (if any); the
+        function keeps them as (unused) inputs, so every chunk is called alike."""
+        if const is None:
+            return seq
+        out = dict(seq)
+        for k, v in const.items():
+            out[k] = ca.DM(v).T
+        return out
+
+    def _forward_chunk(self, step, L, n_carry, complete, damped, const=None):
+        """``L`` slots of the fused forward step
+        (:meth:`~estim.solvers.stages.StageFunctions.fused`)."""
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            carry = [sym(f"c{i}", step.sparsity_in(i)) for i in range(n_carry)]
+            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
+            if complete:
+                seq["wy"] = sym("wy", self.ny * self.ny)
+            inputs = list(seq.values())
+            seq = self._fold(seq, const)
+            shared = [sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
+                      sym("a0", nx * nx)] + ([sym("lam")] if damped else [])
+            c, slots = carry, []
+            for j in range(L):
+                wy = seq["wy"] if complete else seq["wy"][:, j]
+                res = step(*c, seq["x"][:, j], seq["xn"][:, j], seq["y"][:, j], wy,
+                           seq["up"][:, j], seq["a"][j], seq["u"][:, j], seq["om"][j],
+                           shared[0], seq["link"][j], *shared[1:])
+                c, slots = res[:n_carry], slots + [res[n_carry:]]
+            outs = list(c) + [ca.horzcat(*col) for col in zip(*slots, strict=True)]
+            return ca.Function(f"fwd_chunk_{L}", carry + inputs + shared, outs)
+        return self._compiled(("fwd", id(step), L, complete, _key(const)), build)
+
+    def _backward_chunk(self, L):
+        """``L`` steps of the backward substitution, the last slot first."""
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            dn, Vs, vs, Lm = (sym("d_next", nx), sym("Vs", nx, nx * L), sym("vs", nx, L),
+                              sym("L", nx, nx * L))
+            d, out = dn, [None] * L
+            for j in range(L - 1, -1, -1):
+                d = self.st.bwd(d, Vs[:, j * nx:(j + 1) * nx], vs[:, j], Lm[:, j * nx:(j + 1) * nx])
+                out[j] = d
+            return ca.Function(f"bwd_chunk_{L}", [dn, Vs, vs, Lm], [ca.horzcat(*out)])
+        return self._compiled(("bwd", L), build)
+
+    def _cov_backward_chunk(self, L):
+        """``L`` steps of the covariance recursion
+        (:attr:`~estim.solvers.stages.StageFunctions.cov_bwd`), the last slot first."""
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            Sn, Vs, Lm, iD = (sym("Sigma_next", nx, nx), sym("Vs", nx, nx * L),
+                              sym("L", nx, nx * L), sym("inv_D", nx, L))
+            Sig, out = Sn, [None] * L
+            for j in range(L - 1, -1, -1):
+                cols = slice(j * nx, (j + 1) * nx)
+                Sig = self.st.cov_bwd(Sig, Vs[:, cols], Lm[:, cols], iD[:, j])
+                out[j] = Sig
+            return ca.Function(f"cov_bwd_chunk_{L}", [Sn, Vs, Lm, iD], [ca.horzcat(*out)])
+        return self._compiled(("cov_bwd", L), build)
+
+    def _cost_chunk(self, L, complete, const=None):
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
+            if complete:
+                seq["wy"] = sym("wy", self.ny * self.ny)
+            inputs = list(seq.values())
+            seq = self._fold(seq, const)
+            wq, xbar, w0, a0 = (sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
+                                sym("a0", nx * nx))
+            total = ca.SX(0)
+            for j in range(L):
+                wy = seq["wy"] if complete else seq["wy"][:, j]
+                total += self.st.meas_cost(seq["x"][:, j], seq["y"][:, j], wy, seq["up"][:, j],
+                                           seq["a"][j], xbar, w0, a0)
+                total += seq["link"][j] * self.st.trans_cost(
+                    seq["x"][:, j], seq["xn"][:, j], seq["u"][:, j], seq["om"][j], wq)
+            return ca.Function(f"cost_chunk_{L}", inputs + [wq, xbar, w0, a0], [total])
+        return self._compiled(("cost", L, complete, _key(const)), build)
+
+    def _roll_chunk(self, L):
+        def build():
+            nx, sym = self.nx, ca.SX.sym
+            xp0 = sym("xp0", nx)
+            xp = xp0
+            x, d, xn, dn = (sym(k, nx, L) for k in ("x", "d", "xn", "dn"))
+            u, om, alpha = sym("u", self.nw, L), sym("om", 1, L), sym("alpha")
+            oms = ca.DM.ones(1, L) if self.gn.full else om  # a full record: every link
+            cols = []
+            for j in range(L):
+                xp = self.st.roll(xp, x[:, j], d[:, j], xn[:, j], dn[:, j], u[:, j], oms[j],
+                                  alpha)
+                cols.append(xp)
+            return ca.Function(f"roll_chunk_{L}", [xp0, x, d, xn, dn, u, om, alpha],
+                               [ca.horzcat(*cols)])
+        return self._compiled(("roll", L, self.gn.full), build)
+
+    # ---------------------------------------------------------------- calling
+    @staticmethod
+    def _call(buf, args, res) -> None:
+        b, ev = buf
+        for i, a in enumerate(args):
+            b.set_arg(i, memoryview(a))
+        for i, r in enumerate(res):
+            b.set_res(i, memoryview(r))
+        ev()
+
+    def calls(self, jobs) -> list:
+        """One callable per ``(fun, args, res)`` of ``jobs`` (a chunk loop, in order).
+
+        The arrays must stay in place (they are views of the solver's buffers): each
+        chunk gets a buffer with its arguments bound once, unless the buffers' work
+        memory would exceed :data:`PREBIND_BYTES`; then one buffer per function is
+        rebound at every call."""
+        jobs = list(jobs)
+        work = sum(8 * fun.sz_w() for fun, _, _ in jobs)
+        out = []
+        for fun, args, res in jobs:
+            if work <= PREBIND_BYTES:
+                b, ev = fun.buffer()
+                for i, a in enumerate(args):
+                    b.set_arg(i, memoryview(a))
+                for i, r in enumerate(res):
+                    b.set_res(i, memoryview(r))
+                out.append((ev, (b, args, res)))  # the buffer and arrays kept alive
+            else:
+                buf = self._buffer(fun)
+                out.append((lambda buf=buf, args=args, res=res: self._call(buf, args, res),
+                            None))
+        return out
+
+    def prepare(self):
+        """The per-call data derived from the buffers (shifted states, window
+        bookkeeping, the arrival weight's Gram matrix)."""
+        gn, nx = self.gn, self.nx
+        x = gn._xbuf
+        self.xnext[:-nx] = x[nx:]
+        self.xnext[-nx:] = x[-nx:]
+        p, sl = gn._pbuf, gn._slices
+        if gn.full:
+            self.om[:-1] = 1.0
+            self.a[:] = 0.0
+            self.a[0] = 1.0
+        else:
+            self.om[:-1] = p[sl["omega"]]
+            self.a[:] = p[sl["a"]]
+        W0 = self.views["w0"].reshape(nx, nx, order="F")
+        self.a0[:] = (W0.T @ W0).ravel(order="F")
+
+    def _slot_args(self, lo, hi, complete):
+        nx, ny, nu = self.nx, self.ny, self.nu
+        v = self.views
+        wy = v["wr"] if complete else v["wy"][lo * ny * ny:hi * ny * ny]
+        return [self.gn._xbuf[lo * nx:hi * nx], self.xnext[lo * nx:hi * nx],
+                v["y"][lo * ny:hi * ny], wy, v["up"][lo * nu:hi * nu], self.a[lo:hi],
+                v["u"][lo * self.nw:hi * self.nw], self.om[lo:hi], self.link[lo:hi]]
+
+
+class ChunkedIteration:
+    """An iteration function of the mapped mode: ``evaluate()`` returns ``[cost, g,
+    directions...]`` like the compiled graph of :meth:`StructuredGaussNewton._build`."""
+
+    def __init__(self, ch: Chunked, newton, damped, bounds, complete, solve=True,
+                 covariance=False):
+        self.ch, self.complete, self.solve = ch, complete, solve
+        st, nx, N = ch.st, ch.nx, ch.N
+        self.step = st.fused(newton, damped, bounds, covariance)
+        self.chains, self.bounded, self.damped = 2 if newton else 1, bounds is not None, damped
+        self.n_carry = 4 * self.chains + 1 + (1 if self.bounded else 0)
+        M = len(ch.chunks)
+        # carries at the chunk boundaries: the initial ones, then each chunk's last
+        init = []
+        for _ in range(self.chains):
+            init += [np.eye(nx).ravel(), np.zeros(nx), np.zeros(nx * nx), np.zeros(nx * nx)]
+        init.append(np.zeros(nx))
+        if self.bounded:
+            init.append(np.ones(nx))
+        self.carries = [init] + [[np.zeros_like(a) for a in init] for _ in range(M)]
+        # per-slot outputs: per chain Vs, vs, L; then g, cost; with bounds free, diag
+        shapes = [nx * nx, nx, nx * nx] * self.chains + [nx, 1] + ([nx, nx] if self.bounded
+                                                                  else []) + \
+            ([nx] * self.chains if covariance else [])  # (the reciprocals of D last)
+        self.slot_out = [np.zeros(n * N) for n in shapes]
+        self.d = [np.zeros(N * nx) for _ in range(self.chains)]
+        self.out = [np.zeros(1), np.zeros(N * nx)] + [np.zeros(N * nx)
+                                                      for _ in range(self.chains)]
+        self.lam = np.zeros(1)
+        self._shared = self.shared()
+        self._fwd_calls: list | None = None  # built on first use (see Chunked.calls)
+        self._bwd_calls: list | None = None
+
+    def twin(self) -> ChunkedIteration:
+        """The same function with its own output buffers (the scratch, and with it the
+        forward calls, is shared)."""
+        other = copy.copy(self)
+        other.out = [np.zeros_like(a) for a in self.out]
+        other.d = [np.zeros_like(a) for a in self.d]
+        other._bwd_calls = None
+        return other
+
+    def shared(self):
+        v = self.ch.views
+        return [v["wq"], v["xbar"], v["w0"], self.ch.a0] + ([self.lam] if self.damped else [])
+
+    def forward(self):
+        ch = self.ch
+        if self._fwd_calls is None:
+            shapes = [len(a) // ch.N for a in self.slot_out]
+            self._fwd_calls = ch.calls(
+                (ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
+                                   self.damped, ch._constants(lo, hi)),
+                 self.carries[c] + ch._slot_args(lo, hi, self.complete) + self._shared,
+                 self.carries[c + 1] + [a[lo * n:hi * n] for a, n in
+                                        zip(self.slot_out, shapes, strict=True)])
+                for c, (lo, hi) in enumerate(ch.chunks))
+        ch.prepare()
+        for call, _ in self._fwd_calls:
+            call()
+        return self.carries[-1]
+
+    def _backward_calls(self):
+        """Per chain, the backward chunks from the last: ``d_j`` from ``d_{j+1}`` and
+        slot ``j+1``'s factors."""
+        ch, nx = self.ch, self.ch.nx
+        calls = []
+        for c in range(self.chains):
+            Vs, vs, L = self.slot_out[3 * c:3 * c + 3]
+            d = self.d[c]
+            calls.append(ch.calls(
+                (ch._backward_chunk(hi - lo),
+                 [d[hi * nx:(hi + 1) * nx], Vs[(lo + 1) * nx * nx:(hi + 1) * nx * nx],
+                  vs[(lo + 1) * nx:(hi + 1) * nx], L[(lo + 1) * nx * nx:(hi + 1) * nx * nx]],
+                 [d[lo * nx:hi * nx]])
+                for lo, hi in reversed(ch.tchunks)))
+        return calls
+
+    def evaluate(self):
+        ch, nx = self.ch, self.ch.nx
+        self.lam[0] = ch.gn._lbuf[0]
+        last = self.forward()
+        g, cost = self.slot_out[3 * self.chains], self.slot_out[3 * self.chains + 1]
+        self.out[0][0] = cost.sum()
+        self.out[1][:] = g
+        if self._bwd_calls is None:
+            self._bwd_calls = self._backward_calls()
+        for c in range(self.chains):
+            S, z = last[4 * c], last[4 * c + 1]
+            d = self.d[c]
+            ch.last_buf[0][:] = S
+            ch.last_buf[1][:] = z
+            ch.last_buf[3]()
+            d[-nx:] = ch.last_buf[2]
+            for call, _ in self._bwd_calls[c]:
+                call()
+            if self.bounded:  # fixed variables: a step scaled by the Gauss-Newton diagonal
+                free, diag = self.slot_out[-2], self.slot_out[-1]
+                d = np.where(free > 0, d, -g / (diag + 1e-300))
+            self.out[2 + self.chains - 1 - c][:] = d  # Newton's first, Gauss-Newton's last
+        return self.out
+
+
+class ChunkedCost:
+    def __init__(self, ch: Chunked, complete):
+        self.ch, self.complete = ch, complete
+        self.parts = np.zeros(len(ch.chunks))
+        self.out = [np.zeros(1)]
+        self._calls: list | None = None
+
+    def evaluate(self):
+        ch = self.ch
+        if self._calls is None:
+            v = ch.views
+            shared = [v["wq"], v["xbar"], v["w0"], ch.a0]
+            self._calls = ch.calls(
+                (ch._cost_chunk(hi - lo, self.complete, ch._constants(lo, hi)),
+                 ch._slot_args(lo, hi, self.complete) + shared, [self.parts[c:c + 1]])
+                for c, (lo, hi) in enumerate(ch.chunks))
+        ch.prepare()
+        for call, _ in self._calls:
+            call()
+        self.out[0][0] = self.parts.sum()
+        return self.out
+
+
+class ChunkedCovariance:
+    def __init__(self, ch: Chunked, complete):
+        self.it = ChunkedIteration(ch, False, False, None, complete, solve=False)
+        self.out = [np.zeros(ch.nx * ch.nx)]
+
+    def evaluate(self):
+        nx = self.it.ch.nx
+        S = self.it.forward()[0]
+        self.out[0][:] = np.asarray(self.it.ch.st.inverse(S.reshape(nx, nx, order="F"))
+                                    ).ravel(order="F")
+        return self.out
+
+
+class ChunkedCovariances:
+    """The mapped mode's :meth:`StructuredGaussNewton.covariances`: the forward chunks,
+    then the backward recursion in chunks, the last slot first."""
+
+    def __init__(self, ch: Chunked, complete):
+        self.it = ChunkedIteration(ch, False, False, None, complete, solve=False,
+                                    covariance=True)
+        self.out = [np.zeros(ch.N * ch.nx * ch.nx)]
+        self._calls: list | None = None
+
+    def evaluate(self):
+        it, ch = self.it, self.it.ch
+        nx, n2 = ch.nx, ch.nx * ch.nx
+        S = it.forward()[0]
+        P = self.out[0]
+        P[-n2:] = np.asarray(ch.st.inverse(S.reshape(nx, nx, order="F"))).ravel(order="F")
+        if self._calls is None:
+            Vs, L, inv_D = it.slot_out[0], it.slot_out[2], it.slot_out[-1]
+            self._calls = ch.calls(
+                (ch._cov_backward_chunk(hi - lo),
+                 [P[hi * n2:(hi + 1) * n2], Vs[(lo + 1) * n2:(hi + 1) * n2],
+                  L[(lo + 1) * n2:(hi + 1) * n2], inv_D[(lo + 1) * nx:(hi + 1) * nx]],
+                 [P[lo * n2:hi * n2]])
+                for lo, hi in reversed(ch.tchunks))
+        for call, _ in self._calls:
+            call()
+        return self.out
+
+
+class ChunkedRoll:
+    def __init__(self, ch: Chunked):
+        self.ch = ch
+        self.out = [np.zeros(ch.N * ch.nx)]
+        self._calls: list | None = None
+
+    def evaluate(self):
+        ch, nx, nu = self.ch, self.ch.nx, self.ch.nw
+        gn = ch.gn
+        x, d, alpha = gn._xbuf, gn._dbuf, gn._abuf
+        out = self.out[0]
+        if self._calls is None:
+            u = ch.views["u"]
+            self._calls = ch.calls(
+                (ch._roll_chunk(hi - lo),
+                 [out[lo * nx:(lo + 1) * nx], x[lo * nx:hi * nx], d[lo * nx:hi * nx],
+                  x[(lo + 1) * nx:(hi + 1) * nx], d[(lo + 1) * nx:(hi + 1) * nx],
+                  u[lo * nu:hi * nu], ch.om[lo:hi], alpha],
+                 [out[(lo + 1) * nx:(hi + 1) * nx]])
+                for lo, hi in ch.tchunks)
+        ch.prepare()
+        out[:nx] = x[:nx] + alpha[0] * d[:nx]
+        for call, _ in self._calls:
+            call()
+        return self.out

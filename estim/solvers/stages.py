@@ -1,0 +1,301 @@
+r"""The per-slot Functions of the windowed least-squares problem, and the scans over slots.
+
+The cost of :mod:`estim.solvers.nlp` is a sum of per-slot terms: the arrival and
+measurement terms of slot :math:`j` and the process term linking slots :math:`j` and
+:math:`j+1`. :class:`StageFunctions` builds them once per model as SX Functions, with
+their Gauss-Newton blocks (and the exact Hessian blocks for Newton steps), one step
+of the block elimination and of the backward recursions; :func:`forward_scan` strings
+them over ``N`` slots with CasADi's ``mapaccum`` (:class:`Slots`) into the graph of one
+iteration of :class:`~estim.solvers.gauss_newton.StructuredGaussNewton`.
+"""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from estim.model import Model
+from estim.solvers.blocks import (
+    damp,
+    gram,
+    ldl,
+    lower_solve,
+    lower_transposed_solve,
+    sym_product,
+    sym_solve,
+)
+
+__all__ = ["Slots", "StageFunctions", "forward_scan", "reverse_cols"]
+
+
+class StageFunctions:
+    """Per-slot pieces of the Gauss-Newton/Newton system as SX Functions.
+
+    ``meas``: arrival (weight ``a``) and measurement terms of one slot;
+    ``trans``: the process term linking two slots (``*_newton``: with the
+    exact Hessian blocks as well, ``*_cost``: the cost alone);
+    ``fwd``/``last``/``bwd``: one step of the block elimination; ``inverse``:
+    a symmetric block inverse; ``cov_bwd``: one step of the backward recursion for
+    the diagonal blocks of :math:`H^{-1}`; :meth:`fused`: one slot of the forward pass.
+    """
+
+    def __init__(self, model: Model, diagonal_Q: bool = False, diagonal_R: bool = False):
+        nx, nu, ny = model.nx, model.nu, model.ny
+        pm, eye = ca.DM(model.p), ca.DM.eye(nx)
+        x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
+        y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
+        u, up = ca.SX.sym("u", model.nw), ca.SX.sym("up", nu)  # transition, measurement
+        a, om, wq = ca.SX.sym("a"), ca.SX.sym("omega"), ca.SX.sym("wq", nx * nx)
+        xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
+        W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
+        # arrival and measurement terms of one slot; a diagonal R gives diagonal
+        # weights (also with missing rows), applied as row scalings
+        r0 = W0 @ (x - xbar)
+        e = y - model.H(x, up, pm)
+        C = model.H_x(x, up, pm)
+        if diagonal_R:
+            wd = wy[[i * ny + i for i in range(ny)]]
+            ry, Jy = wd * e, -(wd @ ca.DM.ones(1, nx)) * C
+        else:
+            Wy = ca.reshape(wy, ny, ny)
+            ry, Jy = Wy @ e, -Wy @ C
+        c = a * ca.sumsqr(r0) + ca.sumsqr(ry)
+        A0a = a * A0
+        margs = [x, y, wy, up, a, xbar, w0, a0]
+        gy = A0a @ (x - xbar) + Jy.T @ ry
+        self.meas = ca.Function("meas", margs, [A0a + gram(Jy), gy, c])
+        self.meas_newton = ca.Function("meas_newton", margs, [
+            A0a + gram(Jy), A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0], gy, c])
+        self.meas_cost = ca.Function("meas_cost", margs, [c])
+        # process term between slots, weighted by W_Q (a parameter: tuning is data; a
+        # diagonal weight is a row scaling)
+        A = om * model.F_x(x, u, pm) + (1 - om) * eye
+        G = om * model.F(x, u, pm) + (1 - om) * x
+        if diagonal_Q:
+            mv = om * wq[[i * nx + i for i in range(nx)]] + (1 - om)
+            rw = mv * (xb - G)
+            Ja, Jb = -(mv @ ca.DM.ones(1, nx)) * A, ca.diag(mv)
+        else:
+            M = om * ca.reshape(wq, nx, nx) + (1 - om) * eye
+            rw = M @ (xb - G)
+            Ja, Jb = -M @ A, M
+        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(x, xb))[0]
+        targs = [x, xb, u, om, wq]
+        gn_blocks = [gram(Ja), gram(Jb), Ja.T @ Jb]
+        rest = [Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)]
+        self.trans = ca.Function("trans", targs, gn_blocks + rest)
+        self.trans_newton = ca.Function("trans_newton", targs, gn_blocks + [
+            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + rest)
+        self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
+        # a step taken through the dynamics: from the moved state xp of slot k, the next
+        # slot is G(xp) plus the defect the linearised step predicts,
+        # x_{k+1} + alpha d_{k+1} - G(x_k) - alpha A d_k (see StructuredGaussNewton.solve)
+        xp, d, dn, alpha = (ca.SX.sym("xp", nx), ca.SX.sym("d", nx), ca.SX.sym("dn", nx),
+                            ca.SX.sym("alpha"))
+        Gp = om * model.F(xp, u, pm) + (1 - om) * xp
+        self.roll = ca.Function("roll", [xp, x, d, xb, dn, u, om, alpha],
+                                [Gp + (xb + alpha * dn - G - alpha * ca.jtimes(G, x, d))])
+        Dj = ca.SX.sym("D", nx, nx)
+        # one elimination step: with S_{j-1} = L D L^T factored once,
+        # V = L^{-1} [E_{j-1}, z~_{j-1}] and Vs = D^{-1} V give
+        # E^T S^{-1} E = V_E^T Vs_E and E^T S^{-1} z~ = V_E^T Vs_z; the backward pass
+        # needs d_{j-1} = L^{-T} (Vs_z - Vs_E d_j): Vs and L are passed on
+        Sp, Ep = ca.SX.sym("S_prev", nx, nx), ca.SX.sym("E_prev", nx, nx)
+        zp, zj = ca.SX.sym("z_prev", nx), ca.SX.sym("z", nx)
+        L, inv_D = ldl(Sp)
+        V = lower_solve(L, ca.horzcat(Ep, zp))
+        Vs = ca.diag(ca.vertcat(*inv_D)) @ V
+        Lm = ca.SX.zeros(nx, nx)
+        for i in range(nx):
+            for k in range(i):
+                Lm[i, k] = L[i][k]
+        self.fwd = ca.Function("fwd", [Sp, zp, Dj, Ep, zj], [
+            Dj - sym_product(V[:, :nx], Vs[:, :nx]), zj - V[:, :nx].T @ Vs[:, nx],
+            Vs[:, :nx], Vs[:, nx], Lm, ca.vertcat(*inv_D)])
+        self.last = ca.Function("last", [Dj, zj], [sym_solve(Dj, zj)])
+        dn, Vj, vj = ca.SX.sym("d_next", nx), ca.SX.sym("Vs", nx, nx), ca.SX.sym("vs", nx)
+        Lj = ca.SX.sym("L", nx, nx)
+        self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [lower_transposed_solve(Lj, vj - Vj @ dn)])
+        inv = sym_solve(Dj, ca.SX.eye(nx))
+        self.inverse = ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
+        # one step of the covariance recursion (the diagonal blocks of H^{-1}): with
+        # S_j = L D L^T and Vs = D^{-1} L^{-1} E_j from the elimination,
+        # Sigma_j = S_j^{-1} + G Sigma_{j+1} G^T, G = S_j^{-1} E_j = L^{-T} Vs, is
+        # L^{-T} (D^{-1} + Vs Sigma_{j+1} Vs^T) L^{-1}
+        Sn, iD = ca.SX.sym("Sigma_next", nx, nx), ca.SX.sym("inv_D", nx)
+        K = ca.diag(iD) + Vj @ Sn @ Vj.T
+        X = ca.horzcat(*[lower_transposed_solve(Lj, K[:, c]) for c in range(nx)])  # L^{-T} K
+        Sig = ca.horzcat(*[lower_transposed_solve(Lj, X[c, :].T) for c in range(nx)])  # L^{-T} X^T
+        self.cov_bwd = ca.Function("cov_bwd", [Sn, Vj, Lj, iD], [0.5 * (Sig + Sig.T)])
+        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
+        self._fused: dict[tuple, ca.Function] = {}
+
+    def fused(self, newton: bool, damped: bool, bounds=None,
+              covariance: bool = False) -> ca.Function:
+        r"""One slot of the forward pass, all in one SX function.
+
+        The slot's arrival and measurement terms, the process term to the next
+        slot (times ``link``, 0 for the last slot), the blocks
+        :math:`D_j = D^m_j + D^{aa}_j + D^{bb}_{j-1}` and gradient, the
+        active-set mask (``bounds = (lo, hi)`` per state), Marquardt damping,
+        and one elimination step, for the Gauss-Newton blocks (and the exact
+        Hessian ones with ``newton``). What the next slot needs is carried:
+        per chain ``S_j, z~_j`` and the process term's ``D^{bb}_j, E_j``, then
+        its gradient ``g^b_j`` and (with bounds) the free mask. Outputs: the
+        carries, then per chain the elimination's ``D^{-1} V_E, D^{-1} V_z, L``,
+        then the gradient, the cost and (with bounds) the free mask and
+        :math:`\mathrm{diag}\,D_j`, and with ``covariance`` last, per chain, the
+        reciprocals of the elimination's :math:`D` (for :attr:`cov_bwd`).
+        """
+        key = (newton, damped, None if bounds is None else
+               tuple(np.concatenate(bounds).tolist()), covariance)
+        if key in self._fused:
+            return self._fused[key]
+        nx, nu, ny = self.nx, self.nu, self.ny
+        sym = ca.SX.sym
+        chains = 2 if newton else 1
+        carry = []
+        for c in range(chains):
+            carry += [sym(f"S{c}", nx, nx), sym(f"z{c}", nx), sym(f"Dbb{c}", nx, nx),
+                      sym(f"E{c}", nx, nx)]
+        gb_prev = sym("gb", nx)
+        carry.append(gb_prev)
+        if bounds is not None:
+            f_prev = sym("free_prev", nx)
+            carry.append(f_prev)
+        x, xn, y, wy = sym("x", nx), sym("x_next", nx), sym("y", ny), sym("wy", ny * ny)
+        up, a, u, om = sym("up", nu), sym("a"), sym("u", self.nw), sym("omega")
+        wq = sym("wq", nx * nx)
+        link, xbar, w0, a0 = sym("link"), sym("xbar", nx), sym("w0", nx * nx), sym("A0", nx * nx)
+        lam = sym("lam")
+        margs = [x, y, wy, up, a, xbar, w0, a0]
+        if newton:
+            Dm, Dmh, gm, cm = self.meas_newton(*margs)
+            Daa, Dbb, Eab, Haa, Hbb, Hab, ga, gb, ct = self.trans_newton(x, xn, u, om, wq)
+            blocks = [(Dm, Daa, Dbb, Eab), (Dmh, Haa, Hbb, Hab)]
+        else:
+            Dm, gm, cm = self.meas(*margs)
+            Daa, Dbb, Eab, ga, gb, ct = self.trans(x, xn, u, om, wq)
+            blocks = [(Dm, Daa, Dbb, Eab)]
+        g = gm + link * ga + gb_prev
+        cost = cm + link * ct
+        out_carry, per_chain, D_gn, inv_D = [], [], None, []
+        if bounds is not None:
+            lo, hi = ca.DM(bounds[0]), ca.DM(bounds[1])
+            free = 1 - ca.logic_or(ca.logic_and(x <= lo, g > 0), ca.logic_and(x >= hi, g < 0))
+        for c, (Dmc, Daac, Dbbc, Eabc) in enumerate(blocks):
+            S_prev, z_prev, Dbb_prev, E_prev = carry[4 * c:4 * c + 4]
+            D = Dmc + link * Daac + Dbb_prev
+            D_gn = D if D_gn is None else D_gn  # scales the steps of fixed variables
+            if damped:
+                D = damp(D, lam)
+            z, Ep = -g, E_prev
+            if bounds is not None:
+                D, Ep, z = (free @ free.T) * D + ca.diag(1 - free), (f_prev @ free.T) * E_prev, \
+                    -free * g
+            S, zt, Vs, vs, L, iD = self.fwd(S_prev, z_prev, D, Ep, z)
+            out_carry += [S, zt, link * Dbbc, link * Eabc]
+            per_chain += [Vs, vs, L]
+            inv_D.append(iD)
+        out_carry.append(link * gb)
+        extra = []
+        if bounds is not None:
+            out_carry.append(free)
+            extra = [free, ca.diag(D_gn)]
+        ins = carry + [x, xn, y, wy, up, a, u, om, wq, link, xbar, w0, a0] + \
+            ([lam] if damped else [])
+        if covariance:
+            extra += inv_D
+        fun = ca.Function("slot", ins, out_carry + per_chain + [g, cost] + extra)
+        self._fused[key] = fun
+        return fun
+
+
+def reverse_cols(M, N, width):
+    """Reverse the order of the ``N`` column blocks (each ``width`` wide) of an MX."""
+    idx = [b * width + c for b in range(N - 1, -1, -1) for c in range(width)]
+    return M[:, idx]
+
+
+class Slots:
+    """Maps and scans of per-slot functions over ``N`` slots, as CasADi ``map`` and
+    ``mapaccum`` (the unrolled mode expands the whole graph afterwards)."""
+
+    @staticmethod
+    def _outs(res, f):
+        return list(res) if f.n_out() > 1 else [res]
+
+    def map(self, f, N, *args):
+        """``f.map(N)(*args)``, always a list of outputs."""
+        return self._outs(f.map(N)(*args), f)
+
+    def scan(self, f, N, n_acc, *args, last_only=False):
+        """``f.mapaccum(N, n_acc)(*args)``, always a list of outputs; with ``last_only``
+        the state outputs are the last states only."""
+        out = self._outs(f.mapaccum(f"{f.name()}_scan", N, n_acc)(*args), f)
+        if last_only:
+            out = [o[:, -f.size2_out(i):] if i < n_acc else o for i, o in enumerate(out)]
+        return out
+
+
+def forward_scan(st: StageFunctions, slots: Slots, X, q, N, lam, newton, damped, bounds,
+                 solve=False, covariance=False):
+    """The fused forward scan over the slots (see :meth:`StageFunctions.fused`).
+
+    Returns ``(chains, g, cost, free, diag)``: per chain (Gauss-Newton, then
+    Newton's) the last Schur complement and reduced right-hand side, or with
+    ``solve`` the direction ``vec(d)`` from the backward scan; the gradient
+    ``vec(g)``, the total cost, and with bounds ``vec(free)`` and the
+    Gauss-Newton diagonal. With ``covariance`` (Gauss-Newton, no bounds):
+    ``vec`` of the diagonal blocks of :math:`H^{-1}`, ``(nx, nx N)``, from the
+    backward recursion (see
+    :meth:`StructuredGaussNewton.covariances
+    <estim.solvers.gauss_newton.StructuredGaussNewton.covariances>`).
+    """
+    nx = st.nx
+    step = st.fused(newton, damped, bounds, covariance)
+    chains = 2 if newton else 1
+    init = []
+    for _ in range(chains):
+        init += [ca.MX.eye(nx), ca.MX.zeros(nx, 1), ca.MX.zeros(nx, nx), ca.MX.zeros(nx, nx)]
+    init.append(ca.MX.zeros(nx, 1))
+    if bounds is not None:
+        init.append(ca.MX.ones(nx, 1))
+    n_carry = len(init)
+    om = q["omega"]
+    om = ca.horzcat(om, ca.DM.zeros(1, 1) if isinstance(om, ca.DM) else ca.MX.zeros(1, 1))
+    link = ca.DM([[1.0] * (N - 1) + [0.0]])  # the last slot has no process term
+    x_next = ca.horzcat(X[:, 1:], X[:, N - 1:])
+    args = init + [X, x_next, q["Y"], q["WY"], q["Up"], q["a"], q["U"], om, q["WQ"], link,
+                   q["xbar"], q["W0"], q["A0"]] + ([lam] if damped else [])
+    outs = slots.scan(step, N, n_carry, *args, last_only=True)
+    carries, rest = outs[:n_carry], outs[n_carry:]
+    if covariance:  # the factors of S_{j-1} in slot j's outputs: the blocks of slot j-1
+        Vs, L, inv_D = rest[0], rest[2], rest[-1]
+        last = st.inverse(carries[0])
+        if N == 1:
+            return last
+        rev = slots.scan(st.cov_bwd, N - 1, 1, last, reverse_cols(Vs[:, nx:], N - 1, nx),
+                         reverse_cols(L[:, nx:], N - 1, nx),
+                         reverse_cols(inv_D[:, 1:], N - 1, 1))[0]
+        return ca.horzcat(reverse_cols(rev, N - 1, nx), last)
+    g, cost = rest[3 * chains], ca.sum2(rest[3 * chains + 1])
+    free, diag = (ca.vec(rest[3 * chains + 2]), ca.vec(rest[3 * chains + 3])) \
+        if bounds is not None else (None, None)
+    results = []
+    for c in range(chains):
+        S_last, z_last = carries[4 * c], carries[4 * c + 1]
+        if not solve:
+            results.append((S_last, z_last))
+            continue
+        Vs, vs, L = rest[3 * c:3 * c + 3]
+        d_last = st.last(S_last, z_last)
+        if N == 1:
+            results.append(ca.vec(d_last))
+            continue
+        # what step j returns for the backward pass belongs to slot j - 1
+        d_rev = slots.scan(st.bwd, N - 1, 1, d_last, reverse_cols(Vs[:, nx:], N - 1, nx),
+                           reverse_cols(vs[:, 1:], N - 1, 1),
+                           reverse_cols(L[:, nx:], N - 1, nx))[0]
+        results.append(ca.vec(ca.horzcat(reverse_cols(d_rev, N - 1, 1), d_last)))
+    return results, ca.vec(g), cost, free, diag
