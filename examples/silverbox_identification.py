@@ -10,7 +10,7 @@ noise of growing amplitude whose last part extrapolates beyond the training
 amplitude) and the first 40 000 samples of the ten multisine realisations
 (CSV samples 40 650-80 649).
 
-The model, in time measured in samples (``benchmarks/silverbox.py`` has the
+The model, in time measured in samples (``examples/silverbox_model.py`` has the
 reasons for this scaling), has the state :math:`x = (y, v)`, :math:`v =
 dy/d\tau`, and five parameters :math:`\theta = (b, a_1, a_0, a_3, u_0)`:
 
@@ -30,7 +30,7 @@ augmented with its parameters (``model.augment``), with a process noise of
 from the measured output, its difference and a linear ARX start; and, as the
 reference, by ``scipy.optimize.least_squares`` on the simulation error of the
 same equations (``method="trf"``, the Jacobian from CasADi, the same ARX start:
-``benchmarks/silverbox.py``). Both are validated by simulating the arrow
+``examples/silverbox_model.py``). Both are validated by simulating the arrow
 segment from its first measured sample.
 
 What this run measured (``--samples 6000``, the default; "s": the fit's wall
@@ -80,7 +80,6 @@ decimals, so the arrays equal the CSV's exactly.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from collections.abc import Callable
@@ -94,13 +93,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = Path(__file__).resolve().parent / "data" / "silverbox.npz"
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:  # imported by path (the tests), not run as a script
+    sys.path.insert(0, str(HERE))
+import silverbox_model  # noqa: E402 - the Duffing model and its two fits, next to this file
+from silverbox_model import FS, HOLDS  # noqa: E402
+
+DATA = HERE / "data" / "silverbox.npz"
 #: layout of SNLS80mV.csv (0-based rows after the header; stop exclusive)
 CSV_TEST = (100, 40575)         # the arrow
 CSV_TRAIN_START = 40650         # the ten multisine realisations start here
 TRAIN_KEEP = 40000              # multisine samples shipped
-FS = 1e7 / 2**14                # sampling frequency [Hz]
 
 
 # ---------------------------------------------------------------------------------- data
@@ -173,17 +176,6 @@ def make_subset(csv: str | Path, out: str | Path = DATA) -> Path:
 
 
 # ------------------------------------------------------------------------------ methods
-def baseline():
-    """``benchmarks/silverbox.py`` as a module (imported when first needed)."""
-    name = "silverbox_benchmark"
-    if name not in sys.modules:  # registered: its dataclasses need their module
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "silverbox.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
 class Fit(NamedTuple):
     """One identification: parameters ``theta`` (b, a1, a0, a3, u0), cost counters, time."""
 
@@ -198,7 +190,7 @@ class Fit(NamedTuple):
 def fit_least_squares(u: np.ndarray, y: np.ndarray, hold: str) -> Fit:
     """Simulation-error least squares (scipy, trf, CasADi Jacobian)."""
     t0 = time.perf_counter()
-    r = baseline().fit_least_squares(u, y, hold, method="trf")
+    r = silverbox_model.fit_least_squares(u, y, hold, method="trf")
     return Fit(theta=r.theta, x0=r.x0, train_rmse=r.train_rmse, evaluations=r.nfev,
                seconds=time.perf_counter() - t0, status=r.message)
 
@@ -211,12 +203,11 @@ def fit_estim(u: np.ndarray, y: np.ndarray, hold: str) -> Fit:
     ((1 mV)² FOH, (13.4 mV)² ZOH), the measured output and its difference as the
     initial trajectory; ``Model(..., hold=hold)``.
     """
-    base = baseline()
     t0 = time.perf_counter()
-    foh = "native" if base.native_foh() else "workaround"
-    r = base.fit_estim(u, y, hold, "gauss-newton", q=1e-8, q_param=1e-14, guess="measured",
-                       refit=False, foh=foh)
-    e = base.simulate(r.theta, u, hold, r.x0) - y
+    foh = "native" if silverbox_model.native_foh() else "workaround"
+    r = silverbox_model.fit_estim(u, y, hold, "gauss-newton", q=1e-8, q_param=1e-14,
+                                  guess="measured", refit=False, foh=foh)
+    e = silverbox_model.simulate(r.theta, u, hold, r.x0) - y
     return Fit(theta=r.theta, x0=r.x0, train_rmse=float(np.sqrt(np.mean(e**2))),
                evaluations=r.iterations, seconds=time.perf_counter() - t0, status=r.status)
 
@@ -226,7 +217,6 @@ METHODS: dict[str, Callable[[np.ndarray, np.ndarray, str], Fit]] = {
     "least_squares": fit_least_squares,
     "estim": fit_estim,
 }
-HOLDS = ("zoh", "foh")
 
 
 # ----------------------------------------------------------------------------- figure
@@ -293,19 +283,18 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"wrote {path} ({path.stat().st_size / 1024:.0f} kB)")
 
     data = load(args.data)
-    base = baseline()
     u, y = data.u_train[:args.samples], data.y_train[:args.samples]
     fits, sims, rmse = {}, {}, {}
     for hold in HOLDS:
         fits[hold] = METHODS[args.method](u, y, hold)
-        sims[hold] = base.simulate(fits[hold].theta, data.u_test, hold,
-                                   base.start_state(data.y_test))
+        sims[hold] = silverbox_model.simulate(fits[hold].theta, data.u_test, hold,
+                                              silverbox_model.start_state(data.y_test))
         rmse[hold] = 1e3 * float(np.sqrt(np.mean((sims[hold] - data.y_test) ** 2)))
 
     print(f"Silverbox, Duffing grey-box fitted by {args.method} on {args.samples} multisine "
           f"samples, validated on the arrow ({len(data.y_test)} samples)")
     head = (f"{'hold':<5} {'arrow mV':>9} {'train mV':>9} {'evals':>6} {'s':>6}   "
-            + " ".join(f"{n:>8}" for n in base.PARAMS))
+            + " ".join(f"{n:>8}" for n in silverbox_model.PARAMS))
     print(head)
     print("-" * len(head))
     for hold, f in fits.items():
