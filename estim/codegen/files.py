@@ -1,0 +1,151 @@
+"""The files an export writes: CasADi's generated code of the step functions, and the
+driver's C header and source, the ``Makefile`` and the ``README.md`` filled in from the
+templates shipped with the package (``estim/codegen/templates/*.in``).
+
+A template is the file's text with placeholders ``@key@``, which :func:`fill` replaces,
+in this order:
+
+``@name@``, ``@NAME@``
+    The C identifier that prefixes every file and symbol, and its upper case.
+``@filter@``, ``@model@``, ``@version@``
+    What the estimator is (e.g. ``EKF, clip=True``), the model's name, estim's version.
+``@CFLAGS@``, ``@TAIL@``
+    The Makefile's compiler flags (:data:`CFLAGS`) and the tail probability of the
+    suspect flag (:data:`estim.consistency.SUSPECT_TAIL`).
+``@states@``, ``@outputs@``, ``@inputs@``
+    The model's names of each, comma-separated (``none`` without inputs).
+values, then dimensions
+    What the exporter computes: C literals (``@Q@``, ``@LOWER@``, ...) and text
+    (the MHE's ``@FIELDS@``), then integers (``@NX@``, ``@SZ_W@``, ``@BYTES@``, ...).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping, Sequence
+from importlib import resources
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estim._version import __version__
+from estim.consistency import SUSPECT_TAIL
+
+if TYPE_CHECKING:
+    from estim.model import Model
+
+#: Flags of the Makefile: optimised, position-independent, and no contraction of
+#: products and sums into fused multiply-adds, so that the code computes what CasADi's
+#: interpreter computes in Python, operation for operation.
+CFLAGS = "-O2 -fPIC -fno-fast-math -ffp-contract=off"
+
+
+def check_model(m: Model) -> None:
+    """Refuse a model whose step CasADi's code generator cannot write as plain C with
+    the model's fixed ``dt``.
+
+    Raises
+    ------
+    ValueError
+        ``variable_dt=True`` (the interval would be an argument of the C step) or
+        integration by CVODES (which needs the CasADi runtime).
+    """
+    if m.variable_dt:
+        raise ValueError(f"{m.name} has variable_dt=True: the C step takes the model's "
+                         f"fixed dt only; build the model without variable_dt to export")
+    if getattr(m, "integrator", None) == "cvodes":
+        raise ValueError(f"{m.name} is integrated by CVODES, which needs the CasADi "
+                         f"runtime: build the model with integrator='rk4' to export")
+
+
+@functools.cache
+def template(filename: str) -> str:
+    """The text of ``templates/<filename>`` (package data)."""
+    return (resources.files("estim.codegen") / "templates" / filename).read_text(encoding="utf-8")
+
+
+def fill(text: str, name: str, model: Model, description: str, values: Mapping[str, str],
+         dims: Mapping[str, int]) -> str:
+    """``text`` with its placeholders ``@key@`` replaced (see the module's docstring).
+
+    Parameters
+    ----------
+    text : str
+        A template.
+    name : str
+        The C identifier of the export.
+    model : Model
+        The estimator's model (its name and the names of states, outputs, inputs).
+    description : str
+        What the estimator is, for ``@filter@``.
+    values : mapping of str to str
+        Text by placeholder, replaced after the fixed ones.
+    dims : mapping of str to int
+        Integers by placeholder, replaced last.
+    """
+    text = (text.replace("@name@", name).replace("@NAME@", name.upper())
+            .replace("@filter@", description).replace("@model@", model.name)
+            .replace("@version@", __version__).replace("@CFLAGS@", CFLAGS)
+            .replace("@TAIL@", f"{SUSPECT_TAIL:g}")
+            .replace("@states@", ", ".join(model.state_names))
+            .replace("@outputs@", ", ".join(model.output_names))
+            .replace("@inputs@", ", ".join(model.input_names) or "none"))
+    for key, value in values.items():
+        text = text.replace(f"@{key}@", value)
+    for key, size in dims.items():
+        text = text.replace(f"@{key}@", str(size))
+    return text
+
+
+def write_driver(paths: Mapping[str, Path], kind: str, name: str, model: Model,
+                 description: str, values: Mapping[str, str], dims: Mapping[str, int]) -> None:
+    """Write the driver's header and source, the Makefile and the README of ``kind``
+    (``"kalman"`` or ``"mhe"``: the templates ``<kind>.h.in``, ``<kind>.c.in``,
+    ``<kind>.README.md.in`` and the shared ``Makefile.in``) to ``paths["h"]``,
+    ``paths["c"]``, ``paths["makefile"]`` and ``paths["readme"]``."""
+    files = {"h": f"{kind}.h.in", "c": f"{kind}.c.in", "makefile": "Makefile.in",
+             "readme": f"{kind}.README.md.in"}
+    for key, filename in files.items():
+        paths[key].write_text(fill(template(filename), name, model, description, values,
+                                   dims))
+
+
+def c_double(v: float) -> str:
+    """A double as C reads it back exactly (shortest round trip)."""
+    v = float(v)
+    if np.isinf(v):
+        return "INFINITY" if v > 0 else "-INFINITY"
+    return repr(v)
+
+
+def c_array(a: ArrayLike) -> str:
+    """An initializer ``{...}`` of the doubles of ``a`` in column-major order
+    (``{0.0}`` for an empty ``a``: C has no empty initializer)."""
+    a = np.asarray(a, dtype=float).ravel(order="F")
+    return "{" + ", ".join(c_double(v) for v in a) + "}" if a.size else "{0.0}"
+
+
+def renamed(fun: ca.Function, name: str, names_in: list[str] | None = None) -> ca.Function:
+    """``fun`` (an SX Function) under another name, every output dense."""
+    args = fun.sx_in()
+    return ca.Function(name, args, [ca.densify(o) for o in fun.call(args)],
+                       names_in or fun.name_in(), fun.name_out())
+
+
+def work_sizes(funs: Sequence[ca.Function]) -> dict[str, int]:
+    """CasADi's work memory that serves every one of ``funs``: the largest number of
+    argument pointers, result pointers, integers and doubles (each at least 1)."""
+    return {k: max(1, *(int(getattr(f, f"sz_{k}")()) for f in funs))
+            for k in ("arg", "res", "iw", "w")}
+
+
+def generate(funs: Sequence[ca.Function], directory: Path, name: str) -> None:
+    """CasADi's C code of ``funs``: ``<name>_functions.c`` and ``<name>_functions.h``
+    in ``directory``."""
+    gen = ca.CodeGenerator(f"{name}_functions.c", {"with_header": True})
+    for fun in funs:
+        gen.add(fun)
+    gen.generate(str(directory) + "/")
