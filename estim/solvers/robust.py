@@ -48,10 +48,18 @@ adjustment: a modern synthesis", LNCS 1883 (section 3.3).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
 
 from estim._validate import as_choice, as_float
+from estim.consistency import SUSPECT_TAIL
+
+#: A whitened measurement component beyond this many standard deviations is an
+#: outlier for a robust loss: a Gaussian one goes beyond it with the probability
+#: ``SUSPECT_TAIL`` of the consistency test (6.1 at 1e-9): the square root of the
+#: chi-square(1) quantile, which is the normal one.
+OUTLIER_SIGMA = -NormalDist().inv_cdf(SUSPECT_TAIL / 2)
 
 #: The measurement losses: ``"squared"`` (least squares) and the robust ones.
 LOSSES = ("squared", "huber", "soft_l1", "cauchy")
