@@ -25,6 +25,15 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._discretise import (
+    HOLDS,
+    INTEGRATORS,
+    TransitionInputs,
+    as_holds,
+    discretise,
+    euler_step,
+    rk4_step,
+)
 from estim._fast import FastFunction
 from estim._validate import (
     as_bool,
@@ -37,9 +46,11 @@ from estim._validate import (
     check_keywords,
 )
 
-Equation = Callable[[ca.SX, ca.SX, Mapping[str, ca.SX]], object]
+__all__ = ["HOLDS", "INTEGRATORS", "Equation", "Model", "euler_step", "rk4_step"]
 
-INTEGRATORS = ("rk4", "euler", "cvodes")
+#: A user's equation ``f(x, u, p)``: ``x`` and ``u`` CasADi columns, ``p`` a dict of
+#: parameter symbols; it returns a column or a list of expressions.
+Equation = Callable[[ca.SX, ca.SX, Mapping[str, ca.SX]], object]
 
 
 def _as_column(expr, size: int, argname: str) -> ca.SX:
@@ -84,48 +95,7 @@ def _check_constants(expr, names: Sequence[str], argname: str) -> None:
                     f"math module")
 
 
-def _input_at(u, s: float):
-    """The input at the fraction ``s`` of the sample: ``u(s)`` for an interpolated
-    input (a callable), else ``u`` (held)."""
-    return u(s) if callable(u) else u
-
-
-def rk4_step(f: Callable, x, u, p, h: float, substeps: int = 1):
-    r"""Classic fourth-order Runge-Kutta over ``substeps`` steps of size ``h / substeps``.
-
-    .. math::
-        k_1 = f(x, u_0), k_2 = f(x + \tfrac{h}{2} k_1, u_{1/2}),
-        k_3 = f(x + \tfrac{h}{2} k_2, u_{1/2}), k_4 = f(x + h k_3, u_1), \quad
-        x^+ = x + \tfrac{h}{6}(k_1 + 2k_2 + 2k_3 + k_4)
-
-    ``u`` is the input held over the sample, or a callable giving it at a fraction
-    ``s`` of the sample (:math:`u_s = u(s)`, e.g. linear between two samples).
-    """
-    dt = h / substeps
-    for i in range(substeps):
-        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
-        um = _input_at(u, sm)
-        k1 = f(x, _input_at(u, s0), p)
-        k2 = f(x + dt / 2 * k1, um, p)
-        k3 = f(x + dt / 2 * k2, um, p)
-        k4 = f(x + dt * k3, _input_at(u, s1), p)
-        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return x
-
-
-def euler_step(f: Callable, x, u, p, h: float, substeps: int = 1):
-    r"""Explicit Euler, :math:`x^+ = x + h f(x, u)`, over ``substeps`` steps (``u``
-    held, or a callable of the fraction of the sample as for :func:`rk4_step`)."""
-    dt = h / substeps
-    for i in range(substeps):
-        x = x + dt * f(x, _input_at(u, i / substeps), p)
-    return x
-
-
-HOLDS = ("zoh", "foh")
-
-
-class Model:
+class Model(TransitionInputs):
     r"""A dynamical system with outputs, parameters and state bounds.
 
     Parameters
@@ -211,6 +181,19 @@ class Model:
     array([ 0.9951, -0.0973])
     """
 
+    state_names: list[str]
+    output_names: list[str]
+    input_names: list[str]
+    param_names: list[str]
+    p: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    F: ca.Function
+    F_x: ca.Function
+    H: ca.Function
+    H_x: ca.Function
+    f_c: ca.Function | None
+
     @check_keywords(owner="Model")
     def __init__(
         self,
@@ -237,49 +220,22 @@ class Model:
         self.input_names = as_names(inputs, "inputs", "u")
         if not self.state_names:
             raise ValueError("states must name at least one state")
-        if (ode is None) == (dynamics is None):
-            raise ValueError("give exactly one of ode= (continuous) or dynamics= (discrete)")
-        for argname, fn in (("ode", ode), ("dynamics", dynamics), ("output", output)):
-            if fn is not None and not callable(fn):
-                raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
-        if output is None:
-            raise ValueError("output= is required: a callable h(x, u, p)")
-        as_choice(integrator, INTEGRATORS, "integrator")
-        substeps = as_int(substeps, "substeps", minimum=1)
-        if dt is None:
-            if ode is not None:
-                raise ValueError("dt is required for a continuous model (ode=)")
-            dt = 1.0
-        dt = as_float(dt, "dt", positive=True)
-        if params is not None and not isinstance(params, Mapping):
-            raise TypeError(f"params must be a dict {{name: value}}, got {type(params).__name__}")
-        params = dict(params or {})
-        for key, val in params.items():
-            if not isinstance(key, str):
-                raise TypeError(f"params keys must be strings, got {key!r}")
-            params[key] = as_float(val, f"params[{key!r}]")
-        if not isinstance(name, str):
-            raise TypeError(f"name must be a string, got {type(name).__name__}")
-        clash = set(params) & set(self.state_names)
-        if clash:
-            raise ValueError(f"params and states share names {sorted(clash)}")
-
-        self.name = name
-        if not isinstance(time_unit, str):
-            raise TypeError(f"time_unit must be a string, got {type(time_unit).__name__}")
-        self.time_unit = time_unit
-        self.dt = float(dt)
-        self.integrator = integrator
-        self.substeps = int(substeps)
-        self.param_names = list(params)
-        self.p = np.array([float(v) for v in params.values()])
+        self._output = _check_equations(ode, dynamics, output)
+        self.integrator = as_choice(integrator, INTEGRATORS, "integrator")
+        self.substeps = as_int(substeps, "substeps", minimum=1)
+        self.dt = _sample_time(dt, continuous=ode is not None)
+        values = _parameters(params, self.state_names)
+        self.name = _text(name, "name")
+        self.time_unit = _text(time_unit, "time_unit")
+        self.param_names = list(values)
+        self.p = np.array(list(values.values()))
         self.lower = as_bounds(lower, self.state_names, "lower", -np.inf)
         self.upper = as_bounds(upper, self.state_names, "upper", np.inf)
         if np.any(self.lower > self.upper):
             raise ValueError("lower must not exceed upper")
         self.augmented: dict[str, float] = {}
-        self._ode, self._dynamics, self._output = ode, dynamics, output
-        self.hold = self._holds(hold)
+        self._ode, self._dynamics = ode, dynamics
+        self.hold = as_holds(hold, self.input_names)
         if self.sampled and ode is None:
             raise ValueError("hold='foh' needs a continuous model (ode=): a discrete map "
                              "(dynamics=) already says what happens between samples")
@@ -289,86 +245,6 @@ class Model:
                              "map (dynamics=) has no sample interval to vary")
         self._build()
 
-    def _holds(self, hold) -> dict[str, str]:
-        """``hold`` as ``{input name: "zoh" or "foh"}``."""
-        if isinstance(hold, str):
-            return dict.fromkeys(self.input_names, as_choice(hold, HOLDS, "hold"))
-        if not isinstance(hold, Mapping):
-            raise TypeError(f"hold must be 'zoh', 'foh' or a dict {{input: hold}}, "
-                            f"got {type(hold).__name__}")
-        unknown = sorted(set(hold) - set(self.input_names))
-        if unknown:
-            raise ValueError(f"hold names unknown inputs {unknown}; inputs are "
-                             f"{self.input_names}")
-        return {n: as_choice(hold.get(n, "zoh"), HOLDS, f"hold[{n!r}]")
-                for n in self.input_names}
-
-    @property
-    def sampled(self) -> bool:
-        """True when some input is interpolated between samples (``hold="foh"``): the
-        model then takes each input's value *at* the samples, and a transition needs
-        the values at both ends (see :meth:`transition`)."""
-        return "foh" in self.hold.values()
-
-    @property
-    def nw(self) -> int:
-        """Length of a transition's input ``w`` (``F(x, w, p)``): ``nu``, or ``2 nu``
-        (the values at both ends of the sample) for a sampled-input model, plus one
-        (the interval) with ``variable_dt``."""
-        return (2 * self.nu if self.sampled else self.nu) + int(self.variable_dt)
-
-    def input_path(self, w: ca.SX | ca.MX, reverse: bool = False) -> Any:
-        """The input along a transition whose input is ``w``: ``w`` itself (held), or
-        for a sampled model a function of the fraction ``s`` of the sample, linear
-        from the start value to the end value for ``"foh"`` inputs (``reverse``:
-        from the end back to the start, for integrating backward in time)."""
-        if not self.sampled:
-            return w
-        nu = self.nu
-        ramp = ca.DM([float(self.hold[n] == "foh") for n in self.input_names])
-        u0, u1 = (w[nu:], w[:nu]) if reverse else (w[:nu], w[nu:])
-        held = u1 if reverse else u0  # "zoh" inputs keep the value at the start
-
-        def u_of(s):
-            return held + ramp * (u0 + s * (u1 - u0) - held)
-        return u_of
-
-    def transition(self, u_prev: ArrayLike, u: ArrayLike, dt: float | None = None) -> np.ndarray:
-        """The input ``w`` of the transition into the sample whose input is ``u``, the
-        previous sample's being ``u_prev``: ``u`` (held), or ``[u_prev; u]``; with
-        ``variable_dt``, followed by the interval ``dt`` (default the model's)."""
-        w = np.concatenate([u_prev, u]) if self.sampled else u
-        if self.variable_dt:
-            w = np.append(w, self.dt if dt is None else dt)
-        return w
-
-    def transitions(self, U_prev: np.ndarray | None, U: np.ndarray,
-                    dts: np.ndarray | None = None) -> np.ndarray:
-        """:meth:`transition` of many transitions at once, ``(n, nw)``: row ``k`` from
-        ``U_prev[k]`` (read by sampled models only), ``U[k]`` (both ``(n, nu)``) and
-        ``dts[k]`` (``(n,)``; default the model's ``dt``)."""
-        U = np.asarray(U, dtype=float)
-        W = np.hstack([np.asarray(U_prev, dtype=float), U]) if self.sampled else U
-        if self.variable_dt:
-            d = np.full(len(U), self.dt) if dts is None else np.asarray(dts, dtype=float)
-            W = np.hstack([W, d[:, None]])
-        return W
-
-    def step_transitions(self, U_step: np.ndarray, dts: np.ndarray | None = None
-                         ) -> np.ndarray:
-        """The transitions' inputs ``(n, nw)`` an estimator's ``step`` forms from the
-        inputs ``U_step (n, nu)`` it is given at ``n`` consecutive samples after a reset:
-        each with the previous step's input (zero before the first) and ``dts``."""
-        U_step = np.asarray(U_step, dtype=float)
-        previous = np.vstack([np.zeros((1, self.nu)), U_step[:-1]])
-        return self.transitions(previous, U_step, dts)
-
-    def measurement_input(self, w: ArrayLike) -> np.ndarray:
-        """The input at the end of a transition whose input is ``w`` (what ``h`` sees
-        at the next sample)."""
-        nu = self.nu
-        return w[nu:2 * nu] if self.sampled else w[:nu]
-
     # ------------------------------------------------------------------ build
     def _build(self) -> None:
         # numpy functions on CasADi symbols (np.sin(x[0])) give CasADi expressions
@@ -377,71 +253,13 @@ class Model:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=r"\s*casadi: a numpy function",
                                     category=FutureWarning)
-            self._build_graphs()
-
-    def _build_graphs(self) -> None:
-        nx, nu, ny, nw = self.nx, self.nu, self.ny, self.nw
-        x = ca.SX.sym("x", nx)
-        u = ca.SX.sym("u", nu)
-        w = ca.SX.sym("w", nw)  # a transition's input (the two ends for a sampled model)
-        # the interval: the last entry of w with variable_dt, else the model's
-        h = w[nw - 1] if self.variable_dt else self.dt
-        u_of = self.input_path(w[:nw - 1] if self.variable_dt else w)
-        psym = [ca.SX.sym(n) for n in self.param_names]
-        p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
-        pdict = dict(zip(self.param_names, psym, strict=True))
-
-        y = _as_column(self._output(x, u, pdict), ny, "output")
-        _check_constants(y, self.output_names, "output")
-        self.H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
-        if self._ode is not None:
-            xdot = _as_column(self._ode(x, u, pdict), nx, "ode")
-            _check_constants(xdot, self.state_names, "ode")
-            self.f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
-            if self.integrator == "cvodes":
-                self.F = self._cvodes(x, w, p, u_of, h)
-                xm, wm, pm = ca.MX.sym("x", nx), ca.MX.sym("w", nw), ca.MX.sym("p", p.numel())
-                xn = self.F(xm, wm, pm)
-                self.F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)],
-                                       ["x", "u", "p"], ["A"])
-            else:
-                step = rk4_step if self.integrator == "rk4" else euler_step
-                xn = step(self.f_c, x, u_of, p, h, self.substeps)
-                self.F = ca.Function("F", [x, w, p], [xn], ["x", "u", "p"], ["x_next"])
-                self.F_x = ca.Function("F_x", [x, w, p], [ca.jacobian(xn, x)],
-                                       ["x", "u", "p"], ["A"])
-        else:
-            self.f_c = None
-            xn = _as_column(self._dynamics(x, u, pdict), nx, "dynamics")
-            _check_constants(xn, self.state_names, "dynamics")
-            self.F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
-            self.F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)],
-                                   ["x", "u", "p"], ["A"])
-        self.H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
+            self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
         self._local = threading.local()
-
-    def _cvodes(self, x, w, p, u_of, h) -> ca.Function:
-        t = ca.SX.sym("t")
-        # variable_dt: over the fraction s = t of the interval h, dx/ds = h f
-        tf = 1.0 if self.variable_dt else self.dt
-        ode = self.f_c(x, _input_at(u_of, t / tf), p)
-        dae = {"x": x, "t": t, "p": ca.vertcat(w, p), "ode": h * ode if self.variable_dt else ode}
-        integ = ca.integrator("F_cvodes", "cvodes", dae, 0.0, tf,
-                              {"abstol": 1e-10, "reltol": 1e-10})
-        xm = ca.MX.sym("x", self.nx)
-        wm = ca.MX.sym("w", self.nw)
-        pm = ca.MX.sym("p", p.numel())
-        xf = integ(x0=xm, p=ca.vertcat(wm, pm))["xf"]
-        return ca.Function("F", [xm, wm, pm], [xf], ["x", "u", "p"], ["x_next"])
 
     # ------------------------------------------------------------ properties
     @property
     def nx(self) -> int:
         return len(self.state_names)
-
-    @property
-    def nu(self) -> int:
-        return len(self.input_names)
 
     @property
     def ny(self) -> int:
@@ -462,10 +280,10 @@ class Model:
         return bool(np.any(np.isfinite(self.lower)) or np.any(np.isfinite(self.upper)))
 
     # --------------------------------------------------------------- numeric
-    def _xu(self, x, u) -> tuple[np.ndarray, np.ndarray]:
-        x = as_vector(x, self.nx, "x")
-        u = np.zeros(self.nu) if u is None else as_vector(u, self.nu, "u")
-        return x, u
+    def _xu(self, x: ArrayLike, u: ArrayLike | None) -> tuple[np.ndarray, np.ndarray]:
+        xv = as_vector(x, self.nx, "x")
+        uv = np.zeros(self.nu) if u is None else as_vector(u, self.nu, "u")
+        return xv, uv
 
     def _fast(self, key: str) -> FastFunction:
         """This thread's buffered evaluator of ``F`` or ``H`` (``key``): a buffer holds
@@ -477,7 +295,8 @@ class Model:
             setattr(self._local, key, fun)
         return fun
 
-    def _w(self, u, u_next, dt=None) -> np.ndarray:
+    def _w(self, u: np.ndarray, u_next: ArrayLike | None, dt: float | None = None
+           ) -> np.ndarray:
         """A transition's input from the sample's input, (sampled models) the next
         one's (default: the same) and (``variable_dt``) the interval."""
         if dt is not None:
@@ -520,7 +339,7 @@ class Model:
         return np.minimum(np.maximum(x, self.lower), self.upper)
 
     # -------------------------------------------------------------- variants
-    def _copy(self, **changes) -> Model:
+    def _copy(self, **changes: Any) -> Model:
         new = object.__new__(Model)
         new.__dict__.update(self.__dict__)
         new.__dict__.update(changes)
@@ -556,64 +375,7 @@ class Model:
             A new model; ``model.augmented`` maps each appended name to its
             nominal value (the truth for simulation).
         """
-        if not names:
-            raise ValueError("augment needs at least one parameter name")
-        for n in names:
-            if n not in self.param_names:
-                raise ValueError(f"cannot augment unknown parameter {n!r}; "
-                                 f"parameters are {self.param_names}")
-        if len(set(names)) != len(names):
-            raise ValueError(f"augment got duplicate names {names}")
-        nx0 = self.nx
-        names = list(names)
-        base_ode, base_dyn, base_out = self._ode, self._dynamics, self._output
-
-        def split(x, p):
-            q = dict(p)
-            for i, n in enumerate(names):
-                q[n] = x[nx0 + i]
-            return x[:nx0], q
-
-        def output(x, u, p):
-            xs, q = split(x, p)
-            return base_out(xs, u, q)
-
-        kwargs = {}
-        if base_ode is not None:
-            def ode(x, u, p):
-                xs, q = split(x, p)
-                return ca.vertcat(_as_column(base_ode(xs, u, q), nx0, "ode"),
-                                  ca.SX.zeros(len(names)))
-            kwargs["ode"] = ode
-        else:
-            def dynamics(x, u, p):
-                xs, q = split(x, p)
-                return ca.vertcat(_as_column(base_dyn(xs, u, q), nx0, "dynamics"),
-                                  x[nx0:])
-            kwargs["dynamics"] = dynamics
-
-        values = self.params
-        new_lower = as_bounds(lower, names, "lower", -np.inf)
-        new_upper = as_bounds(upper, names, "upper", np.inf)
-        model = Model(
-            states=self.state_names + names,
-            outputs=self.output_names,
-            output=output,
-            dt=self.dt,
-            inputs=self.input_names,
-            params={k: v for k, v in values.items() if k not in names},
-            integrator=self.integrator,
-            substeps=self.substeps,
-            lower=np.concatenate([self.lower, new_lower]),
-            upper=np.concatenate([self.upper, new_upper]),
-            name=self.name,
-            hold=self.hold,
-            variable_dt=self.variable_dt,
-            time_unit=self.time_unit,
-            **kwargs,
-        )
-        model.augmented = {**self.augmented, **{n: values[n] for n in names}}
-        return model
+        return _augmented(self, names, lower, upper)
 
     def __repr__(self) -> str:
         kind = f"ode, {self.integrator}" if self.continuous else "discrete"
@@ -621,15 +383,162 @@ class Model:
                 f"{self.output_names}, nu={self.nu}, {kind}, "
                 f"dt={self.dt:g}{' (variable)' if self.variable_dt else ''})")
 
-    def __getstate__(self):
+    def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
         for key in ("F", "H", "F_x", "H_x", "f_c", "_local"):
             state.pop(key, None)
         return state
 
-    def __setstate__(self, state):
+    def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self.__dict__.setdefault("variable_dt", False)  # models pickled before these
         self.__dict__.setdefault("time_unit", "")
         self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
         self._build()
+
+
+# ------------------------------------------------------------ the Functions
+def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Function,
+                                      ca.Function, ca.Function]:
+    """``(f_c, F, F_x, H, H_x)`` of ``model`` from its equations (``f_c`` None for a
+    discrete model)."""
+    nx, nu, ny, nw = model.nx, model.nu, model.ny, model.nw
+    x = ca.SX.sym("x", nx)
+    u = ca.SX.sym("u", nu)
+    w = ca.SX.sym("w", nw)  # a transition's input (the two ends for a sampled model)
+    u_of = model.input_path(w[:nw - 1] if model.variable_dt else w)
+    psym = [ca.SX.sym(n) for n in model.param_names]
+    p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
+    pdict = dict(zip(model.param_names, psym, strict=True))
+
+    y = _as_column(model._output(x, u, pdict), ny, "output")
+    _check_constants(y, model.output_names, "output")
+    H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
+    H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
+    if model._ode is not None:
+        xdot = _as_column(model._ode(x, u, pdict), nx, "ode")
+        _check_constants(xdot, model.state_names, "ode")
+        f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
+        F, F_x = discretise(f_c, x, w, p, u_of, integrator=model.integrator,
+                            substeps=model.substeps, dt=model.dt,
+                            variable_dt=model.variable_dt)
+        return f_c, F, F_x, H, H_x
+    assert model._dynamics is not None  # a model has exactly one of ode and dynamics
+    xn = _as_column(model._dynamics(x, u, pdict), nx, "dynamics")
+    _check_constants(xn, model.state_names, "dynamics")
+    F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
+    F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)], ["x", "u", "p"], ["A"])
+    return None, F, F_x, H, H_x
+
+
+# ------------------------------------------------------------ the arguments
+def _check_equations(ode: Equation | None, dynamics: Equation | None,
+                     output: Equation | None) -> Equation:
+    """Check that exactly one of ``ode``/``dynamics`` is given and that the equations are
+    callables; returns ``output``."""
+    if (ode is None) == (dynamics is None):
+        raise ValueError("give exactly one of ode= (continuous) or dynamics= (discrete)")
+    for argname, fn in (("ode", ode), ("dynamics", dynamics), ("output", output)):
+        if fn is not None and not callable(fn):
+            raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
+    if output is None:
+        raise ValueError("output= is required: a callable h(x, u, p)")
+    return output
+
+
+def _sample_time(dt: float | None, continuous: bool) -> float:
+    """The sample time: required for a continuous model, 1 by default for a discrete one."""
+    if dt is None:
+        if continuous:
+            raise ValueError("dt is required for a continuous model (ode=)")
+        dt = 1.0
+    return as_float(dt, "dt", positive=True)
+
+
+def _parameters(params: Mapping[str, float] | None, state_names: Sequence[str]
+                ) -> dict[str, float]:
+    """``params=`` as ``{name: float}``, its names distinct from the states'."""
+    if params is not None and not isinstance(params, Mapping):
+        raise TypeError(f"params must be a dict {{name: value}}, got {type(params).__name__}")
+    values = dict(params or {})
+    for key, val in values.items():
+        if not isinstance(key, str):
+            raise TypeError(f"params keys must be strings, got {key!r}")
+        values[key] = as_float(val, f"params[{key!r}]")
+    clash = set(values) & set(state_names)
+    if clash:
+        raise ValueError(f"params and states share names {sorted(clash)}")
+    return values
+
+
+def _text(value: str, argname: str) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"{argname} must be a string, got {type(value).__name__}")
+    return value
+
+
+# ------------------------------------------------------------ augmentation
+def _augmented(model: Model, names: tuple[str, ...], lower: ArrayLike | None,
+               upper: ArrayLike | None) -> Model:
+    """:meth:`Model.augment`: ``model`` with the parameters ``names`` appended to the
+    state, with constant dynamics."""
+    if not names:
+        raise ValueError("augment needs at least one parameter name")
+    for n in names:
+        if n not in model.param_names:
+            raise ValueError(f"cannot augment unknown parameter {n!r}; "
+                             f"parameters are {model.param_names}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"augment got duplicate names {names}")
+    appended = list(names)
+    values = model.params
+    new_lower = as_bounds(lower, appended, "lower", -np.inf)
+    new_upper = as_bounds(upper, appended, "upper", np.inf)
+    augmented = Model(
+        states=model.state_names + appended,
+        outputs=model.output_names,
+        dt=model.dt,
+        inputs=model.input_names,
+        params={k: v for k, v in values.items() if k not in appended},
+        integrator=model.integrator,
+        substeps=model.substeps,
+        lower=np.concatenate([model.lower, new_lower]),
+        upper=np.concatenate([model.upper, new_upper]),
+        name=model.name,
+        hold=model.hold,
+        variable_dt=model.variable_dt,
+        time_unit=model.time_unit,
+        **_augmented_equations(model, appended),
+    )
+    augmented.augmented = {**model.augmented, **{n: values[n] for n in appended}}
+    return augmented
+
+
+def _augmented_equations(model: Model, names: list[str]) -> dict[str, Equation]:
+    """The equations of ``model`` on the state ``[x; theta]``, ``theta`` the parameters
+    ``names`` (constant): ``output`` and ``ode`` or ``dynamics``, by keyword."""
+    nx0 = model.nx
+    base_ode, base_dyn, base_out = model._ode, model._dynamics, model._output
+
+    def split(x: ca.SX, p: Mapping[str, ca.SX]) -> tuple[ca.SX, dict[str, ca.SX]]:
+        q = dict(p)
+        for i, n in enumerate(names):
+            q[n] = x[nx0 + i]
+        return x[:nx0], q
+
+    def output(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
+        xs, q = split(x, p)
+        return base_out(xs, u, q)
+
+    if base_ode is not None:
+        def ode(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
+            xs, q = split(x, p)
+            return ca.vertcat(_as_column(base_ode(xs, u, q), nx0, "ode"),
+                              ca.SX.zeros(len(names)))
+        return {"output": output, "ode": ode}
+    assert base_dyn is not None  # a model has exactly one of ode and dynamics
+
+    def dynamics(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
+        xs, q = split(x, p)
+        return ca.vertcat(_as_column(base_dyn(xs, u, q), nx0, "dynamics"), x[nx0:])
+    return {"output": output, "dynamics": dynamics}
