@@ -246,8 +246,8 @@ class TransitionInputs:
         previous = np.vstack([np.zeros((1, self.nu)), U_step[:-1]])
         return self.transitions(previous, U_step, dts)
 
-    def measurement_input(self, w: np.ndarray) -> np.ndarray:
+    def measurement_input(self, w: np.ndarray | Sym) -> np.ndarray | Sym:
         """The input at the end of a transition whose input is ``w`` (what ``h`` sees
-        at the next sample)."""
+        at the next sample): an array, or a CasADi expression for building graphs."""
         nu = self.nu
         return w[nu:2 * nu] if self.sampled else w[:nu]
