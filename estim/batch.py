@@ -174,8 +174,8 @@ def _plant_scan(scenario: Scenario, T: int, expand: bool) -> ca.Function:
 
 def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
               keep_logs: bool) -> tuple[list[dict | None], float, str]:
-    """What :func:`~estim.compare` records of every seed's run (see ``compare._run_seed``),
-    from one batched filter call over the seeds' records.
+    """What :func:`~estim.compare` records of every seed's run (see
+    :func:`estim._runs.run_seed`), from one batched filter call over the seeds' records.
 
     Returns the summaries in seed order, None for a seed that the per-seed path must
     run (a plant that left the finite numbers, a failed update), the seconds of the

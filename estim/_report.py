@@ -1,0 +1,134 @@
+r"""What a comparison's table says: the plain-text and HTML tables and the notes.
+
+The notes explain a row that stands out: runs that raised, steps that failed or
+were flagged (:func:`row_notes`), an estimator whose NEES says its covariance does
+not match its errors, or whose RMSE is several times the best one's
+(:func:`notes`). :meth:`Comparison.table <estim.Comparison.table>` and the notebook
+view of :class:`~estim.Comparison` are built here.
+"""
+
+from __future__ import annotations
+
+import html
+import textwrap
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from estim.simulate import FAILED_FRACTION
+
+if TYPE_CHECKING:
+    from estim.compare import Comparison, ComparisonRow
+
+
+def row_notes(row: ComparisonRow) -> list[str]:
+    """What went wrong in one estimator's runs, a line each (empty when nothing did)."""
+    out: list[str] = []
+    if row.errors:
+        total = row.runs + len(row.errors)
+        seed, message = next(iter(row.errors.items()))
+        out.append(f"{row.name}: {len(row.errors)} of {total} runs raised and are left "
+                   f"out (seed {seed}: {message})")
+    if row.steps and row.failures > FAILED_FRACTION * row.steps:
+        out.append(f"{row.name}: {row.failures} of {row.steps} steps failed "
+                   f"({100 * row.failures / row.steps:.0f} %): the estimates there are "
+                   f"re-anchored, see the logs' status")
+    if row.steps and row.flagged > FAILED_FRACTION * row.steps:
+        out.append(f"{row.name}: {row.flagged} of {row.steps} steps flagged "
+                   f"({100 * row.flagged / row.steps:.0f} %): inexact solves, or NIS/cost "
+                   f"beyond the 1e-9 chi-square tail (outliers, or an estimator the data "
+                   f"contradict); see the logs' status")
+    return out
+
+
+def notes(result: Comparison) -> list[str]:
+    r"""Why a row looks the way it does, a line per estimator that needs one.
+
+    A row gets a note when a run raised, steps failed or were flagged
+    (:func:`row_notes`), when it is inconsistent (how far its
+    errors are from the :math:`\sigma` it reports: :math:`\sqrt{NEES/n}`
+    times), or when its RMSE is more than three times the best row's (with
+    its largest error). The estimator's :attr:`~estim.Estimator.caveat` and
+    the scenario's remark about its class follow, when there are such.
+    """
+    finite = [r for r in result.rows if np.isfinite(r.rmse_mean)]
+    best = min(finite, key=lambda r: r.rmse_mean) if finite else None
+    out: list[str] = []
+    explained: dict[str, list[str]] = {}
+    for r in result.rows:
+        parts = []
+        if r.consistent is False and np.isfinite(r.nees_mean) and r.nees_mean > 0:
+            ratio = float(np.sqrt(r.nees_mean))
+            side = ("overconfident: its errors are" if r.nees_mean > 1 else
+                    "pessimistic: its errors are only")
+            parts.append(f"inconsistent, NEES/n {r.nees_mean:.3g} ± {2 * r.nees_se:.2g} "
+                         f"({side} {ratio:.2g}× the σ it reports)")
+        if best is not None and r is not best and r.rmse_mean > 3 * best.rmse_mean:
+            parts.append(f"RMSE {r.rmse_mean / best.rmse_mean:.0f}× the best "
+                         f"({best.name}); after the start-up its largest error is "
+                         f"{r.largest_error}")
+        if parts:
+            out.append(f"{r.name}: " + "; ".join(parts))
+            why = r.caveat or result.remarks.get(r.kind, "")
+            if why:
+                explained.setdefault(why, []).append(r.name)
+        out += row_notes(r)
+    out += [f"{', '.join(names)}: {why}" for why, names in explained.items()]
+    return out
+
+
+def table(result: Comparison) -> str:
+    """Plain-text table, with the legend, the notes and how the runs were done."""
+    w = max([22] + [len(r.name) + 2 for r in result.rows])
+    head = (f"{'estimator':<{w}}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>7}"
+            f"{'step med':>11}{'step p90':>11}{'failed':>8}{'flagged':>9}")
+    lines = [f"{result.scenario}: {len(result.seeds)} seed(s)", head, "-" * len(head)]
+    for r in result.rows:
+        cons = "-" if r.consistent is None else ("yes" if r.consistent else "no")
+        lines.append(f"{r.name:<{w}}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
+                     f"{r.nees_mean:>9.3g}{cons:>7}{_fmt_time(r.step_median):>11}"
+                     f"{_fmt_time(r.step_p90):>11}{r.failures:>8}{r.flagged:>9}")
+    lines += [""] + textwrap.wrap(result.LEGEND, width=len(head))
+    remarks = notes(result)
+    if remarks:
+        lines += ["", "Notes:"]
+        for n in remarks:
+            lines += textwrap.wrap(n, width=len(head), initial_indent="  ",
+                                   subsequent_indent="    ")
+    if result.parallel:
+        lines += [""] + textwrap.wrap(f"Runs: {result.parallel}", width=len(head))
+    if result.batched:
+        lines += [""] + textwrap.wrap(f"Batched: {result.batched}", width=len(head))
+    return "\n".join(lines)
+
+
+def html_table(result: Comparison) -> str:
+    """The table as HTML (the notebook view)."""
+    head = "".join(f"<th>{h}</th>" for h in ("estimator", "RMSE mean", "± std", "NEES/n",
+                                             "consistent", "step median", "step p90",
+                                             "failed", "flagged"))
+    body = "".join(
+        f"<tr><td>{html.escape(r.name)}</td><td>{r.rmse_mean:.4g}</td>"
+        f"<td>{r.rmse_std:.2g}</td><td>{r.nees_mean:.3g}</td><td>{r.consistent}</td>"
+        f"<td>{_fmt_time(r.step_median)}</td><td>{_fmt_time(r.step_p90)}</td>"
+        f"<td>{r.failures}</td><td>{r.flagged}</td></tr>" for r in result.rows)
+    items = "".join(f"<li>{html.escape(n)}</li>" for n in notes(result))
+    return (f"<p><b>{result.scenario}</b>: {len(result.seeds)} seed(s)</p>"
+            f"<table><tr>{head}</tr>{body}</table>"
+            f"<p><small>{html.escape(result.LEGEND)}</small></p>"
+            + (f"<p><b>Notes</b></p><ul>{items}</ul>" if items else "")
+            + (f"<p><small>Runs: {html.escape(result.parallel)}</small></p>"
+               if result.parallel else "")
+            + (f"<p><small>Batched: {html.escape(result.batched)}</small></p>"
+               if result.batched else ""))
+
+
+def _fmt_time(seconds: float) -> str:
+    """Seconds as ``"12.3 µs"``, ``"4.56 ms"`` or ``"7.89 s"`` (``"-"`` when not finite)."""
+    if not np.isfinite(seconds):
+        return "-"
+    if seconds < 1e-3:
+        return f"{seconds * 1e6:.1f} µs"
+    if seconds < 1:
+        return f"{seconds * 1e3:.2f} ms"
+    return f"{seconds:.2f} s"

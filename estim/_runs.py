@@ -1,0 +1,158 @@
+r"""The runs of :func:`~estim.compare`: one estimator on one seed, and their summary.
+
+:func:`build` makes the estimator of a specification (a class, a factory or an
+instance to copy), :func:`run_seed` runs it on a seed through
+:func:`~estim.simulate` and keeps what the table needs (RMSE, NEES, step times,
+failed and flagged steps, the largest error after the start-up), :func:`run_batch`
+does the same for every seed at once through :mod:`estim.batch`, and
+:func:`summary` reduces an estimator's runs to the statistics of its row in the
+table. A run that raises is recorded with its error, so the other runs go on; the
+summaries are plain picklable values, as the workers send them back.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from estim.estimators.base import Estimator
+from estim.log import Log
+from estim.metrics import nees, peak_location, rmse, startup_samples
+from estim.model import Model
+from estim.scenarios import Scenario
+from estim.simulate import simulate
+
+if TYPE_CHECKING:
+    from estim.batch import PlantBatch
+    from estim.estimators.fused import FusedKalman
+
+#: A factory ``(model, tuning) -> estimator``.
+Factory = Callable[[Model, dict], Estimator]
+#: What names an estimator in :func:`~estim.compare`: a class, a factory or an instance.
+Spec = Factory | type[Estimator] | Estimator
+#: One run's summary: ``seed`` and either ``error`` (``"ExceptionType: message"``) or
+#: ``rmse``, ``per_state``, ``nees``, ``times`` (or ``step``, one time for every step
+#: of a batched run), ``failures``, ``flagged``, ``steps``, ``peak``, ``kind`` and
+#: ``caveat``; ``log`` with ``keep_logs``, else None.
+Run = dict[str, Any]
+
+
+def _make(spec: Spec, scenario: Scenario) -> Estimator:
+    """An estimator from a class/factory ``(model, tuning)`` or a copy of an instance."""
+    if isinstance(spec, Estimator):
+        return copy.deepcopy(spec)
+    if isinstance(spec, type):  # an estimator class: compare refuses any other class
+        return spec(scenario.model, **scenario.tuning)
+    return spec(scenario.model, dict(scenario.tuning))
+
+
+def _error(exc: BaseException) -> str:
+    """``"ExceptionType: first line of the message"`` (picklable, for the table)."""
+    lines = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {lines[0] if lines else ''}"[:300]
+
+
+def build(spec: Spec, scenario: Scenario) -> Estimator | str:
+    """The estimator, or the error its construction raised (then every seed fails alike)."""
+    try:
+        return _make(spec, scenario)
+    except Exception as exc:  # noqa: BLE001 - recorded for every seed
+        return _error(exc)
+
+
+def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
+             keep_logs: bool) -> Run:
+    """One run's summary (and log) of ``est`` on seed ``s``, or ``est`` itself when it
+    is the error its construction raised. A run that raises is recorded with its error."""
+    if isinstance(est, str):
+        return {"seed": s, "error": est, "log": None}
+    try:
+        log = simulate(scenario, est, seed=s, warn=False)
+        r = rmse(log, burn_in=burn_in)
+        has_p = bool(np.isfinite(log.P).any())
+        ne = float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx \
+            if has_p else np.nan
+    except Exception as exc:  # noqa: BLE001 - recorded, the other runs go on
+        return {"seed": s, "error": _error(exc),
+                "log": getattr(exc, "log", None) if keep_logs else None}
+    return {
+        "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
+        "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
+        "steps": len(log), "log": log if keep_logs else None,
+        "peak": _peak(log, s), "kind": type(est).__name__, "caveat": est.caveat,
+    }
+
+
+def run_batch(scenario: Scenario, est: FusedKalman, plant: PlantBatch, burn_in: int,
+              keep_logs: bool) -> tuple[list[Run], float, str]:
+    """Every seed's summary from the batched path (and the call's seconds and how it
+    ran); the seeds it cannot take (a plant that left the finite numbers, a failed
+    update) by :func:`run_seed`."""
+    from estim.batch import run_seeds
+
+    runs, seconds, how = run_seeds(scenario, est, plant, burn_in, keep_logs)
+    return [r if r is not None else run_seed(scenario, est, s, burn_in, keep_logs)
+            for s, r in zip(plant.seeds, runs, strict=True)], seconds, how
+
+
+def _peak(log: Log, seed: int) -> tuple[float, str]:
+    """The largest absolute estimation error of a run after the start-up transient (the
+    first 10 % of the samples, as the error plots shade it), and where:
+    ``"0.67 in C_C at t = 12.5 (seed 0)"``."""
+    err = np.abs(log.x_hat - log.x)
+    err[:startup_samples(len(err))] = np.nan
+    if not np.isfinite(err).any():
+        return float("nan"), ""
+    k, j = np.unravel_index(int(np.nanargmax(err)), err.shape)
+    return float(err[k, j]), peak_location(log.state_names[j], log.t[k], seed)
+
+
+def summary(runs: list[Run], names: list[str]) -> dict[str, Any]:
+    """One estimator's runs (in seed order) summarised: the fields of its
+    :class:`~estim.compare.ComparisonRow` but the name. The runs that raised are only
+    counted (``errors``); the statistics are over the others.
+
+    Parameters
+    ----------
+    runs : list of dict
+        The runs' summaries (:data:`Run`), in seed order.
+    names : list of str
+        The state names (the keys of ``rmse_per_state``).
+    """
+    done = [r for r in runs if "error" not in r]
+    errors = {r["seed"]: r["error"] for r in runs if "error" in r}
+    nan = float("nan")
+    if not done:
+        return {"rmse_mean": nan, "rmse_std": nan, "rmse_per_state": dict.fromkeys(names, nan),
+                "nees_mean": nan, "consistent": None, "step_median": nan, "step_p90": nan,
+                "failures": 0, "runs": 0, "errors": errors}
+    errs = np.array([r["rmse"] for r in done])
+    ne = np.array([r["nees"] for r in done])
+    consistent, se = None, float("nan")
+    if np.isfinite(ne).all():
+        se = float(np.std(ne, ddof=1) / np.sqrt(len(ne))) if len(ne) > 1 else np.inf
+        consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
+    size, where = max((r["peak"] for r in done), key=lambda p: -np.inf if p[0] != p[0] else p[0])
+    uniform = {r.get("step") for r in done}
+    step = next(iter(uniform))
+    if len(uniform) == 1 and step is not None:  # batched: one time per step for all
+        median = p90 = float(step)
+    else:  # a batched run's steps each took its call's time per sample
+        t = np.concatenate([r["times"] if r.get("step") is None else
+                            np.full(r["steps"], r["step"]) for r in done])
+        median, p90 = float(np.median(t)), float(np.percentile(t, 90))
+    return {
+        "rmse_mean": float(errs.mean()),
+        "rmse_std": float(errs.std(ddof=1)) if len(errs) > 1 else 0.0,
+        "rmse_per_state": dict(zip(names, np.mean([r["per_state"] for r in done], axis=0)
+                                   .tolist(), strict=True)),
+        "nees_mean": float(np.mean(ne)) if np.isfinite(ne).all() else nan,
+        "consistent": consistent, "step_median": median, "step_p90": p90,
+        "failures": sum(r["failures"] for r in done),
+        "runs": len(done), "flagged": sum(r["flagged"] for r in done),
+        "steps": sum(r["steps"] for r in done), "errors": errors, "nees_se": se,
+        "largest_error": f"{size:.3g} {where}" if where else "", "kind": done[0]["kind"],
+        "caveat": done[0]["caveat"]}
