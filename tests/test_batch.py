@@ -8,6 +8,7 @@ import warnings
 import casadi as ca
 import numpy as np
 import pytest
+from models import two_tanks
 
 import estim
 from estim import batch
@@ -35,10 +36,7 @@ def _inputs_scenario(hold: str) -> estim.Scenario:
 def _tanks() -> estim.Scenario:
     """Square-root outflows: an estimate clipped to an empty tank makes the EKF's update
     non-finite for some seeds (recovered by re-anchoring, which the batch cannot do)."""
-    m = estim.Model(states=["h1", "h2"], outputs=["h2"], inputs=["q"],
-                    ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(x[0]),
-                                                   0.5 * ca.sqrt(x[0]) - 0.5 * ca.sqrt(x[1])),
-                    output=lambda x, u, p: x[1], dt=0.5, lower=0.0, name="two tanks")
+    m = two_tanks()
     return estim.Scenario("tanks", m, x0=[0.5, 0.5], n_steps=60, Q=1e-4, R=0.01,
                           inputs=lambda t: [0.3], clip=True,
                           tuning=dict(Q=1e-4, R=0.01, x0=[0.5, 0.05], P0=1.0))

@@ -10,6 +10,8 @@ import subprocess
 import casadi as ca
 import numpy as np
 import pytest
+from codegen_build import build
+from models import two_tanks
 
 import estim
 from estim import codegen
@@ -26,15 +28,6 @@ def _code(status: str) -> int:
     if status.startswith("failed"):
         return 4 if "re-anchored" in status else 3
     return CODES[status.split(":")[0]]
-
-
-def _two_tanks(hold: str = "zoh"):
-    """Square-root outflows: dF/dx is infinite at an empty tank."""
-    return estim.Model(
-        states=["h1", "h2"], outputs=["h2"], inputs=["q"],
-        ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(x[0]),
-                                       0.5 * ca.sqrt(x[0]) - 0.5 * ca.sqrt(x[1])),
-        output=lambda x, u, p: x[1], dt=0.5, lower=0.0, hold=hold, name="two tanks")
 
 
 def _scenario_record(sc, seed=0):
@@ -97,7 +90,7 @@ def _configuration(key: str):
         m, Y, U = _root_record()
         F = estim.EKF if key.startswith("ekf") else estim.UKF
         return F(m, Q=2e-3, R=0.01, x0=[0.04], P0=1e-3, clip=True), Y, U
-    m = _two_tanks("foh" if "foh" in key else "zoh")
+    m = two_tanks("foh" if "foh" in key else "zoh")
     Y, U = _tanks_record(m)
     F = estim.EKF if key.startswith("ekf") else estim.UKF
     gate = 1e-6 if "gated" in key else None
@@ -105,15 +98,8 @@ def _configuration(key: str):
 
 
 def _build(directory, name: str) -> ctypes.CDLL:
-    cc = compiler()[0]
-    if shutil.which("make"):
-        subprocess.run(["make", f"CC={cc}", f"lib{name}.so"], cwd=directory, check=True,
-                       capture_output=True)
-    else:
-        subprocess.run([cc, *codegen.CFLAGS.split(), "-shared", f"{name}.c",
-                        f"{name}_functions.c", "-o", f"lib{name}.so", "-lm"],
-                       cwd=directory, check=True, capture_output=True)
-    lib = ctypes.CDLL(str(directory / f"lib{name}.so"))
+    """The library built (the driver with -Wall -Wextra -Werror) and loaded."""
+    lib = ctypes.CDLL(str(build(directory, name)))
     d = ctypes.POINTER(ctypes.c_double)
     getattr(lib, f"{name}_step").argtypes = [ctypes.c_void_p, d, d, d, d]
     getattr(lib, f"{name}_nis").restype = ctypes.c_double

@@ -12,6 +12,7 @@ import warnings
 import casadi as ca
 import numpy as np
 import pytest
+from models import two_tanks
 
 import estim
 
@@ -186,17 +187,8 @@ def test_interrupting_a_run_keeps_its_log():
 
 
 # ------------------------------------------------------------ visible failures
-def _two_tanks():
-    """Two tanks with square-root outflows: the Jacobian is infinite at level 0."""
-    return estim.Model(
-        states=["h1", "h2"], outputs=["h2"], inputs=["q"],
-        ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(x[0]),
-                                       0.5 * ca.sqrt(x[0]) - 0.5 * ca.sqrt(x[1])),
-        output=lambda x, u, p: x[1], dt=0.5, lower=0.0, name="two tanks")
-
-
 def test_many_failures_warn_and_show_in_the_log():
-    model = _two_tanks()
+    model = two_tanks()
     T = 60
     U = np.full((T, 1), 0.3)
     truth = estim.simulate(model, estim.EKF(model, Q=1e-4, R=1e-4, x0=[0.5, 0.5], P0=1.0),

@@ -6,6 +6,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
+from models import two_tanks
 
 import estim
 
@@ -122,21 +123,12 @@ def test_outliers_suspect_and_gated(gate, F):
     assert res.success
 
 
-def _two_tanks():
-    """Square-root outflows: dF/dx is infinite at an empty tank."""
-    return estim.Model(
-        states=["h1", "h2"], outputs=["h2"], inputs=["q"],
-        ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(x[0]),
-                                       0.5 * ca.sqrt(x[0]) - 0.5 * ca.sqrt(x[1])),
-        output=lambda x, u, p: x[1], dt=0.5, lower=0.0, name="two tanks")
-
-
 @pytest.mark.parametrize("gate", [None, 1e-6])
 @FILTERS
 def test_non_finite_updates_finish_with_the_step_loop(gate, F):
     """Suspect or gated steps, then an estimate clipped to an empty tank: the recovery
     (re-anchoring on the last trusted estimate) is the step loop's."""
-    m = _two_tanks()
+    m = two_tanks()
     T = 60
     U = np.full((T, 1), 0.3)
     tuning = dict(Q=1e-4, R=1e-4, x0=[0.5, 0.5], P0=1.0)
