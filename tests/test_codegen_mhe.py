@@ -7,10 +7,12 @@ from __future__ import annotations
 import ctypes
 import shutil
 import subprocess
+from concurrent.futures import ThreadPoolExecutor
 
 import casadi as ca
 import numpy as np
 import pytest
+from codegen_build import build
 
 import estim
 from estim import codegen
@@ -71,18 +73,6 @@ def _configuration(key: str):
                            warn=False)
     est = estim.MHE(m, Q=1e-4, R=1e-2, x0=[0.5, 0.0], P0=1.0, horizon=10, rti=True)
     return est, truth.y.copy(), U
-
-
-def _start_build(directory, name: str) -> subprocess.Popen:
-    """Start building ``lib<name>.so`` (with the Makefile if there is make)."""
-    cc = compiler()[0]
-    if shutil.which("make"):
-        command = ["make", f"CC={cc}", f"lib{name}.so"]
-    else:
-        command = [cc, *codegen.CFLAGS.split(), "-shared", f"{name}.c",
-                   f"{name}_functions.c", "-o", f"lib{name}.so", "-lm"]
-    return subprocess.Popen(command, cwd=directory, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
 
 
 def _load(directory, name: str) -> ctypes.CDLL:
@@ -172,19 +162,19 @@ SHARED = {"vdp_missing": "vdp"}
 def exports(tmp_path_factory):
     """``key -> (estimator, Y, U, CMHE, directory)``: every configuration exported and
     built once, the builds side by side."""
-    data, builds = {}, {}
+    data, directories = {}, {}
     for key in CONFIGURATIONS:
         est, Y, U = _configuration(key)
         data[key] = est, Y, U
         if key not in SHARED:
-            directory = tmp_path_factory.mktemp(key)
-            codegen.export(est, directory, name=key)
-            builds[key] = directory, _start_build(directory, key)
-    for _, process in builds.values():
-        _, error = process.communicate()
-        assert process.returncode == 0, error.decode()
+            directories[key] = tmp_path_factory.mktemp(key)
+            codegen.export(est, directories[key], name=key)
+    with ThreadPoolExecutor() as pool:  # the builds (the driver with -Werror) side by side
+        for done in [pool.submit(build, directory, key)
+                     for key, directory in directories.items()]:
+            done.result()
     loaded = {key: (CMHE(data[key][0], directory, key), directory)
-              for key, (directory, _) in builds.items()}
+              for key, directory in directories.items()}
     return lambda key: (*data[key], *loaded[SHARED.get(key, key)])
 
 
