@@ -17,6 +17,8 @@ J. Nocedal, S. J. Wright, *Numerical Optimization*, 2nd ed., sec. 10.3 (Levenber
 
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 
 __all__ = ["damp", "gram", "ldl", "ldl_solve", "lower_solve", "lower_transposed_solve",
@@ -31,7 +33,7 @@ def total(terms) -> ca.SX:
     return out
 
 
-def ldl(S):
+def ldl(S: ca.SX) -> tuple[list[list[Any]], list[Any]]:
     r"""Factors of a symmetric SX block, :math:`S = L\,\mathrm{diag}(D)\,L^\top`, no pivoting.
 
     Reads the lower triangle only. Returns ``(L, inv_D)`` as nested lists
@@ -41,9 +43,9 @@ def ldl(S):
     elimination rather than recomputed (Golub and Van Loan, alg. 4.1.2).
     """
     n = S.shape[0]
-    L = [[None] * n for _ in range(n)]
-    LD = [[None] * n for _ in range(n)]  # L[i][k] * D[k]
-    inv_D = [None] * n
+    L: list[list[Any]] = [[None] * n for _ in range(n)]
+    LD: list[list[Any]] = [[None] * n for _ in range(n)]  # L[i][k] * D[k]
+    inv_D: list[Any] = [None] * n
     for k in range(n):
         Dk = S[k, k] - total(L[k][m] * LD[k][m] for m in range(k))
         inv_D[k] = 1 / Dk
@@ -58,7 +60,7 @@ def lower_solve(L, B) -> ca.SX:
     n = len(L)
     cols = []
     for c in range(B.shape[1]):
-        z = [None] * n
+        z: list[Any] = [None] * n
         for i in range(n):
             z[i] = B[i, c] - total(L[i][m] * z[m] for m in range(i))
         cols.append(ca.vertcat(*z))
@@ -68,14 +70,14 @@ def lower_solve(L, B) -> ca.SX:
 def lower_transposed_solve(L, b) -> ca.SX:
     r""":math:`L^{-\top} b` for unit lower triangular ``L`` (nested list or SX) and a vector."""
     n = len(L) if isinstance(L, list) else L.shape[0]
-    x = [None] * n
+    x: list[Any] = [None] * n
     for i in range(n - 1, -1, -1):
         x[i] = b[i] - total(L[m][i] * x[m] if isinstance(L, list) else L[m, i] * x[m]
                              for m in range(i + 1, n))
     return ca.vertcat(*x)
 
 
-def ldl_solve(L, inv_D, B) -> ca.SX:
+def ldl_solve(L: list[list[Any]], inv_D: list[Any], B: ca.SX) -> ca.SX:
     r"""Solve :math:`L D L^\top X = B` column by column (``B`` an SX matrix)."""
     Z = ca.diag(ca.vertcat(*inv_D)) @ lower_solve(L, B)
     return ca.horzcat(*[lower_transposed_solve(L, Z[:, c]) for c in range(B.shape[1])])
@@ -83,7 +85,8 @@ def ldl_solve(L, inv_D, B) -> ca.SX:
 
 def sym_solve(S, B) -> ca.SX:
     """Solve :math:`S X = B` for a symmetric SX block (see :func:`ldl`)."""
-    return ldl_solve(*ldl(S), B)
+    L, inv_D = ldl(S)
+    return ldl_solve(L, inv_D, B)
 
 
 def sym_product(A, B) -> ca.SX:

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable, Sequence
+from functools import partial
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -37,6 +39,17 @@ PREBIND_BYTES = 16 * 2**20
 def _key(const) -> tuple | None:
     """A hashable form of :meth:`Chunked._constants`."""
     return None if const is None else tuple(tuple(v.tolist()) for v in const.values())
+
+
+def bind(buffer: ca.FunctionBuffer, args: Sequence[np.ndarray], res: Sequence[np.ndarray]
+         ) -> None:
+    """Point a CasADi ``FunctionBuffer`` at the arrays ``args`` and ``res`` in place (no
+    copies; they must stay alive and in place while the buffer is used). CasADi's stub
+    asks for a size that its wrapper does not take: it reads it from the memoryview."""
+    for i, a in enumerate(args):
+        buffer.set_arg(i, a.data)  # type: ignore[call-arg]
+    for i, r in enumerate(res):
+        buffer.set_res(i, r.data)  # type: ignore[call-arg]
 
 
 class Chunked:
@@ -86,9 +99,7 @@ class Chunked:
         # the last slot's solve S^{-1} z, bound once: (S, z, out, call)
         S, z, dl = np.zeros(nx * nx), np.zeros(nx), np.zeros(nx)
         b, ev = self.st.last.buffer()
-        for i, a in enumerate((S, z)):
-            b.set_arg(i, memoryview(a))
-        b.set_res(0, memoryview(dl))
+        bind(b, (S, z), (dl,))
         self.last_buf = (S, z, dl, ev, b)
 
     # ---------------------------------------------------------------- building
@@ -227,10 +238,7 @@ class Chunked:
     @staticmethod
     def _call(buf, args, res) -> None:
         b, ev = buf
-        for i, a in enumerate(args):
-            b.set_arg(i, memoryview(a))
-        for i, r in enumerate(res):
-            b.set_res(i, memoryview(r))
+        bind(b, args, res)
         ev()
 
     def calls(self, jobs) -> list:
@@ -242,19 +250,15 @@ class Chunked:
         rebound at every call."""
         jobs = list(jobs)
         work = sum(8 * fun.sz_w() for fun, _, _ in jobs)
-        out = []
+        out: list[tuple[Callable[[], None], tuple | None]] = []
         for fun, args, res in jobs:
             if work <= PREBIND_BYTES:
                 b, ev = fun.buffer()
-                for i, a in enumerate(args):
-                    b.set_arg(i, memoryview(a))
-                for i, r in enumerate(res):
-                    b.set_res(i, memoryview(r))
+                bind(b, args, res)
                 out.append((ev, (b, args, res)))  # the buffer and arrays kept alive
             else:
                 buf = self._buffer(fun)
-                out.append((lambda buf=buf, args=args, res=res: self._call(buf, args, res),
-                            None))
+                out.append((partial(self._call, buf, args, res), None))
         return out
 
     def prepare(self):

@@ -256,7 +256,9 @@ class StructuredGaussNewton(Globalised):
         fun = ca.Function(name, ins, outs).expand(name)
         if self.jit and key not in ("cov", "covs"):
             fun = jitted(fun)
-        bufs = [self._xbuf, self._pbuf] + ([self._lbuf] if len(ins) == 3 else [])
+        bufs: list[np.ndarray | None] = [self._xbuf, self._pbuf]
+        if len(ins) == 3:
+            bufs.append(self._lbuf)
         if key == "roll":
             return FastFunction(fun, [self._xbuf, self._pbuf, self._dbuf, self._abuf])
         if key in ("cost", "cov", "covs"):

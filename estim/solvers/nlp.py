@@ -99,11 +99,11 @@ class LeastSquaresNLP(Reweighted):
         self.np = start
         self._p = np.zeros(self.np)
         p = ca.SX.sym("p", self.np)
-        part = {k: p[s] for k, s in self._slices.items()}
+        part: dict[str, ca.SX | ca.DM] = {k: p[s] for k, s in self._slices.items()}
         Y = ca.reshape(part["y"], ny, N)
         U = ca.reshape(part["u"], model.nw, N)  # transitions' inputs
         Up = ca.reshape(part["up"], nu, N)
-        a = part["a"]
+        a: ca.SX | ca.DM = part["a"]
         xbar = part["xbar"]
         W0 = ca.reshape(part["w0"], nx, nx)
         WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
@@ -115,7 +115,8 @@ class LeastSquaresNLP(Reweighted):
         self.gn = StructuredGaussNewton(model, N, self.lbx, self.ubx, self._slices, self.np,
                                         diagonal_Q=diagonal_Q, diagonal_R=diagonal_R,
                                         full=full, **gn_opts)
-        self._wy_complete = None  # (W_R, its weights tiled over the slots)
+        #: (W_R, its weights tiled over the slots)
+        self._wy_complete: tuple[np.ndarray, np.ndarray] | None = None
         self.loss = loss
         self._whitened = None  # the measurement residuals, built on first use
         #: (N, ny): the robust loss's weights of the last solve's measurements
@@ -137,8 +138,8 @@ class LeastSquaresNLP(Reweighted):
 
     def reset(self) -> None:
         """Forget the warm-start multipliers and the solver's adaptive state."""
-        self._lam_x = None
-        self._lam_g = None
+        self._lam_x: np.ndarray | None = None
+        self._lam_g: np.ndarray | None = None
         self.gn.reset()
 
     # ------------------------------------------------------------------ solve

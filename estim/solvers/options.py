@@ -11,7 +11,8 @@ merged under the user's options.
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import casadi as ca
 
@@ -47,7 +48,7 @@ _FATROP_DEFAULTS = {
 
 
 #: The options of the Gauss-Newton solver and their checks.
-_GN_OPTIONS = {
+_GN_OPTIONS: dict[str, Callable[[Any, str], Any]] = {
     "max_iter": lambda v, n: as_int(v, n, minimum=1),
     "xtol": lambda v, n: as_float(v, n, positive=True),
     "newton": as_bool,

@@ -98,7 +98,7 @@ class Reweighted:
             return base * np.repeat(np.sqrt(w), ny, axis=0).ravel()
 
         if self.solver_name == "gauss-newton" or robust:
-            used = []
+            used: list[np.ndarray] = []
 
             def reweight(x):
                 used[:] = [weights(x)]
@@ -134,10 +134,12 @@ class Reweighted:
         """The robust cost of a reweighted solve (its weighted cost, computed with the
         weights ``w_used``, with the measurement part replaced by the loss), and its
         outliers: the components beyond ``OUTLIER_SIGMA`` standard deviations."""
+        loss = self.loss
+        assert loss is not None  # reweighted solves are those of a robust loss
         r = self._residuals(sol.X, p, base)
-        rho = self.loss.rho(r)
+        rho = loss.rho(r)
         sol.cost = float(sol.cost - np.sum(w_used * r * r) + np.sum(rho))
         far = np.abs(r) > OUTLIER_SIGMA
         sol.outliers, sol.outlier_cost = int(far.sum()), float(rho[far].sum())
-        self.weights = self.loss.weight(r)
+        self.weights = loss.weight(r)
         return sol

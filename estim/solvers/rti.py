@@ -53,6 +53,8 @@ moving horizon state and parameter estimation", Comput. Chem. Eng. 35(1), 2011.
 
 from __future__ import annotations
 
+from typing import Any
+
 import casadi as ca
 
 from estim.model import Model
@@ -164,7 +166,7 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     g_meas = -Cs.T @ (Rinv @ (y - hs))  # the newest measurement's gradient
     S = S0s + FN @ (Cs.T @ Rinv @ Cs) @ FN
     S = 0.5 * (S + S.T)
-    d = [None] * N
+    d: list[Any] = [None] * N
     d[N - 1] = -ca.solve(S, g0s + FN @ g_meas)
     for k in range(N - 2, -1, -1):
         d[k] = vs[:, k] - ca.reshape(Ms[:, k], nx, nx) @ d[k + 1]

@@ -201,6 +201,7 @@ class StageFunctions:
         extra = []
         if bounds is not None:
             out_carry.append(free)
+            assert D_gn is not None  # there is at least one chain
             extra = [free, ca.diag(D_gn)]
         ins = carry + [x, xn, y, wy, up, a, u, om, wq, link, xbar, w0, a0] + \
             ([lam] if damped else [])
