@@ -1,17 +1,27 @@
-r"""Moving horizon estimation: a least-squares trajectory fit over the last N samples."""
+r"""Moving horizon estimation: a least-squares trajectory fit over the last N samples.
+
+The estimator (:class:`MHE`) holds its construction, tuning and step; the window's
+bookkeeping and arrival cost are in :mod:`estim.estimators.mhe_window`, the real-time
+iteration (``rti=True``) in :mod:`estim.estimators.mhe_rti`, and the solvers in
+:mod:`estim.solvers`.
+"""
 
 from __future__ import annotations
 
 import time
 from collections import deque
 
-import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._fast import FastFunction, jitted
+from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_int
-from estim.estimators.base import Estimator, StepInfo, consistency_status
+from estim.estimators.base import StepInfo
+from estim.estimators.mhe_rti import (
+    RTI_STARTUP_ITERATIONS,
+    RTI_STARTUP_XTOL,
+    RealTimeIteration,
+)
 from estim.model import Model
 from estim.solvers.nlp import (
     LeastSquaresNLP,
@@ -22,15 +32,12 @@ from estim.solvers.nlp import (
 )
 from estim.solvers.robust import as_loss
 
+__all__ = ["ARRIVAL_COSTS", "MHE", "RTI_STARTUP_ITERATIONS", "RTI_STARTUP_XTOL"]
+
 ARRIVAL_COSTS = ("none", "fixed", "filtering", "smoothing")
 
-#: While the window fills, the real-time iteration's projected Gauss-Newton steps stop
-#: below this step (relative to ``1 + max|X|``) or after this many iterations.
-RTI_STARTUP_XTOL = 1e-10
-RTI_STARTUP_ITERATIONS = 50
 
-
-class MHE(Estimator):
+class MHE(RealTimeIteration):
     r"""Moving horizon estimator with Ipopt, Gauss-Newton SQP or fatrop.
 
     At time :math:`T` the window holds the last :math:`N` measurements
@@ -205,61 +212,6 @@ class MHE(Estimator):
         if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
             self._W0 = weight_factor(self.P0)
 
-    # ------------------------------------------------------------------ build
-    def _build_cov_step(self) -> ca.Function:
-        """EKF covariance step at x: update with the measured rows, then predict."""
-        m = self.model
-        nx, nu, ny = m.nx, m.nu, m.ny
-        x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", m.nw), ca.SX.sym("u_prev", nu)
-        mask = ca.SX.sym("mask", ny)
-        P = ca.SX.sym("P", nx, nx)
-        Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)  # the tuning is data
-        p = ca.DM(m.p)
-        D = ca.diag(mask)
-        C = D @ m.H_x(x, up, p)
-        Rm = D @ R @ D + ca.diag(1 - mask)
-        S = C @ P @ C.T + Rm
-        K = ca.solve(0.5 * (S + S.T), C @ P).T
-        IKC = ca.DM.eye(nx) - K @ C
-        Pu = IKC @ P @ IKC.T + K @ Rm @ K.T
-        A = m.F_x(x, u, p)
-        Pn = A @ Pu @ A.T + Q
-        return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P), ca.vec(Q), ca.vec(R)],
-                           [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
-
-    def _build_rti(self, solver: str, options: dict) -> None:
-        """The real-time iteration's two compiled phases (see :mod:`~estim.solvers.rti`)."""
-        from estim.solvers import rti
-
-        if solver != "gauss-newton":
-            raise ValueError(f"rti=True takes one Gauss-Newton step per sample: give "
-                             f"solver='gauss-newton' (or 'auto'), got {solver!r}")
-        if self._loss is not None:
-            raise ValueError("rti=True needs loss='squared' (a robust loss reweights "
-                             "between iterations)")
-        if self.max_lag:
-            raise ValueError("rti=True does not keep the states that max_lag needs: "
-                             "give max_lag=0")
-        m = self.model
-        prepare, feedback, cost = rti.build(m, self.horizon)
-        if options.get("jit"):
-            prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
-        # the tuning where every phase reads it (set by _tuning_changed), the feedback's
-        # inputs where the preparation writes them, the cost's where the preparation reads
-        self._rti_Qinv, self._rti_R = np.zeros(m.nx * m.nx), np.zeros(m.ny * m.ny)
-        self._rti_prepare = FastFunction(prepare, [None] * 10 + [self._rti_Qinv,
-                                                                 self._rti_R, None])
-        out, args = self._rti_prepare.out, self._rti_prepare.args
-        self._rti_y, self._rti_mask = np.zeros(m.ny), np.zeros(m.ny)
-        self._rti_free = np.ones(m.nx)
-        self._rti_feedback = FastFunction(feedback, [out[0], out[1], out[2], out[3],
-                                                     self._rti_y, self._rti_mask,
-                                                     self._rti_R, out[4], out[5],
-                                                     self._rti_free])
-        self._rti_cost = FastFunction(cost, [None] + args[1:12] + [self._rti_y,
-                                                                   self._rti_mask])
-        self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
-
     def prepare(self, u: ArrayLike | None = None) -> None:
         r"""The preparation phase of the real-time iteration (``rti=True``): before the
         next measurement arrives, shift the window, predict its newest state and
@@ -283,43 +235,7 @@ class MHE(Estimator):
             return
         if self._first or self._n < self.horizon:  # filling: step solves the window
             return
-        t0 = time.perf_counter()
-        self._shift(u)
-        self._linearise(u)
-        self._prepared = (u.copy(), time.perf_counter() - t0)
-
-    def _linearise(self, u: np.ndarray, free: np.ndarray | None = None) -> None:
-        """Evaluate the preparation Function for the window as it will be once the
-        arriving sample (input ``u``) is in: its ``n + 1`` newest slots used, any unused
-        ones before them chained to the first used one; ``free`` (N, nx): the variables
-        that may move (default all)."""
-        m, N = self.model, self.horizon
-        nx = m.nx
-        s0 = N - (self._n + 1)  # the first used slot
-        mask = np.isfinite(self._Y[:N - 1])
-        mask[:s0] = False
-        U, Up = self._U[:N - 1].copy(), np.vstack([self._Uprev[:N - 1], u])
-        if s0:  # the unused slots evaluate the model at the first used one's inputs
-            U[:s0] = U[s0] if s0 < N - 1 else 0.0
-            Up[:s0] = Up[s0]
-        args = self._rti_prepare.args  # each input flat, column-major
-        args[0][:] = self._X.ravel()
-        args[1][:] = np.where(mask, self._Y[:N - 1], 0.0).ravel()
-        args[2][:] = mask.ravel()
-        args[3][:] = U.ravel()
-        args[4][:] = Up.ravel()
-        args[5][:] = 0.0
-        args[5][s0] = 1.0
-        args[6][:] = 0.0
-        args[6][s0:] = 1.0
-        args[7][:] = self._xbar
-        arrival = self.arrival_cost != "none"
-        Pbar = self.P0 if self.arrival_cost == "fixed" else self._Pbar
-        args[8][:] = (Pbar if arrival else np.eye(nx)).ravel(order="F")
-        args[9][:] = float(arrival)
-        args[12][:] = 1.0 if free is None else free.ravel()
-        self._rti_free[:] = 1.0 if free is None else free[-1]
-        self._rti_prepare.evaluate()
+        self._prepare(u)
 
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
@@ -332,34 +248,16 @@ class MHE(Estimator):
         self._n = 0                               # measurements in the window
         self._xbar = self.x0.copy()
         self._Pbar = None if self.P0 is None else self.P0.copy()
-        self._history: list[np.ndarray] = []      # MHE estimates of the window's times
+        self._history = []                        # MHE estimates of the window's times
         # the last estimate (and covariance) of a step reported "ok" or "inexact":
         # where a failed step re-anchors
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
         self._nlp.reset()
         # the state before each of the last max_lag steps, with the step's data
-        self._past: deque = deque(maxlen=self.max_lag)
+        self._past = deque(maxlen=self.max_lag)
         self._prepared = None  # the real-time iteration's preparation: (u, its time)
 
     # ------------------------------------------------------- late measurements
-    def _state(self) -> dict:
-        """Everything a step reads and changes (copies of what it changes in place)."""
-        nlp = self._nlp
-        return {"_Y": self._Y.copy(), "_U": self._U.copy(), "_Uprev": self._Uprev.copy(),
-                "_X": self._X.copy(), "_n": self._n, "_xbar": self._xbar.copy(),
-                "_Pbar": None if self._Pbar is None else self._Pbar.copy(),
-                "_history": list(self._history), "_trusted": self._trusted,
-                "_first": self._first, "_k": self._k, "_u_last": self._u_last.copy(),
-                "_info": self._info,
-                "nlp": (nlp._lam_x, nlp.gn._ridge, nlp.weights)}
-
-    def _restore(self, state: dict) -> None:
-        state = dict(state)
-        self._nlp._lam_x, self._nlp.gn._ridge, self._nlp.weights = state.pop("nlp")
-        for key, value in state.items():
-            setattr(self, key, value.copy() if isinstance(value, np.ndarray) else value)
-        self._history = list(self._history)
-
     def insert(self, y: ArrayLike, lag: int) -> np.ndarray:
         """Add a measurement that arrived late and return the new current estimate.
 
@@ -390,98 +288,12 @@ class MHE(Estimator):
         return x_hat
 
     # ------------------------------------------------------------------- step
-    def _slide(self, u: np.ndarray) -> None:
-        """Drop the oldest measurement and move the arrival cost to the next time."""
-        y_old, u_old, up_old = self._Y[0].copy(), self._U[0].copy(), self._Uprev[0].copy()
-        x_est = self._history[0]  # MHE estimate of the time that leaves the window
-        if self.arrival_cost in ("filtering", "smoothing"):
-            mask = np.isfinite(y_old).astype(float)
-            Pn, _ = self._cov_step(x_est, u_old, up_old, mask, self._Pbar.ravel(order="F"),
-                                   self.Q, self.R)
-            Pn = Pn.reshape(self.model.nx, self.model.nx, order="F")
-            # a non-finite linearisation: the covariance grows as for a random walk
-            self._Pbar = Pn.copy() if np.isfinite(Pn).all() else self._Pbar + self.Q
-        xbar = self._X[1].copy()  # previous window's estimate of the new first time
-        if self.arrival_cost == "filtering":
-            pred = self._F(x_est, u_old, self.model.p)[0]
-            xbar = pred.copy() if np.isfinite(pred).all() else xbar
-        if self.arrival_cost != "none":
-            self._xbar = xbar
-        for arr in (self._Y, self._U, self._Uprev, self._X):
-            arr[:-1] = arr[1:]
-        self._history.pop(0)
-        self._n -= 1
-
-    def _arrival_weight(self) -> np.ndarray | None:
-        """The arrival weight factor :math:`W` with :math:`W^\\top W = \\bar P^{-1}`."""
-        if self.arrival_cost == "none":
-            return None
-        if self.arrival_cost == "fixed":
-            return self._W0  # P0 is constant: factored at reset, not every step
-        try:
-            W = weight_factor(self._Pbar)
-        except np.linalg.LinAlgError:  # lost definiteness: back to the prior's spread
-            self._Pbar, W = self.P0.copy(), self._W0
-        return W
-
-    def _solve(self, robust: bool = False):
-        """Solve the current window (``robust``: by Gauss-Newton, see
-        :meth:`LeastSquaresNLP.solve`); the solution and the consistency of its cost."""
-        nlp, weight = self._nlp, self._arrival_weight()
-        sol = nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
-                        weight, self._WQ, self._WR, self.R, robust=robust)
-        measured = nlp.measured(self._Y, self._n)
-        dof = measured + (self.model.nx if weight is not None else 0)
-        return sol, sol.consistency(dof, measured)
-
-    def _reanchor(self, y, u) -> None:
-        """Restart the window after a failed solve: only this measurement, the arrival
-        cost on the last trusted estimate with its covariance inflated by ``P0``."""
-        N = self.horizon
-        x, P = self._anchor(*self._trusted)
-        self._Y[:] = np.nan
-        self._Y[N - 1] = y
-        self._Uprev[N - 1] = u
-        self._X[:] = x
-        self._n = 1
-        self._history.clear()
-        if self.arrival_cost != "none":
-            self._xbar = x
-        if self.arrival_cost in ("filtering", "smoothing"):
-            self._Pbar = P
-
-    def _shift(self, u: np.ndarray) -> None:
-        """Make room for the arriving sample: the window's data one slot left (the
-        arrival cost moved on when the window was full) and the new slot's warm start,
-        the prediction of the previous estimate."""
-        m, N = self.model, self.horizon
-        self._U[N - 1] = self._transition(u)  # from the newest slot to the one arriving
-        if self._n == N:
-            self._slide(u)
-        else:  # window still growing: shift the data one slot left
-            for arr in (self._Y, self._U, self._Uprev, self._X):
-                arr[:-1] = arr[1:]
-        pred = self._F(self._X[N - 2], self._U[N - 2], m.p)[0]
-        self._X[N - 1] = pred if np.isfinite(pred).all() else self._X[N - 2]
-
-    def _step(self, y, u, first):
+    def _step(self, y: np.ndarray, u: np.ndarray, first: bool
+              ) -> tuple[np.ndarray, StepInfo]:
         N = self.horizon
         t0 = time.perf_counter()
-        if self.rti and self._prepared is None and (first or self._n < N):
-            out = self._startup(y, u, first)  # the window fills: projected Gauss-Newton
-            if out is not None:
-                return out
-            t0 = time.perf_counter()  # not finite: the converged solver
-            self._prepared = (u.copy(), 0.0)  # (the data shifted already)
-        elif self.rti and not first and (self._prepared is not None or self._n == N):
-            inside = self._prepared is None  # this step prepares the window itself
-            if inside:
-                self.prepare(u)
-            elif not np.array_equal(self._prepared[0], u):
-                raise ValueError(f"step got u = {u}, but prepare() prepared the window for "
-                                 f"u = {self._prepared[0]}: give step the input given to "
-                                 f"prepare")
-            out = self._feedback(y, u, self._prepared[1], inside)
+        if self.rti:
+            out = self._rti_step(y, u, first)
             if out is not None:
                 return out
             t0 = time.perf_counter()  # not finite: the window solved to convergence
@@ -524,126 +336,3 @@ class MHE(Estimator):
                    **({} if self._loss is None or self._nlp.weights is None else
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})
-
-    def _rti_check(self, X: np.ndarray) -> tuple[float, str]:
-        """The window's cost at ``X`` (the sum of its squared weighted residuals, the
-        newest measurement included) and its consistency: ``"suspect: ..."`` beyond the
-        chi-square tail of the measured values (and ``nx`` for an arrival cost), as for
-        the converged MHE."""
-        cost = self._rti_cost
-        cost.args[0][:] = X.ravel()
-        value = 2.0 * float(cost.evaluate()[0][0])
-        measured = int(self._rti_prepare.args[2].sum() + self._rti_mask.sum())
-        dof = measured + (self.model.nx if self.arrival_cost != "none" else 0)
-        return value, consistency_status(value, dof, "cost")
-
-    def _startup(self, y: np.ndarray, u: np.ndarray, first: bool):
-        """A step while the window fills (``rti=True``): projected Gauss-Newton on the
-        window with the preparation and feedback Functions, iterated to convergence.
-
-        Each iteration linearises at ``X``; the variables at a bound whose gradient
-        points out of the box are held (their step 0) and the step of the others is
-        halved (at most 30 times) until the projected point does not raise the cost.
-        Stops when the step is below ``xtol`` relative to ``1 + max|X|``, or after
-        ``max_iter`` iterations (then ``"inexact"``); the covariance is the one of the
-        window found (its last state's block of the inverse Gauss-Newton matrix). None if
-        a step is not finite (the window is then solved by the converged solver)."""
-        m, N = self.model, self.horizon
-        t0 = time.perf_counter()
-        if not first:
-            self._shift(u)
-        s0 = N - (self._n + 1)
-        self._X[:s0] = self._X[s0]
-        self._rti_measurement(y)
-        X = self._X.copy()
-        ones = np.ones((N, m.nx))
-        cost = self._rti_cost
-        iteration = 0
-        while iteration < RTI_STARTUP_ITERATIONS:
-            iteration += 1
-            self._X[:] = X
-            self._linearise(u)
-            dX, P, grad_y = (o.copy() for o in self._rti_feedback.evaluate())
-            G = self._rti_prepare.out[6].reshape(N, m.nx).copy()
-            G[-1] += grad_y
-            held = ((X <= self.lower) & (G > 0)) | ((X >= self.upper) & (G < 0))
-            held[:s0] = False
-            if held.any():
-                self._linearise(u, ones - held)
-                dX = self._rti_feedback.evaluate()[0].copy()
-            dX = dX.reshape(N, m.nx)
-            cost.args[0][:] = X.ravel()
-            before = cost.evaluate()[0][0]
-            t = 1.0
-            for _ in range(31):
-                trial = np.clip(X + t * dX, self.lower, self.upper)
-                cost.args[0][:] = trial.ravel()
-                if cost.evaluate()[0][0] <= before:
-                    break
-                t *= 0.5
-            step, X = trial - X, trial
-            if not (np.isfinite(X).all() and np.isfinite(P).all()):
-                return None
-            if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
-                break
-        converged = iteration < RTI_STARTUP_ITERATIONS
-        self._X[:] = X
-        self._linearise(u)  # the covariance at the window found
-        P = self._rti_feedback.evaluate()[1]
-        if not np.isfinite(P).all():
-            return None
-        cost, check = self._rti_check(X)
-        status = self._solve_status(None, True, converged, f"the start-up's Gauss-Newton "
-                                    f"steps did not converge in {RTI_STARTUP_ITERATIONS}",
-                                    check, "window")
-        return self._rti_accept(X, P, y, u, cost, status, converged and check == "ok",
-                                iteration, time.perf_counter() - t0, 0.0,
-                                "gauss-newton (rti start-up)")
-
-    def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float, inside: bool):
-        """The feedback phase of the real-time iteration: the prepared window with the
-        measurement ``y``; None (the window prepared, to be solved) if the step is not
-        finite. Its ``solve_time`` is the feedback's time, with the preparation's when
-        this step prepared the window itself (``inside``)."""
-        N = self.horizon
-        t0 = time.perf_counter()
-        self._rti_measurement(y)
-        dX, P, _ = self._rti_feedback.evaluate()
-        X = self._X + dX.reshape(N, -1)
-        if self._bounded:
-            np.clip(X, self.lower, self.upper, out=X)
-        if not (np.isfinite(X).all() and np.isfinite(P).all()):
-            return None
-        self._prepared = None
-        cost, check = self._rti_check(X)
-        return self._rti_accept(X, P, y, u, cost, check, check == "ok", 1,
-                                time.perf_counter() - t0 + (preparation if inside else 0.0),
-                                preparation, "gauss-newton (rti)")
-
-    def _rti_measurement(self, y: np.ndarray) -> None:
-        """The newest measurement where the feedback and cost Functions read it."""
-        mask = np.isfinite(y)
-        self._rti_y[:] = np.where(mask, y, 0.0)
-        self._rti_mask[:] = mask
-
-    def _rti_accept(self, X: np.ndarray, P: np.ndarray, y: np.ndarray, u: np.ndarray,
-                    cost: float, status: str, trust: bool, iterations: int,
-                    solve_time: float, preparation: float, solver: str):
-        """Take the window ``X`` found for the arriving sample ``(y, u)``: the window's
-        data, the estimate (trusted if ``trust``) and the step's :class:`StepInfo`."""
-        m, N = self.model, self.horizon
-        self._X[:] = X
-        self._Y[N - 1] = y
-        self._Uprev[N - 1] = u
-        self._n += 1
-        x_hat = X[-1].copy()
-        P = P.reshape(m.nx, m.nx, order="F").copy()
-        if trust:
-            self._trusted = (x_hat.copy(), P)
-        self._history.append(x_hat.copy())
-        return x_hat, StepInfo(
-            status=status, success=True, iterations=iterations, solve_time=solve_time, P=P,
-            cost=cost,
-            extra={"window": self._X[N - self._n:].copy(), "arrival_mean": self._xbar.copy(),
-                   "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
-                   "preparation_time": preparation, "solver": solver})
