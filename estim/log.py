@@ -188,7 +188,8 @@ class Log:
             arr = getattr(self, key)
             data[key] = (dims.get(key, ("time",) + tuple(f"{key}_{i}" for i in
                                                           range(arr.ndim - 1))), arr)
-        coords = {"time": self.t if "t" in self else np.arange(len(self))}
+        coords: dict[str, np.ndarray | list[str]] = {
+            "time": self.t if "t" in self else np.arange(len(self))}
         if self.state_names:
             coords["state"] = self.state_names
             coords["state_"] = self.state_names
@@ -230,7 +231,7 @@ class Log:
 
         Raises ``KeyError`` when no step reported ``key``.
         """
-        extra = self.diagnostics if "diagnostics" in self else []
+        extra: np.ndarray | list[dict] = self.diagnostics if "diagnostics" in self else []
         values = [e.get(key) if isinstance(e, dict) else None for e in extra]
         present = [np.asarray(v, dtype=float) for v in values if v is not None]
         if not present:

@@ -123,7 +123,11 @@ class _Series:
         self.x = x
         if self.t is None and truth_log is not None and "t" in truth_log:
             self.t = truth_log.t
-        n = len(self.x_hat) if self.x_hat is not None else len(self.nis)
+        if self.x_hat is not None:
+            n = len(self.x_hat)
+        else:  # a log read for its innovations only (nis), which it has
+            assert self.nis is not None
+            n = len(self.nis)
         if self.t is None:
             self.t = np.arange(n, dtype=float)
         width = self.x_hat.shape[1] if self.x_hat is not None else 0

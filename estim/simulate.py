@@ -22,8 +22,9 @@ same seed gives the same noise whatever the estimator does.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from typing import overload
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -127,7 +128,7 @@ class _Recorder:
         self.status[k] = info.status
         self.extra[k] = info.extra
 
-    def log(self, model: Model, estimator: Estimator, t, x, y, u) -> Log:
+    def log(self, model: Model, estimator: Estimator | _PlantOnly, t, x, y, u) -> Log:
         """The Log of the steps recorded so far (all of them after a complete run)."""
         n = self.done
         log = Log(model.state_names, model.output_names, model.input_names, dt=model.dt,
@@ -144,22 +145,26 @@ class _Recorder:
         return log
 
     @contextmanager
-    def running(self, model: Model, estimator: Estimator, t, x, y, u):
+    def running(self, model: Model, estimator: Estimator | _PlantOnly, t, x, y, u
+                ) -> Iterator[None]:
         """The loop's context: any exception leaving it carries the log of the completed
         steps as ``exc.log``."""
         try:
             yield
         except BaseException as exc:
             try:
-                exc.log = self.log(model, estimator, t, x, y, u)
+                log = self.log(model, estimator, t, x, y, u)
             except Exception:  # noqa: BLE001 - never mask the original error
                 raise exc from None
+            # any exception carries it: an attribute its class does not declare
+            setattr(exc, "log", log)  # noqa: B010
             if hasattr(exc, "add_note"):
                 exc.add_note(f"estim: the log of the {self.done} steps completed before "
                              f"this is exc.log")
             raise
 
-    def finish(self, model: Model, estimator: Estimator, t, x, y, u, warn: bool) -> Log:
+    def finish(self, model: Model, estimator: Estimator | _PlantOnly, t, x, y, u,
+               warn: bool) -> Log:
         """The log of the run, with an :class:`EstimationWarning` (``warn``) when more than
         :data:`FAILED_FRACTION` of the steps failed."""
         log = self.log(model, estimator, t, x, y, u)
@@ -275,10 +280,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
                 raise ValueError(f"{name} is required when simulating a bare Model")
     else:
         raise TypeError(f"target must be a Scenario or a Model, got {type(target).__name__}")
-    if estimator is None:
-        estimator = _PlantOnly(model)
-    if estimator.model.nx != model.nx or estimator.model.ny != model.ny \
-            or estimator.model.nu != model.nu:
+    est = _PlantOnly(model) if estimator is None else estimator
+    if est.model.nx != model.nx or est.model.ny != model.ny or est.model.nu != model.nu:
         raise ValueError("estimator was built for a model of other dimensions than the plant")
     n_steps, seed, clip, plant_changes = _check_simulate(
         model, n_steps, seed, clip, inputs, controller, missing, plant_changes)
@@ -291,7 +294,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     feedback = feedback or "estimate"
     if feedback not in ("estimate", "truth"):
         raise ValueError(f"feedback must be 'estimate' or 'truth', got {feedback!r}")
-    if isinstance(estimator, _PlantOnly) and controller is not None and feedback != "truth":
+    if isinstance(est, _PlantOnly) and controller is not None and feedback != "truth":
         raise ValueError("estimator=None simulates the plant alone: its controller needs "
                          "feedback='truth'")
     nx, nu, ny, T = model.nx, model.nu, model.ny, int(n_steps)
@@ -312,20 +315,21 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     Uk = np.zeros((T, nu))
     rec = _Recorder(T, nx)
 
-    estimator.reset()
+    est.reset()
     u_prev = np.zeros(nu) if U is None else U[0].copy()
     if model.sampled and U is None:
         U = np.zeros((T, nu))
+    sampled = U if model.sampled else None  # the inputs at the samples (hold="foh")
     p = model.p
     next_change = 0
-    with rec.running(model, estimator, ts, X, Y, Uk):
+    with rec.running(model, est, ts, X, Y, Uk):
         for k in range(T):
             t = ts[k]
             while next_change < len(changes) and t >= changes[next_change][0] - 1e-12:
                 p = params[next_change]
                 next_change += 1
-            if model.sampled:  # the input at this sample (held before, for "zoh" models)
-                u_prev = U[k]
+            if sampled is not None:  # the input at this sample (held before, for "zoh")
+                u_prev = sampled[k]
             y = H(x, u_prev, p)[0] + V[k]
             if np.isinf(y).any():
                 raise FloatingPointError(f"the plant output became infinite at step {k} "
@@ -333,8 +337,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
             if miss is not None:
                 y[miss[k]] = np.nan
             X[k], Y[k] = x, y
-            xh = estimator.step(y.copy(), u_prev)
-            rec.record(k, xh, estimator.info)
+            xh = est.step(y.copy(), u_prev)
+            rec.record(k, xh, est.info)
             if U is not None:
                 u = U[k]
             elif controller is not None:
@@ -344,8 +348,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
                 u = u_prev
             Uk[k] = u
             rec.done = k + 1
-            w = model.transition(u, U[min(k + 1, T - 1)]) if model.sampled else \
-                model.transition(None, u)
+            w = model.transition(u, sampled[min(k + 1, T - 1)]) if sampled is not None \
+                else model.transition(None, u)
             x = F(x, w, p)[0] + W[k]
             if clip:
                 x = np.minimum(np.maximum(x, model.lower), model.upper)
@@ -353,7 +357,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
                 raise FloatingPointError(f"the plant state became non-finite after step {k} "
                                          f"(t={t:g})")
             u_prev = u.copy()
-    return rec.finish(model, estimator, ts, X, Y, Uk, warn)
+    return rec.finish(model, est, ts, X, Y, Uk, warn)
 
 
 @check_keywords
@@ -416,7 +420,19 @@ def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
     return rec.finish(model, estimator, ts, X, Y, U, warn)
 
 
-def _input_table(inputs, T: int, model: Model) -> np.ndarray | None:
+@overload
+def _input_table(inputs: None, T: int, model: Model) -> None: ...
+
+
+@overload
+def _input_table(inputs: ArrayLike | Callable[[float], ArrayLike], T: int, model: Model
+                 ) -> np.ndarray: ...
+
+
+def _input_table(inputs: ArrayLike | Callable[[float], ArrayLike] | None, T: int,
+                 model: Model) -> np.ndarray | None:
+    """The inputs ``(T, nu)`` of a run: a table, or a function of time evaluated at
+    the samples (None without inputs)."""
     if inputs is None:
         return None
     nu = model.nu
@@ -429,7 +445,7 @@ def _input_table(inputs, T: int, model: Model) -> np.ndarray | None:
 def _missing(missing, T: int, ny: int, seed) -> np.ndarray | None:
     if missing is None:
         return None
-    if np.isscalar(missing):
+    if np.ndim(missing) == 0:  # a probability, as _check_simulate tells them apart
         prob = float(missing)
         if not 0.0 <= prob < 1.0:
             raise ValueError(f"missing as a probability must be in [0, 1), got {missing!r}")
