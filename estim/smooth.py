@@ -60,6 +60,10 @@ __all__ = ["abs", "clip", "max", "min", "relu", "step"]
 #: expression when any argument is one, else a numpy value.
 Operand = ca.SX | ca.MX | ca.DM | ArrayLike
 
+#: An operand converted for one backend by :func:`_args`: a CasADi ``SX``, ``MX`` or
+#: ``DM``, a numpy float or a float array (the arithmetic of each works with floats).
+_Value = Any
+
 LOG2 = float(np.log(2.0))
 
 _CASADI_TYPES = (ca.SX, ca.MX, ca.DM)
@@ -74,15 +78,15 @@ def _width(width) -> float:
     return as_float(width, "width", positive=True)
 
 
-def _args(**named):
+def _args(**named: Operand) -> tuple[SimpleNamespace, list[_Value]]:
     """The operation namespace and the arguments, converted for one backend.
 
     With any CasADi argument, every argument becomes CasADi (a numpy array a ``DM``) and
     the result is an expression; otherwise every argument becomes a float array (a
     numpy scalar for a scalar), refused with a message naming it if not numeric.
     """
+    out: list[_Value] = []
     if any(isinstance(v, _CASADI_TYPES) for v in named.values()):
-        out = []
         for name, v in named.items():
             if isinstance(v, _CASADI_TYPES):
                 out.append(v)
@@ -90,14 +94,13 @@ def _args(**named):
                 arr = _numeric_array(v, name)
                 out.append(float(arr) if arr.ndim == 0 else ca.DM(arr))
         return _CA, out
-    out = []
     for name, v in named.items():
         arr = _numeric_array(v, name)
         out.append(arr[()] if arr.ndim == 0 else arr)
     return _NP, out
 
 
-def _finite_bound(value, name: str) -> None:
+def _finite_bound(value: _Value, name: str) -> None:
     """Refuse an infinite or NaN numeric bound (symbols are not checked)."""
     if isinstance(value, ca.SX | ca.MX):
         return
@@ -106,7 +109,7 @@ def _finite_bound(value, name: str) -> None:
         raise ValueError(f"{name} must be finite, got {value}")
 
 
-def _softplus(z, op):
+def _softplus(z: _Value, op: SimpleNamespace) -> _Value:
     r""":math:`\log(1 + e^z)` for any finite ``z``, from analytic operations only."""
     t = z * (1 + op.tanh(z / 2)) / 2
     return t + op.log1p(op.expm1(-t) + op.exp(z - t))
@@ -143,8 +146,8 @@ def relu(x: Operand, width: float) -> Any:
     array([0.    , 0.0693, 1.    ])
     """
     w = _width(width)
-    op, (x,) = _args(x=x)
-    return w * _softplus(x / w, op)
+    op, (xv,) = _args(x=x)
+    return w * _softplus(xv / w, op)
 
 
 def max(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
@@ -175,8 +178,8 @@ def max(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth
     2.000005
     """
     w = _width(width)
-    op, (a, b) = _args(a=a, b=b)
-    return b + w * _softplus((a - b) / w, op)
+    op, (av, bv) = _args(a=a, b=b)
+    return bv + w * _softplus((av - bv) / w, op)
 
 
 def min(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
@@ -211,8 +214,8 @@ def min(a: Operand, b: Operand, width: float) -> Any:  # noqa: A001 - the smooth
     0.5
     """
     w = _width(width)
-    op, (a, b) = _args(a=a, b=b)
-    return a - w * _softplus((a - b) / w, op)
+    op, (av, bv) = _args(a=a, b=b)
+    return av - w * _softplus((av - bv) / w, op)
 
 
 def abs(x: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart of the builtin
@@ -246,8 +249,8 @@ def abs(x: Operand, width: float) -> Any:  # noqa: A001 - the smooth counterpart
     array([2.162278, 0.      , 3.123106])
     """
     w = _width(width)
-    op, (x,) = _args(x=x)
-    return x * (x / (op.hypot(x, w) + w))
+    op, (xv,) = _args(x=x)
+    return xv * (xv / (op.hypot(xv, w) + w))
 
 
 def step(x: Operand, width: float) -> Any:
@@ -280,8 +283,8 @@ def step(x: Operand, width: float) -> Any:
     array([0.0067, 0.5   , 0.9933])
     """
     w = _width(width)
-    op, (x,) = _args(x=x)
-    return (1 + op.tanh(x / (2 * w))) / 2
+    op, (xv,) = _args(x=x)
+    return (1 + op.tanh(xv / (2 * w))) / 2
 
 
 def clip(x: Operand, lower: Operand, upper: Operand, width: float) -> Any:
@@ -319,18 +322,18 @@ def clip(x: Operand, lower: Operand, upper: Operand, width: float) -> Any:
     array([0. , 0.5, 1. ])
     """
     w = _width(width)
-    op, (x, lower, upper) = _args(x=x, lower=lower, upper=upper)
-    _finite_bound(lower, "lower")
-    _finite_bound(upper, "upper")
-    if not isinstance(lower, ca.SX | ca.MX) and not isinstance(upper, ca.SX | ca.MX):
+    op, (xv, low, high) = _args(x=x, lower=lower, upper=upper)
+    _finite_bound(low, "lower")
+    _finite_bound(high, "upper")
+    if not isinstance(low, ca.SX | ca.MX) and not isinstance(high, ca.SX | ca.MX):
         lo, up = (np.asarray(v.full() if isinstance(v, ca.DM) else v, dtype=float)
-                  for v in (lower, upper))
+                  for v in (low, high))
         try:
             ordered = bool(np.all(lo < up))
         except ValueError:
             raise ValueError(f"lower and upper must have shapes that broadcast, got "
                              f"{lo.shape} and {up.shape}") from None
         if not ordered:
-            raise ValueError(f"lower must be less than upper, got lower={lower}, "
-                             f"upper={upper}")
-    return lower + w * _softplus((x - lower) / w, op) - w * _softplus((x - upper) / w, op)
+            raise ValueError(f"lower must be less than upper, got lower={low}, "
+                             f"upper={high}")
+    return low + w * _softplus((xv - low) / w, op) - w * _softplus((xv - high) / w, op)
