@@ -29,12 +29,18 @@ from estim.model import Model
 from estim.tuning._ml_graph import _CORES, _core
 from estim.tuning._ml_parametrisation import _Parametrisation
 
+#: The scipy methods that use the Hessian at every iteration (no Newton polish after).
+_HESSIAN_METHODS = ("trust-exact", "trust-krylov", "trust-ncg", "trust-constr", "Newton-CG",
+                    "dogleg")
+#: The scipy methods that use the gradient only (then the Newton polish).
+_GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP")
+
 
 class _Objective:
     """``-log L(theta)`` with its exact gradient and its Hessian for one record."""
 
-    def __init__(self, model: Model, kind: str, T: int, ukf: tuple, par: _Parametrisation,
-                 data: list, hessian: str):
+    def __init__(self, model: Model, kind: str, T: int, ukf: tuple[float, float, float],
+                 par: _Parametrisation, data: list[np.ndarray], hessian: str):
         key = ("objective", kind, T, ukf if kind == "ukf" else None, par.key)
         cache = _CORES.setdefault(model, {})
         if key not in cache:
@@ -88,14 +94,8 @@ class _Objective:
         return 0.5 * (H + H.T) if np.isfinite(H).all() else np.full_like(H, np.nan)
 
     def whitened(self, theta: np.ndarray) -> np.ndarray:
+        """The whitened innovations ``(T, ny)`` of the filter at ``theta``."""
         return np.asarray(self._eps(theta, *self._data), dtype=float).T
-
-
-
-
-_HESSIAN_METHODS = ("trust-exact", "trust-krylov", "trust-ncg", "trust-constr", "Newton-CG",
-                    "dogleg")
-_GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP")
 
 
 def _limit(tol: float, f: float) -> float:
