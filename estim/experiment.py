@@ -9,11 +9,12 @@ does not depend on the catalogue of experiments; ``estim.Scenario`` and
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from estim._validate import (
     as_bool,
@@ -54,7 +55,7 @@ def check_plant_changes(changes, model: Model, name: str = "plant_changes") -> l
     return out
 
 
-@dataclass
+@dataclass(init=False)
 class Scenario:
     """One experiment.
 
@@ -99,44 +100,56 @@ class Scenario:
     Q: np.ndarray
     R: np.ndarray
     tuning: dict
-    inputs: np.ndarray | Callable | None = None
-    controller: Callable | None = None
+    inputs: ArrayLike | Callable[[float], ArrayLike] | None = None
+    controller: Callable[[float, np.ndarray], ArrayLike] | None = None
     feedback: str = "estimate"
     clip: bool = False
-    plant_changes: list = field(default_factory=list)
+    plant_changes: list[tuple[float, dict[str, float]]] = field(default_factory=list)
     description: str = ""
-    remarks: dict = field(default_factory=dict)
+    remarks: dict[str, str] = field(default_factory=dict)
 
-    def __post_init__(self):
-        if not isinstance(self.name, str):
-            raise TypeError(f"name must be a string, got {type(self.name).__name__}")
-        if not isinstance(self.model, Model):
-            raise TypeError(f"model must be an estim.Model, got {type(self.model).__name__}")
-        m = self.model
-        self.x0 = as_vector(self.x0, m.nx, "x0")
-        self.Q = as_covariance(self.Q, m.nx, "Q", definite=False)
-        self.R = as_covariance(self.R, m.ny, "R", definite=True)
-        as_choice(self.feedback, ("estimate", "truth"), "feedback")
-        self.n_steps = as_int(self.n_steps, "n_steps", minimum=1)
-        self.clip = as_bool(self.clip, "clip")
-        if not isinstance(self.tuning, Mapping):
+    def __init__(self, name: str, model: Model, x0: ArrayLike, n_steps: int,
+                 Q: ArrayLike, R: ArrayLike, tuning: dict,
+                 inputs: ArrayLike | Callable[[float], ArrayLike] | None = None,
+                 controller: Callable[[float, np.ndarray], ArrayLike] | None = None,
+                 feedback: str = "estimate", clip: bool = False,
+                 plant_changes: Iterable[tuple[float, Mapping[str, float]]] | None = None,
+                 description: str = "", remarks: Mapping[str, str] | None = None) -> None:
+        # written out, not generated: x0, Q and R are taken in any array form (a list,
+        # a scalar variance) and kept as arrays; the other fields are checked
+        if not isinstance(name, str):
+            raise TypeError(f"name must be a string, got {type(name).__name__}")
+        if not isinstance(model, Model):
+            raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
+        self.name, self.model, m = name, model, model
+        self.x0 = as_vector(x0, m.nx, "x0")
+        self.Q = as_covariance(Q, m.nx, "Q", definite=False)
+        self.R = as_covariance(R, m.ny, "R", definite=True)
+        self.feedback = as_choice(feedback, ("estimate", "truth"), "feedback")
+        self.n_steps = as_int(n_steps, "n_steps", minimum=1)
+        self.clip = as_bool(clip, "clip")
+        if not isinstance(tuning, Mapping):
             raise TypeError(f"tuning must be a dict of estimator arguments, "
-                            f"got {type(self.tuning).__name__}")
-        for key in self.tuning:
+                            f"got {type(tuning).__name__}")
+        for key in tuning:
             if not isinstance(key, str):
                 raise TypeError(f"tuning keys must be argument names, got {key!r}")
-        if self.controller is not None and not callable(self.controller):
+        self.tuning = tuning
+        if controller is not None and not callable(controller):
             raise TypeError(f"controller must be callable (t, x) -> u, "
-                            f"got {type(self.controller).__name__}")
-        if self.inputs is not None and self.controller is not None:
+                            f"got {type(controller).__name__}")
+        if inputs is not None and controller is not None:
             raise ValueError("give inputs= or controller=, not both")
-        if self.inputs is not None and not callable(self.inputs):
-            as_input_table(self.inputs, self.n_steps, m.nu, names=m.input_names)
-        self.plant_changes = check_plant_changes(self.plant_changes, m)
-        if not isinstance(self.remarks, Mapping) or not all(
-                isinstance(k, str) and isinstance(v, str) for k, v in self.remarks.items()):
+        if inputs is not None and not callable(inputs):
+            as_input_table(inputs, self.n_steps, m.nu, names=m.input_names)
+        self.inputs, self.controller = inputs, controller
+        self.plant_changes = check_plant_changes(plant_changes, m)
+        self.description = description
+        remarks = {} if remarks is None else remarks
+        if not isinstance(remarks, Mapping) or not all(
+                isinstance(k, str) and isinstance(v, str) for k, v in remarks.items()):
             raise TypeError("remarks must be a dict {estimator class name: text}")
-        self.remarks = dict(self.remarks)
+        self.remarks = dict(remarks)
 
     def replace(self, **changes: Any) -> Scenario:
         """A copy with some fields changed (e.g. ``n_steps``)."""

@@ -178,18 +178,19 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
         for i, ax in enumerate(axes[:, 0]):
             ax.plot(log.t, err[:, i], label=label, **_style(k))
             sd = np.sqrt(np.maximum(log.P[:, i, i], 0.0)) if "P" in log else None
-            band = sd is not None and np.isfinite(sd).any()
-            if band:
+            if sd is not None and not np.isfinite(sd).any():
+                sd = None  # no band where no step reported a covariance
+            if sd is not None:
                 ax.fill_between(log.t, -sigma * sd, sigma * sd, color=f"C{k}", alpha=0.1,
                                 lw=0)
             settled[i].append(np.abs(err[k0:, i]))
-            if band:
+            if sd is not None:
                 settled[i].append(sigma * sd[k0:])
             size = np.abs(err[:, i])
             if np.isfinite(size).any():
                 j = int(np.nanargmax(size))
                 peaks[i].append((float(size[j]), label, float(log.t[j])))
-            if band and np.isfinite(sd).any():
+            if sd is not None:
                 j = int(np.nanargmax(sd))
                 peaks[i].append((float(sigma * sd[j]), f"{label} band", float(log.t[j])))
     t = first.t

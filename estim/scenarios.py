@@ -143,7 +143,7 @@ def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int 
     """
     from estim.simulate import simulate
 
-    guess = as_vector(guess, 3, "guess")
+    inertia_guess = as_vector(guess, 3, "guess")
     sc = satellite(excitation=excitation, fault=fault, n_steps=n_steps)
     log = simulate(sc, None, seed=seed)  # the plant alone: the PD law sees the truth
     nadir = np.array([models.nadir_in_body(x) for x in log.x])
@@ -153,10 +153,10 @@ def satellite_inertia(excitation: bool = True, fault: bool = True, n_steps: int 
         inertia[log.t >= t_change - 1e-12] = [values[k] for k in ("I1", "I2", "I3")]
     model = models.satellite_rates().augment("I1", "I2", "I3", lower=0.01, upper=10.0)
     x_true = np.hstack([log.x[:, 4:7], inertia])
-    guess = np.r_[log.y[0], np.asarray(guess, float)]
+    x0_guess = np.r_[log.y[0], inertia_guess]
     return Record(
         name=sc.name + "_inertia", model=model, t=log.t, y=log.y, u=u, x=x_true,
-        tuning={"R": 1e-3**2, "x0": guess, "P0": None},
+        tuning={"R": 1e-3**2, "x0": x0_guess, "P0": None},
         description=sc.description + "; omega and inertia identification on gyro data",
     )
 
@@ -185,6 +185,6 @@ def get(name: str, **kwargs: Any) -> Scenario:
         raise TypeError(f"name must be a scenario name (str), got {type(name).__name__}")
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; known: {sorted(SCENARIOS)}"
-                         f"{did_you_mean(name, SCENARIOS)}")
+                         f"{did_you_mean(name, list(SCENARIOS))}")
     check_call(SCENARIOS[name], kwargs, f"scenario {name!r}")
     return SCENARIOS[name](**kwargs)
