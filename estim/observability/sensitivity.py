@@ -96,7 +96,9 @@ def window(model: Model, x0: ArrayLike, n_steps: int, inputs: ArrayLike | None =
         if k % every == 0:
             ys.append(model.H(xs, u_prev, p))
         if k < n_steps:
-            xs = model.F(xs, ca.DM(U[k]), p)
+            # the transition's input: with variable_dt, the input and the model's interval
+            w = U[k] if model.sampled else model.transition(None, U[k])
+            xs = model.F(xs, ca.DM(w), p)
             u_prev = ca.DM(U[k])
     S = np.asarray(ca.Function("S", [x], [ca.jacobian(ca.vertcat(*ys), x)])(x_start))
     fisher = crb = None
