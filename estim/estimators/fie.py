@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeAlias, TypeVar
 
 import casadi as ca
 import numpy as np
@@ -28,6 +29,12 @@ from estim.solvers.robust import as_loss
 
 if TYPE_CHECKING:
     from estim.uncertainty import ParameterEstimates
+
+
+_T = TypeVar("_T")
+#: A value of :class:`FitResult` computed on first access: the function that computes it
+#: (replaced by ``(value,)`` once called), or None when there is none.
+_Lazy: TypeAlias = Callable[[], _T] | tuple[_T] | None
 
 
 def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
@@ -115,10 +122,11 @@ class FitResult:
     build_time: float = 0.0
     measurement_weights: np.ndarray | None = None
     solver: str = ""
-    _residuals: object = field(default=None, repr=False, compare=False)
-    _covariance: object = field(default=None, repr=False, compare=False)
-    _covariances: object = field(default=None, repr=False, compare=False)
-    _context: object = field(default=None, repr=False, compare=False)
+    _residuals: _Lazy[tuple[np.ndarray, np.ndarray]] = field(default=None, repr=False,
+                                                             compare=False)
+    _covariance: _Lazy[np.ndarray | None] = field(default=None, repr=False, compare=False)
+    _covariances: _Lazy[np.ndarray | None] = field(default=None, repr=False, compare=False)
+    _context: tuple | None = field(default=None, repr=False, compare=False)
 
     def _lazy(self, name: str):
         value = getattr(self, name)
@@ -204,6 +212,65 @@ class FitResult:
                 for n, (lo, hi) in zip(est.names, est.interval(level), strict=True)}
 
 
+def _record(model: Model, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A record checked for :meth:`FullInformation.fit`: ``Y (T, ny)``, the transitions'
+    inputs ``W (T, nw)`` (the last row unused) and the measurements' inputs ``(T, nu)``."""
+    m = model
+    Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+    T = Y.shape[0]
+    if np.isnan(Y).all():
+        raise ValueError("Y has no measured value")
+    U = as_inputs(U, T, m)
+    dts = as_intervals(t, T, m)
+    if m.sampled:  # inputs at the samples: transitions from each to the next
+        W, Uy = np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
+    else:
+        Uy = np.empty_like(U)
+        Uy[0] = 0.0
+        Uy[1:] = U[:-1]
+        W = U
+    if m.variable_dt:  # each transition's interval (the model's dt without t)
+        W = np.hstack([W, np.full((T, 1), m.dt)])
+        if dts is not None:
+            W[:-1, -1] = dts
+    return Y, W, Uy
+
+
+def _result(model: Model, solver: str, maps: dict[int, FastFunction], nlp: LeastSquaresNLP,
+            sol: Solution, Y: np.ndarray, U: np.ndarray, Uprev: np.ndarray, pad: int = 0
+            ) -> FitResult:
+    """The :class:`FitResult` of the solve ``sol`` of ``nlp``, whose record ``Y``, ``U``,
+    ``Uprev`` fills its slots after the first ``pad``: the trajectory, and the residuals
+    and covariances to compute on first access (``maps``: the residual maps by record
+    length, built once)."""
+    m, Xfull = model, sol.X
+    X = Xfull[pad:].copy()
+    T = len(X)
+    # residuals and covariance are evaluated on first access, maybe after other
+    # fits or after the caller changed its arrays: snapshots
+    data = (X.ravel(), U.ravel().copy(), Uprev.ravel().copy(), Y.ravel().copy())
+
+    def residuals() -> tuple[np.ndarray, np.ndarray]:
+        if T not in maps:
+            maps[T] = _residual_map(m, T)
+        w, v = maps[T](*data)
+        return w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
+
+    p_snapshot, complete = nlp._p.copy(), nlp._complete
+    cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
+        if sol.success else None
+    covs = (lambda: _finite_or_none(
+        nlp.gn.covariances(Xfull.ravel(), p_snapshot, complete)[pad:])) \
+        if sol.success else None
+    return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
+                     success=sol.success, solve_time=sol.solve_time,
+                     build_time=sol.build_time, solver=solver,
+                     measurement_weights=None if nlp.loss is None or nlp.weights is None
+                     else nlp.weights[pad:].copy(),
+                     _residuals=residuals, _covariance=cov, _covariances=covs)
+
+
 class FullInformation(Estimator):
     r"""Full-information estimation (batch maximum a posteriori trajectory).
 
@@ -284,7 +351,7 @@ class FullInformation(Estimator):
         self.solver_options = solver_options
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlps: dict[tuple[int, bool], LeastSquaresNLP] = {}
-        self._maps: dict[int, tuple] = {}
+        self._maps: dict[int, FastFunction] = {}
         self._F = FastFunction(model.F)  # this estimator's own buffers (thread safety)
         self._tuning_changed()
         self._reset()
@@ -309,8 +376,9 @@ class FullInformation(Estimator):
     def _tuning_changed(self) -> None:
         self._WQ = weight_factor(self.Q)
         self._WR = weight_factor(self.R)
-        self._prior = self._x0_given and self.P0 is not None
-        self._W0 = weight_factor(self.P0) if self._prior else None
+        P0 = self.P0 if self._x0_given else None  # a prior needs its mean
+        self._W0 = None if P0 is None else weight_factor(P0)
+        self._prior = self._W0 is not None
 
     def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
         """The problem of N slots, built once (``full``: fit's exact-length records)."""
@@ -322,29 +390,6 @@ class FullInformation(Estimator):
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
-    def _record(self, Y, U, t=None):
-        """``Y``, the transitions' inputs ``W (T, nw)`` (the last row unused) and the
-        measurements' inputs ``(T, nu)`` of a record."""
-        m = self.model
-        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
-        T = Y.shape[0]
-        if np.isnan(Y).all():
-            raise ValueError("Y has no measured value")
-        U = as_inputs(U, T, m)
-        dts = as_intervals(t, T, m)
-        if m.sampled:  # inputs at the samples: transitions from each to the next
-            W, Uy = np.hstack([U, np.vstack([U[1:], U[-1:]])]), U
-        else:
-            Uy = np.empty_like(U)
-            Uy[0] = 0.0
-            Uy[1:] = U[:-1]
-            W = U
-        if m.variable_dt:  # each transition's interval (the model's dt without t)
-            W = np.hstack([W, np.full((T, 1), m.dt)])
-            if dts is not None:
-                W[:-1, -1] = dts
-        return Y, W, Uy
-
     def fit(self, Y: ArrayLike, U: ArrayLike | None = None, guess: ArrayLike | None = None, *,
             Q: ArrayLike | None = None, R: ArrayLike | None = None,
             t: ArrayLike | None = None) -> FitResult:
@@ -377,8 +422,8 @@ class FullInformation(Estimator):
             new = self._validated_tuning(Q=Q, R=R)
             Qf, Rf = new.get("Q", self.Q), new.get("R", self.R)
             weights = (weight_factor(Qf), weight_factor(Rf), Rf)
-        Y, U, Uprev = self._record(Y, U, t)
-        T, nx = Y.shape[0], self.model.nx
+        Yr, W, Uy = _record(self.model, Y, U, t)
+        T, nx = Yr.shape[0], self.model.nx
         if guess is None:
             X0 = np.empty((T, nx))
             X0[:] = self.x0
@@ -388,9 +433,9 @@ class FullInformation(Estimator):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
             if not np.isfinite(X0).all():
                 raise ValueError("guess must be finite")
-        res = self._solve(Y, U, Uprev, X0, T, full=True, weights=weights)[0]
+        res = self._solve(Yr, W, Uy, X0, T, full=True, weights=weights)[0]
         # (the first nu columns of the transitions' inputs: the input at each sample)
-        frozen = zero_derivative_parameters(self.model, res.x, U[:, :self.model.nu]) \
+        frozen = zero_derivative_parameters(self.model, res.x, W[:, :self.model.nu]) \
             if self.model.augmented and res.success else []
         if frozen:  # they kept their initial values: not an optimum in them
             warnings.warn(f"FullInformation.fit on {self.model.name}: "
@@ -427,34 +472,8 @@ class FullInformation(Estimator):
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
         WQ, WR, R = (self._WQ, self._WR, self.R) if weights is None else weights
         sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
-        return self._result(nlp, sol, Y[pad:], U[pad:], Uprev[pad:], pad), sol
-
-    def _result(self, nlp, sol, Y, U, Uprev, pad: int = 0) -> FitResult:
-        m, Xfull = self.model, sol.X
-        X = Xfull[pad:].copy()
-        T = len(X)
-        # residuals and covariance are evaluated on first access, maybe after other
-        # fits or after the caller changed its arrays: snapshots
-        data = (X.ravel(), U.ravel().copy(), Uprev.ravel().copy(), Y.ravel().copy())
-
-        def residuals():
-            if T not in self._maps:
-                self._maps[T] = _residual_map(m, T)
-            w, v = self._maps[T](*data)
-            return w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
-
-        p_snapshot, complete = nlp._p.copy(), nlp._complete
-        cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
-            if sol.success else None
-        covs = (lambda: _finite_or_none(
-            nlp.gn.covariances(Xfull.ravel(), p_snapshot, complete)[pad:])) \
-            if sol.success else None
-        return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
-                         success=sol.success, solve_time=sol.solve_time,
-                         build_time=sol.build_time, solver=self.solver,
-                         measurement_weights=None if nlp.loss is None or nlp.weights is None
-                         else nlp.weights[pad:].copy(),
-                         _residuals=residuals, _covariance=cov, _covariances=covs)
+        return _result(m, self.solver, self._maps, nlp, sol, Y[pad:], U[pad:], Uprev[pad:],
+                       pad), sol
 
     # ------------------------------------------------------------ recursive
     def _reset(self) -> None:
