@@ -58,6 +58,9 @@ from estim.consistency import consistency_status
 from estim.exceptions import EstimationWarning
 from estim.model import Model
 
+#: The protocol's names, and the consistency test and warning class it reports with.
+__all__ = ["EstimationWarning", "Estimator", "StepInfo", "consistency_status"]
+
 
 @dataclass(frozen=True)
 class StepInfo:
@@ -307,13 +310,6 @@ class Estimator:
         if not 0.0 < gate < 1.0:
             raise ValueError(f"gate must be a tail probability in (0, 1) or None, got {gate!r}")
         return gate
-
-    def _consistency(self, nis: float, dof: int, rejected: bool) -> str:
-        """Status of a filter step whose NIS is beyond the suspect or the gate limit."""
-        if not rejected:
-            return consistency_status(nis, dof)
-        return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
-                f"kept the prediction with P + P0")
 
     def _warn_if_not_smooth(self) -> None:
         """Warn (at construction) when the model has switches (``fmin``, ``if_else``,

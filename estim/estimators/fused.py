@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
 from estim._validate import as_inputs, as_intervals, as_record
+from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
 from estim.solvers.kalman import fused_function, record_function, step_symbols
@@ -40,6 +41,17 @@ class FusedKalman(Estimator):
     in :meth:`_failure_texts`.
     """
 
+    #: The tail probability beyond which a measurement is rejected, or None (set by the
+    #: subclass's constructor).
+    gate: float | None
+    #: The prior's covariance: every filter requires one.
+    P0: np.ndarray
+
+    def _build(self, predict: bool) -> ca.Function:
+        """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
+        s_prior)``, with the prediction when ``predict`` (see the module's notes)."""
+        raise NotImplementedError
+
     def _compile(self) -> None:
         """The buffers both compiled steps read (filter state ``[x; vec(P)]``, the
         transition's input, ``y``, the tuning ``[vec(Q); vec(R)]``), the two steps
@@ -51,7 +63,7 @@ class FusedKalman(Estimator):
         self._y = np.zeros(m.ny)
         self._tun = np.zeros(nx * nx + m.ny ** 2)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
-        bound = [self._s, self._u, self._y, self._tun]
+        bound: list[np.ndarray | None] = [self._s, self._u, self._y, self._tun]
         self._update = FastFunction(self._build(predict=False), bound)
         self._predict_update = FastFunction(self._build(predict=True), bound)
         self._tuning_changed()
@@ -114,6 +126,13 @@ class FusedKalman(Estimator):
     def _failure_texts(self, flags) -> tuple[str, str]:
         """``(the kept-prediction status, what failed)`` of a failed step."""
         raise NotImplementedError
+
+    def _consistency(self, nis: float, dof: int, rejected: bool) -> str:
+        """Status of a filter step whose NIS is beyond the suspect or the gate limit."""
+        if not rejected:
+            return consistency_status(nis, dof)
+        return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
+                f"kept the prediction with P + P0")
 
     def _recover(self, flags, s_prior):
         """A failed update: keep the prediction of a trusted estimate, or re-anchor on
@@ -199,8 +218,8 @@ class FusedKalman(Estimator):
         nis[:n][measured] = F[0, :n][measured]
         suspect = (F[6, :n] + F[7, :n]) > 0
         status = np.full(n, "ok", dtype=object)
-        for k in np.flatnonzero(suspect):
-            status[k] = self._consistency(float(F[0, k]), int(F[4, k]), bool(F[7, k]))
+        for i in np.flatnonzero(suspect):
+            status[i] = self._consistency(float(F[0, i]), int(F[4, i]), bool(F[7, i]))
         status = status.tolist()
         if n:  # the filter as the step loop leaves it after sample n - 1
             trusted = np.flatnonzero(~suspect)
