@@ -237,26 +237,6 @@ class MHE(RealTimeIteration):
             return
         self._prepare(u)
 
-    # ------------------------------------------------------------------ state
-    def _reset(self) -> None:
-        m, N = self.model, self.horizon
-        self._W0 = None if self.P0 is None else weight_factor(self.P0)  # reset may change P0
-        self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
-        self._U = np.zeros((N, m.nw))             # _U[j]: input from slot j to j+1
-        self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
-        self._X = np.tile(self.x0, (N, 1))        # current/previous window solution
-        self._n = 0                               # measurements in the window
-        self._xbar = self.x0.copy()
-        self._Pbar = None if self.P0 is None else self.P0.copy()
-        self._history = []                        # MHE estimates of the window's times
-        # the last estimate (and covariance) of a step reported "ok" or "inexact":
-        # where a failed step re-anchors
-        self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
-        self._nlp.reset()
-        # the state before each of the last max_lag steps, with the step's data
-        self._past = deque(maxlen=self.max_lag)
-        self._prepared = None  # the real-time iteration's preparation: (u, its time)
-
     # ------------------------------------------------------- late measurements
     def insert(self, y: ArrayLike, lag: int) -> np.ndarray:
         """Add a measurement that arrived late and return the new current estimate.

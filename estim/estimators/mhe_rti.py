@@ -37,7 +37,6 @@ class RealTimeIteration(MovingWindow):
 
     rti: bool
     _loss: RobustLoss | None
-    max_lag: int
     _bounded: bool
     _rti_Qinv: np.ndarray
     _rti_R: np.ndarray
@@ -82,6 +81,11 @@ class RealTimeIteration(MovingWindow):
         bound = [None, *args[1:12], self._rti_y, self._rti_mask]
         self._rti_cost = FastFunction(cost, bound)
         self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
+
+    def _reset(self) -> None:
+        """The window's state (:meth:`MovingWindow._reset`), and nothing prepared."""
+        super()._reset()
+        self._prepared = None
 
     # ---------------------------------------------------------------- phases
     def _prepare(self, u: np.ndarray) -> tuple[np.ndarray, float]:

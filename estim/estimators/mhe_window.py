@@ -27,17 +27,18 @@ from estim.solvers.nlp import LeastSquaresNLP, Solution, weight_factor
 
 
 class MovingWindow(Estimator):
-    """The window's bookkeeping, the base of :class:`~estim.MHE`: the arrival
-    covariance's step (:meth:`_build_cov_step`), making room for a sample
-    (:meth:`_shift`, :meth:`_slide`), solving the window (:meth:`_solve`), restarting it
-    after a failed solve (:meth:`_reanchor`) and saving and restoring it for a late
-    measurement (:meth:`_state`, :meth:`_restore`).
+    """The window's bookkeeping, the base of :class:`~estim.MHE`: its state
+    (:meth:`_reset`), the arrival covariance's step (:meth:`_build_cov_step`), making room
+    for a sample (:meth:`_shift`, :meth:`_slide`), solving the window (:meth:`_solve`),
+    restarting it after a failed solve (:meth:`_reanchor`) and saving and restoring it for
+    a late measurement (:meth:`_state`, :meth:`_restore`).
 
     The attributes below are set by :class:`~estim.MHE`'s constructor and reset.
     """
 
     horizon: int
     arrival_cost: str
+    max_lag: int
     lower: np.ndarray
     upper: np.ndarray
     _nlp: LeastSquaresNLP
@@ -56,6 +57,26 @@ class MovingWindow(Estimator):
     _history: list[np.ndarray]
     _trusted: tuple[np.ndarray, np.ndarray | None]
     _past: deque
+
+    # ------------------------------------------------------------------ state
+    def _reset(self) -> None:
+        """An empty window at the prior ``x0, P0``."""
+        m, N = self.model, self.horizon
+        self._W0 = None if self.P0 is None else weight_factor(self.P0)  # reset may change P0
+        self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
+        self._U = np.zeros((N, m.nw))             # _U[j]: input from slot j to j+1
+        self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
+        self._X = np.tile(self.x0, (N, 1))        # current/previous window solution
+        self._n = 0                               # measurements in the window
+        self._xbar = self.x0.copy()
+        self._Pbar = None if self.P0 is None else self.P0.copy()
+        self._history = []                        # MHE estimates of the window's times
+        # the last estimate (and covariance) of a step reported "ok" or "inexact":
+        # where a failed step re-anchors
+        self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
+        self._nlp.reset()
+        # the state before each of the last max_lag steps, with the step's data
+        self._past = deque(maxlen=self.max_lag)
 
     # ------------------------------------------------------------------ build
     def _build_cov_step(self) -> ca.Function:
