@@ -254,10 +254,10 @@ class ShootingObserver(WindowSearch):
         below it (a truncated Gauss-Newton subspace, see
         :func:`~estim.estimators.shooting_search.subspace`, relative to the magnitudes of
         :func:`~estim.estimators.shooting_search.scales`, which do not need a non-zero
-        start); the others
-        keep the propagated previous estimate, so windows with little information
-        (between bursts, without excitation) do not push the estimate around (the
-        report's examples use 0.003 and 0.05). The bounded methods use the full space.
+        start); the others keep the propagated previous estimate, so windows with little
+        information (between bursts, without excitation) do not push the estimate around
+        (the report's examples use 0.003 and 0.05). The bounded methods use the full
+        space.
     history_length : int or None
         Optimisations kept in :attr:`history` (the oldest are dropped, so memory
         stays flat over long runs); None keeps all.
