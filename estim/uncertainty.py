@@ -72,17 +72,27 @@ class Fit(Protocol):
     lower, upper)`` or None. Defined here, below the estimators, so that the fit's
     :meth:`~estim.FitResult.parameters` can call this module and not the reverse."""
 
-    x: np.ndarray
-    success: bool
-    status: str
-    cost: float
-    _context: tuple | None
+    @property
+    def x(self) -> np.ndarray: ...
+
+    @property
+    def success(self) -> bool: ...
+
+    @property
+    def status(self) -> str: ...
+
+    @property
+    def cost(self) -> float: ...
+
+    @property
+    def _context(self) -> Any: ...
 
     @property
     def P_last(self) -> np.ndarray | None: ...
 
     @property
     def v(self) -> np.ndarray: ...
+
 
 #: A parameter whose standard error exceeds this fraction of its magnitude is reported
 #: as poorly determined.

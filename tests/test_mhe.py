@@ -9,7 +9,7 @@ from scipy.optimize import least_squares
 from test_kalman import _kalman, _record
 
 import estim
-from estim.solvers.nlp import Solution
+from estim.solvers.solution import Solution
 
 SOLVERS = ["gauss-newton", "ipopt", "sqp", "fatrop"]
 

@@ -17,15 +17,11 @@ from estim._smoothness import advice, nonsmooth_operations, zero_derivative_para
 from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.model import Model
-from estim.solvers.nlp import (
-    LeastSquaresNLP,
-    Solution,
-    check_solver_options,
-    is_diagonal,
-    resolve_solver,
-    weight_factor,
-)
+from estim.solvers.nlp import LeastSquaresNLP
+from estim.solvers.options import check_solver_options, resolve_solver
 from estim.solvers.robust import as_loss
+from estim.solvers.solution import Solution
+from estim.solvers.weights import is_diagonal, weight_factor
 
 if TYPE_CHECKING:
     from estim.uncertainty import ParameterEstimates
@@ -456,7 +452,7 @@ class FullInformation(Estimator):
         ``prior``: ``(mean, weight factor or None)`` of the first sample (default
         ``x0`` with ``P0``'s); ``robust``: solved by Gauss-Newton whatever the solver;
         ``weights``: ``(W_Q, W_R, R)`` (default the estimator's).
-        Returns the result and the solver's :class:`~estim.solvers.nlp.Solution`
+        Returns the result and the solver's :class:`~estim.solvers.solution.Solution`
         (whether the trajectory is usable, the outliers of a robust loss).
         """
         m, T, C = self.model, Y.shape[0], capacity

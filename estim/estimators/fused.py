@@ -25,8 +25,8 @@ from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
 from estim.solvers.kalman import fused_function, record_function, step_symbols
-from estim.solvers.nlp import is_diagonal
 from estim.solvers.seeds import seed_map
+from estim.solvers.weights import is_diagonal
 
 #: :meth:`~FusedKalman.filter` keeps its compiled Function for this many record lengths.
 _RECORD_LENGTHS_KEPT = 8

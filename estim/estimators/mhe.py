@@ -23,14 +23,10 @@ from estim.estimators.mhe_rti import (
     RealTimeIteration,
 )
 from estim.model import Model
-from estim.solvers.nlp import (
-    LeastSquaresNLP,
-    check_solver_options,
-    is_diagonal,
-    resolve_solver,
-    weight_factor,
-)
+from estim.solvers.nlp import LeastSquaresNLP
+from estim.solvers.options import check_solver_options, resolve_solver
 from estim.solvers.robust import as_loss
+from estim.solvers.weights import is_diagonal, weight_factor
 
 __all__ = ["ARRIVAL_COSTS", "MHE", "RTI_STARTUP_ITERATIONS", "RTI_STARTUP_XTOL"]
 
@@ -92,7 +88,7 @@ class MHE(RealTimeIteration):
     solver : {"auto", "gauss-newton", "ipopt", "sqp", "fatrop"}
         ``"auto"`` (default): the fastest solver for the problem, which for these
         least-squares problems with box bounds is ``"gauss-newton"``
-        (:func:`~estim.solvers.nlp.resolve_solver`); the choice is
+        (:func:`~estim.solvers.options.resolve_solver`); the choice is
         :attr:`solver` and ``info.extra["solver"]``.
         ``"gauss-newton"``: the structure-exploiting projected Newton/Gauss-Newton
         solver of :mod:`estim.solvers.gauss_newton` (block-tridiagonal solve,

@@ -23,7 +23,9 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim.estimators.base import Estimator
-from estim.solvers.nlp import LeastSquaresNLP, Solution, weight_factor
+from estim.solvers.nlp import LeastSquaresNLP
+from estim.solvers.solution import Solution
+from estim.solvers.weights import weight_factor
 
 
 class MovingWindow(Estimator):

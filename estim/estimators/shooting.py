@@ -57,7 +57,7 @@ from estim.estimators.shooting_search import (
     undetermined,
 )
 from estim.model import Model
-from estim.solvers.nlp import weight_factor
+from estim.solvers.weights import weight_factor
 
 __all__ = ["METHODS", "ShootingObserver", "derivative_filter", "scipy_minimize"]
 

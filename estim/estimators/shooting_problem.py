@@ -32,7 +32,8 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim.model import Model, euler_step, rk4_step
-from estim.solvers.nlp import _casadi_reason, measurement_weights
+from estim.solvers.options import casadi_reason
+from estim.solvers.weights import measurement_weights
 
 
 def derivative_filter(samples: np.ndarray, dt: float) -> np.ndarray:
@@ -177,7 +178,7 @@ def build_problem(model: Model, window: int, every: int, direction: str, method:
                 "ipopt.max_iter": max_iter, "ipopt.tol": 1e-10})
         except (RuntimeError, NotImplementedError) as exc:
             raise ValueError(f"method='ipopt': CasADi refused to build the solver "
-                             f"(max_iter={max_iter}): {_casadi_reason(exc)}") from None
+                             f"(max_iter={max_iter}): {casadi_reason(exc)}") from None
     return ShootingFunctions(
         J=FastFunction(ca.Function("J", args, [J, ca.gradient(J, x0)])),
         terms=FastFunction(ca.Function("terms", args, [cost, cost_d])),

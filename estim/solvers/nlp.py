@@ -33,23 +33,14 @@ from estim.model import Model
 from estim.solvers.builders import build_eliminated, build_fatrop, solve_fatrop
 from estim.solvers.gauss_newton import StructuredGaussNewton, full_record_constants
 from estim.solvers.options import (
-    SOLVER_CHOICES,
     SOLVERS,
-    check_solver_options,
-    resolve_solver,
 )
-from estim.solvers.options import (
-    casadi_reason as _casadi_reason,
-)
-from estim.solvers.reweighting import IRLS_MAX, IRLS_WTOL, Reweighted
-from estim.solvers.robust import OUTLIER_SIGMA, RobustLoss
+from estim.solvers.reweighting import Reweighted
+from estim.solvers.robust import RobustLoss
 from estim.solvers.solution import Solution
-from estim.solvers.weights import is_diagonal, measurement_weights, weight_factor
+from estim.solvers.weights import measurement_weights
 
-#: Names the estimators import from here (defined in the modules above).
-__all__ = ["_casadi_reason", "IRLS_MAX", "IRLS_WTOL", "OUTLIER_SIGMA", "SOLVERS", "SOLVER_CHOICES",
-           "LeastSquaresNLP", "Solution", "check_solver_options", "is_diagonal",
-           "measurement_weights", "resolve_solver", "weight_factor"]
+__all__ = ["LeastSquaresNLP"]
 
 
 class LeastSquaresNLP(Reweighted):
