@@ -112,8 +112,9 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     ValueError
         An invalid ``name``; a model with ``variable_dt=True`` (the interval of each
         step would be an argument of the C step: not supported) or integrated by
-        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); an MHE
-        without ``rti=True`` or with ``horizon=1``.
+        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); a filter
+        with ``form="sqrt"`` (not exported yet); an MHE without ``rti=True`` or with
+        ``horizon=1``.
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
@@ -128,6 +129,9 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
         mhe.check(estimator)
     else:
         check_model(m)
+        if estimator.form != "covariance":
+            raise ValueError(f"form={estimator.form!r} is not exported yet: build the filter "
+                             f"with form='covariance' to export it")
     if name is None:
         name = re.sub(r"\W+", "_", f"{estimator.name}_{m.name}".lower()).strip("_")
         if name[:1].isdigit():

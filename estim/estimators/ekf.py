@@ -9,6 +9,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_bool
 from estim.estimators.fused import FusedKalman
 from estim.estimators.smoothing import SmoothResult, rts
+from estim.estimators.square_root import check_form, covariances, ekf_step
 from estim.model import Model
 from estim.solvers.rts import transitions
 
@@ -58,6 +59,15 @@ class EKF(FusedKalman):
         disagreement (a diverged estimate rather than an outlier) opens the gate
         again, and the status says ``"rejected: ..."``. None (default): every
         measurement is used, as in the textbook filter.
+    form : {"covariance", "sqrt"}
+        ``"covariance"`` (default): the equations above. ``"sqrt"``: the square-root
+        form, which carries the Cholesky factor :math:`S` of :math:`P = S S^\top`
+        and forms every factor by orthogonal transformations (time update
+        :math:`\bar S = \operatorname{tria}([A S, L_Q])`, measurement update by the
+        array form of Morf and Kailath): the covariance stays symmetric and positive
+        semi-definite where the covariance form loses definiteness (nearly exact
+        measurements, badly scaled states). The same estimates to rounding otherwise
+        (:mod:`estim.estimators.square_root`, docs/ekf.md).
 
     Attributes
     ----------
@@ -77,14 +87,18 @@ class EKF(FusedKalman):
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
-                 upper: ArrayLike | None = None, gate: float | None = None):
+                 upper: ArrayLike | None = None, gate: float | None = None,
+                 form: str = "covariance"):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.form, self._sqrt = check_form(form)
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
         self._compile()
 
     def _build(self, predict: bool) -> ca.Function:
+        if self._sqrt:
+            return ekf_step(self, predict)
         m = self.model
         nx = m.nx
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
@@ -181,9 +195,11 @@ class EKF(FusedKalman):
 
     @property
     def P(self) -> np.ndarray:
-        """Current covariance (a view of the filter state)."""
+        """Current covariance (a view of the filter state; a new array, ``S S^T``, in the
+        square-root form)."""
         nx = self.model.nx
-        return self._s[nx:].reshape(nx, nx, order="F")
+        P = self._s[nx:].reshape(nx, nx, order="F")
+        return covariances(P) if self._sqrt else P
 
     def _failure_texts(self, flags) -> tuple[str, str]:
         return ("failed: non-finite update (h or dh/dx at the prediction); kept the prediction",

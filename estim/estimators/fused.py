@@ -8,7 +8,10 @@ derivative usable, suspect, gated)``. This class turns them into the step's stat
 change and :class:`~estim.StepInfo`: a suspect step keeps its update, a gated one the
 prediction with ``P0`` added, and a failed one keeps a trusted prediction or
 re-anchors on the last trusted estimate with ``P + P0`` (see
-:meth:`Estimator._anchor`).
+:meth:`Estimator._anchor`). In the square-root form (``form="sqrt"``,
+:mod:`estim.estimators.square_root`) the filter state holds the lower factor ``S`` of
+``P = S S^T`` instead, the tuning the factors of ``Q`` and ``R``, and the sums with
+``P0`` are factored by QR.
 """
 
 from __future__ import annotations
@@ -24,6 +27,13 @@ from estim._validate import as_inputs, as_intervals, as_record
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
+from estim.estimators.square_root import (
+    P0_data,
+    covariance,
+    covariances,
+    noise_factors,
+    with_P0,
+)
 from estim.solvers.kalman import fused_function, record_function, step_symbols
 from estim.solvers.seeds import seed_map
 from estim.solvers.weights import is_diagonal
@@ -46,6 +56,8 @@ class FusedKalman(Estimator):
     gate: float | None
     #: The prior's covariance: every filter requires one.
     P0: np.ndarray
+    #: ``"covariance"``, or ``"sqrt"`` (``_sqrt``): the filter state holds a factor of P.
+    form, _sqrt = "covariance", False
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -82,13 +94,14 @@ class FusedKalman(Estimator):
 
     def _tuning_changed(self) -> None:
         nx = self.model.nx
-        self._tun[:nx * nx] = self.Q.ravel(order="F")
-        self._tun[nx * nx:] = self.R.ravel(order="F")
+        Q, R = noise_factors(self.Q, self.R, self._diagonal) if self._sqrt else (self.Q, self.R)
+        self._tun[:nx * nx] = Q.ravel(order="F")
+        self._tun[nx * nx:] = R.ravel(order="F")
 
     def _reset(self) -> None:
         nx = self.model.nx
         self._s[:nx] = self.x0
-        self._s[nx:] = self.P0.ravel(order="F")
+        self._s[nx:] = P0_data(self.P0, self._sqrt)
         # the anchor of a failed step: the filter state after the last step reported "ok"
         # (the prior to begin with), which is in _s while every step is ok and saved in
         # _s_trusted when a step is not
@@ -112,10 +125,11 @@ class FusedKalman(Estimator):
         self._trusted = not suspect
         if flags[7]:  # gated: the prediction, with P0 added
             self._s[:] = s_prior
-            self._s[nx:] += self.P0.ravel(order="F")
+            self._s[nx:] = with_P0(self._s[nx:], self.P0, self._sqrt)
         else:
             self._s[:] = s_new
-        info = StepInfo._fast(P=self._s[nx:].reshape(nx, nx, order="F").copy(),
+        P = self._s[nx:].reshape(nx, nx, order="F")
+        info = StepInfo._fast(P=P @ P.T if self._sqrt else P.copy(),
                               innovation=e.copy(),
                               nis=float(flags[0]) if flags[4] else float("nan"))  # no output
         if suspect:
@@ -145,10 +159,14 @@ class FusedKalman(Estimator):
             status = kept
         else:
             nx = self.model.nx
-            x, P = self._anchor(self._s_trusted[:nx],
-                                self._s_trusted[nx:].reshape(nx, nx, order="F"))
+            if self._sqrt:  # the factor of S S^T + P0
+                x = self._anchor(self._s_trusted[:nx])[0]
+                self._s[nx:] = with_P0(self._s_trusted[nx:], self.P0, True)
+            else:
+                x, P = self._anchor(self._s_trusted[:nx],
+                                    self._s_trusted[nx:].reshape(nx, nx, order="F"))
+                self._s[nx:] = P.ravel(order="F")
             self._s[:nx] = x
-            self._s[nx:] = P.ravel(order="F")
             s_new, _, flags, _ = self._update.evaluate()
             if flags[1]:
                 self._s[:] = s_new
@@ -156,9 +174,8 @@ class FusedKalman(Estimator):
                       f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
         self._trusted = False
         nx = self.model.nx
-        return self._s[:nx].copy(), StepInfo(
-            status=status, success=False,
-            P=self._s[nx:].reshape(nx, nx, order="F").copy())
+        return self._s[:nx].copy(), StepInfo(status=status, success=False,
+                                             P=covariance(self._s[nx:], self._sqrt))
 
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> FilterResult:
@@ -206,12 +223,14 @@ class FusedKalman(Estimator):
                                np.concatenate([[m.dt], dts]))
         self.reset()
         S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
-            self._s, Y.T, W.T, self._tun, self.P0.ravel(order="F")))
+            self._s, Y.T, W.T, self._tun, P0_data(self.P0, self._sqrt)))
         failed = np.flatnonzero(F[1] == 0)
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nx, nx), np.nan)
         X[:n] = S[:nx, :n].T
         P[:n] = S[nx:, :n].T.reshape(n, nx, nx).transpose(0, 2, 1)  # column-major
+        if self._sqrt:
+            P[:n] = covariances(P[:n])
         innovation, nis = np.full((T, ny), np.nan), np.full(T, np.nan)
         innovation[:n] = E[:, :n].T
         measured = F[4, :n] > 0
@@ -257,7 +276,7 @@ class FusedKalman(Estimator):
         if (T, expand) in cache:
             return cache[T, expand]
         fun = FastFunction(record_function(f"{self.name}_record", self.model, self._build, T,
-                                           expand=expand))
+                                           expand=expand, sqrt=self._sqrt))
         if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
             del cache[next(iter(cache))]
         cache[T, expand] = fun
@@ -305,11 +324,13 @@ class FusedKalman(Estimator):
         fun.build(S)
         t1 = time.perf_counter()
         Sx, _, F = fun([self._s, Y.reshape(S, -1), W.ravel(), self._tun,
-                        self.P0.ravel(order="F")], S)
+                        P0_data(self.P0, self._sqrt)], S)
         seconds = time.perf_counter() - t1
         Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
         X = Sx[:, :, :nx]
         P = Sx[:, :, nx:].reshape(S, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
+        if self._sqrt:
+            P = covariances(P)
         nis = np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan)
         failed = (F[:, :, 1] == 0).any(axis=1)
         suspect = (F[:, :, 6] + F[:, :, 7]) > 0

@@ -9,6 +9,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
 from estim.estimators.smoothing import SmoothResult, rts
+from estim.estimators.square_root import check_form, covariances, ukf_step
 from estim.model import Model
 from estim.solvers.rts import transitions
 
@@ -71,6 +72,12 @@ class UKF(FusedKalman):
     gate : float, optional
         Reject a measurement whose normalised innovation squared lies beyond this
         tail probability of its chi-square distribution, as :class:`~estim.EKF` does.
+    form : {"covariance", "sqrt"}
+        ``"covariance"`` (default): the equations above. ``"sqrt"``: the square-root
+        UKF of van der Merwe and Wan, which carries the Cholesky factor of :math:`P`,
+        draws the sigma points from it and forms every factor by QR and rank-one
+        downdates: the same estimates to rounding, and a covariance that stays
+        positive semi-definite (:mod:`estim.estimators.square_root`, docs/ekf.md).
 
     References
     ----------
@@ -88,8 +95,10 @@ class UKF(FusedKalman):
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
-                 kappa: float = 0.0, clip: bool = False, gate: float | None = None):
+                 kappa: float = 0.0, clip: bool = False, gate: float | None = None,
+                 form: str = "covariance"):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)
         if not isinstance(points, str) or points not in POINTS:
             raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
@@ -117,6 +126,8 @@ class UKF(FusedKalman):
         return centre + [x + d for d in offsets] + [x - d for d in offsets], definite
 
     def _build(self, predict: bool) -> ca.Function:
+        if self._sqrt:
+            return ukf_step(self, predict)
         m = self.model
         Wm, Wc = self._Wm, self._Wc
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
@@ -257,7 +268,8 @@ class UKF(FusedKalman):
     def P(self) -> np.ndarray:
         """Current covariance."""
         nx = self.model.nx
-        return self._s[nx:].reshape(nx, nx, order="F").copy()
+        P = self._s[nx:].reshape(nx, nx, order="F")
+        return covariances(P) if self._sqrt else P.copy()
 
     def _failure_texts(self, flags) -> tuple[str, str]:
         return ("failed: update non-finite or its covariance not positive definite; "

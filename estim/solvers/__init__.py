@@ -9,6 +9,8 @@ several of them solve lives here, below them and above the model:
   Gauss-Newton solver), with robust reweighting (:mod:`~estim.solvers.robust`);
 - :mod:`~estim.solvers.rti`: the real-time iteration of the moving horizon estimator;
 - :mod:`~estim.solvers.kalman`: the fused Kalman step and its whole-record scan;
+- :mod:`~estim.solvers.triangular`: QR triangularisation, Cholesky downdates and
+  triangular solves for the square-root filters;
 - :mod:`~estim.solvers.rts`: the Rauch-Tung-Striebel backward recursion;
 - :mod:`~estim.solvers.seeds`: one-seed Functions run over many seeds.
 """

@@ -32,6 +32,7 @@ import casadi as ca
 from estim._scan import blocked_scan
 from estim.consistency import SUSPECT_TAIL, chi2_limit
 from estim.model import Model
+from estim.solvers.triangular import tria
 
 __all__ = ["fused_function", "matrix", "record_function", "step_symbols"]
 
@@ -83,10 +84,13 @@ def fused_function(name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf, 
 
 
 def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Function], T: int,
-                    expand: bool = True) -> ca.Function:
+                    expand: bool = True, sqrt: bool = False) -> ca.Function:
     """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step ``build(predict)`` over
     ``T`` samples (the first an update only), the filter state, innovation and flags of
     every sample side by side; a gated step keeps the prediction with ``P0`` added.
+    With ``sqrt``, the filter state holds the lower factor ``S`` of ``P`` and the input
+    ``P0`` the Cholesky factor of ``P0``: a gated step keeps the factor
+    ``tria([S_prior, chol(P0)])`` (:func:`estim.solvers.triangular.tria`).
     Scanned in blocks of about :math:`\\sqrt T` steps (:func:`estim._scan.blocked_scan`);
     not ``expand``: the step is called in loops instead of inlined (the form to compile
     to C). The Functions are named ``{prefix}_first``, ``{prefix}_step`` and
@@ -99,7 +103,12 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
         y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nx * nx + ny * ny)
         P0 = ca.SX.sym("P0", nx * nx)
         s_new, e, flags, s_prior = build(predict)(s, w, y, tun)
-        s_next = ca.if_else(flags[7], s_prior + ca.vertcat(ca.SX(nx, 1), P0), s_new)
+        if sqrt:
+            factor = tria(ca.horzcat(ca.reshape(s_prior[nx:], nx, nx), ca.reshape(P0, nx, nx)))
+            gated = ca.vertcat(s_prior[:nx], ca.vec(factor))
+        else:
+            gated = s_prior + ca.vertcat(ca.SX(nx, 1), P0)
+        s_next = ca.if_else(flags[7], gated, s_new)
         return ca.Function(f"{prefix}_" + ("step" if predict else "first"),
                            [s, w, y, tun, P0], [s_next, s_next, e, flags],
                            ["s", "w", "y", "tuning", "P0"],
