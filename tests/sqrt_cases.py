@@ -10,6 +10,7 @@ freedom, independent across runs.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import casadi as ca
@@ -78,10 +79,10 @@ def cases(T: int = 40) -> list[Case]:
 
 def run(case: Case, cls: type, form: str, seed: int, **options) -> dict:
     r"""One run of ``cls(..., form=form)`` step by step: the failed steps (not
-    ``info.success``), the steps whose covariance is not positive definite, and the NEES
-    of every sample (NaN where the covariance is not definite). The NEES
-    :math:`\|L^{-1} e\|^2` uses the Cholesky factor of ``info.P`` in the covariance
-    form and the filter's own factor in the square-root form (forming
+    ``info.success``), the steps whose covariance is not positive definite, the NEES of
+    every sample (NaN where the covariance is not definite) and the mean seconds of a
+    step. The NEES :math:`\|L^{-1} e\|^2` uses the Cholesky factor of ``info.P`` in
+    the covariance form and the filter's own factor in the square-root form (forming
     :math:`P = S S^\top` first would square its condition number)."""
     X, Y = case.record(seed)
     nx = len(case.A)
@@ -89,8 +90,11 @@ def run(case: Case, cls: type, form: str, seed: int, **options) -> dict:
               **options)
     failed = indefinite = 0
     nees = np.full(case.T, np.nan)
+    seconds = 0.0
     for k in range(case.T):
+        t0 = time.perf_counter()
         x = est.step(Y[k])
+        seconds += time.perf_counter() - t0
         info = est.info
         failed += not info.success
         if form == "sqrt":
@@ -106,7 +110,8 @@ def run(case: Case, cls: type, form: str, seed: int, **options) -> dict:
             continue
         z = linalg.solve_triangular(L, x - X[k], lower=True)
         nees[k] = z @ z
-    return {"failed": failed, "indefinite": indefinite, "nees": nees}
+    return {"failed": failed, "indefinite": indefinite, "nees": nees,
+            "seconds": seconds / case.T}
 
 
 def nees_band(n_runs: int, nx: int, n_samples: int, level: float = 0.95
