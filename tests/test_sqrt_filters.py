@@ -4,12 +4,15 @@ covariance form loses definiteness."""
 
 from __future__ import annotations
 
+import copy
 import warnings
 
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import make_linear
 from filterpy.kalman import KalmanFilter
+from models import two_tanks
 from sqrt_cases import cases, nees_band, run
 from test_kalman import _record
 
@@ -129,14 +132,39 @@ def test_gate_recovery_and_smoother_in_the_sqrt_form(kind):
     sm_c, sm_s = cov.smooth(Y), sqrt.smooth(Y)
     np.testing.assert_allclose(sm_s.x, sm_c.x, rtol=0, atol=TOL)
     np.testing.assert_allclose(sm_s.P, sm_c.P, rtol=0, atol=TOL)
-    # a non-finite measurement function re-anchors with P + P0 in both forms
-    for est in (cov, sqrt):
-        est.reset()
-        for y in Y[:5]:
-            est.step(y)
-        est._recover(np.array([0, 0, 0, 0, 1, 0, 0, 0.0]), est._s.copy())
-    np.testing.assert_allclose(sqrt.P, cov.P, rtol=0, atol=TOL)
-    np.testing.assert_allclose(sqrt.x, cov.x, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("kind", ["EKF", "UKF merwe"])
+def test_failed_steps_recover_as_in_the_covariance_form(kind):
+    """Clipping to an empty tank makes the update non-finite on seed 3: the kept
+    prediction and the re-anchoring with P + P0 are those of the covariance form."""
+    m = two_tanks()
+    tuning = dict(Q=1e-4, R=0.01, x0=[0.5, 0.05], P0=1.0)
+    sc = estim.Scenario("tanks", m, x0=[0.5, 0.5], n_steps=60, Q=1e-4, R=0.01,
+                        inputs=lambda t: [0.3], clip=True, tuning=tuning)
+    logs = [estim.simulate(sc, FILTERS[kind](m, **tuning, clip=True, form=form), seed=3,
+                           warn=False) for form in ("covariance", "sqrt")]
+    assert not logs[0].success.all()
+    assert list(logs[1].status) == list(logs[0].status)
+    np.testing.assert_allclose(logs[1].x_hat, logs[0].x_hat, rtol=0, atol=TOL)
+    np.testing.assert_allclose(logs[1].P, logs[0].P, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("hold", ["zoh", "foh"])
+def test_clip_and_inputs_in_the_output(hold):
+    """Clipping (active: the spring swings below its bound) and an input in the output,
+    held or sampled, as in the covariance form, after a deep copy of the filter."""
+    sc = _spring(hold)
+    Y = _with_gaps(estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0).y)
+    U = np.asarray(sc.inputs)
+    U = U if sc.model.sampled else U[:-1]
+    for kind in ("EKF", "UKF merwe"):
+        ests = [FILTERS[kind](sc.model, **sc.tuning, clip=True, form=form)
+                for form in ("covariance", "sqrt")]
+        ests[1] = copy.deepcopy(ests[1])
+        ref, res = (est.filter(Y, U) for est in ests)
+        np.testing.assert_allclose(res.x, ref.x, rtol=0, atol=TOL)
+        np.testing.assert_allclose(res.P, ref.P, rtol=0, atol=TOL)
 
 
 @pytest.mark.parametrize("kind", ["EKF", "UKF merwe"])
@@ -159,11 +187,12 @@ def test_sqrt_form_never_fails_where_the_covariance_form_breaks(kind, case):
     assert np.all((nees >= lo) & (nees <= hi)), (nees.min(), nees.max(), lo, hi)
 
 
-def _spring() -> estim.Scenario:
-    import casadi as ca
+def _spring(hold: str = "zoh") -> estim.Scenario:
+    """A spring whose output sees the input, which is held or sampled."""
     m = estim.Model(states=["q", "v"], outputs=["q"], inputs=["u"],
                     ode=lambda x, u, p: ca.vertcat(x[1], -49.0 * x[0] - 1.4 * x[1] + 3 * u[0]),
-                    output=lambda x, u, p: x[0] + 0.1 * u[0], dt=0.05, name="spring")
+                    output=lambda x, u, p: x[0] + 0.1 * u[0], dt=0.05, hold=hold,
+                    lower={"q": -0.02}, name="spring")
     T = 100
     return estim.Scenario("spring", m, x0=[0.0, 0.0], n_steps=T, Q=1e-4, R=1e-3,
                           inputs=np.sin(0.3 * np.arange(T))[:, None],
