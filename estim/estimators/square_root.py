@@ -86,8 +86,10 @@ def noise_factors(Q: np.ndarray, R: np.ndarray, diagonal: dict[str, bool]
     (semi-definite allowed, see :func:`~estim.solvers.triangular.psd_factor`) and
     ``R``; diagonal (the square roots of the diagonal) where the graphs read the
     diagonal only."""
-    return tuple(np.diag(np.sqrt(np.diag(M))) if diagonal[name] else psd_factor(M)
-                 for name, M in (("Q", Q), ("R", R)))  # type: ignore[return-value]
+    def factor(M: np.ndarray, name: str) -> np.ndarray:
+        return np.diag(np.sqrt(np.diag(M))) if diagonal[name] else psd_factor(M)
+
+    return factor(Q, "Q"), factor(R, "R")
 
 
 def covariances(S: np.ndarray) -> np.ndarray:
