@@ -17,6 +17,11 @@ in this order:
 values, then dimensions
     What the exporter computes: C literals (``@Q@``, ``@LOWER@``, ...) and text
     (the MHE's ``@FIELDS@``), then integers (``@NX@``, ``@SZ_W@``, ``@BYTES@``, ...).
+
+Before that, the template's sections are chosen (:func:`sections`): lines between a
+line ``@if <switch>@`` and a line ``@else@`` (or ``@end@``) are kept where the switch
+is on, those between ``@else@`` and ``@end@`` where it is off, and the three marker
+lines go (e.g. the square-root form's driver, ``@if sqrt@``).
 """
 
 from __future__ import annotations
@@ -61,6 +66,41 @@ def check_model(m: Model) -> None:
                          f"runtime: build the model with integrator='rk4' to export")
 
 
+def sections(text: str, switches: Mapping[str, bool]) -> str:
+    """``text`` with its conditional sections chosen by ``switches`` (see the module's
+    docstring; sections nest); a text without markers is returned unchanged.
+
+    Raises
+    ------
+    ValueError
+        A marker without its ``@if``, an ``@if`` without its ``@end``.
+    """
+    if "@if " not in text:
+        return text
+    kept: list[str] = []
+    stack: list[tuple[bool, bool]] = []  # (the enclosing section is kept, the switch)
+    keep = True
+    for line in text.splitlines(keepends=True):
+        marker = line.strip()
+        if marker.startswith("@if ") and marker.endswith("@"):
+            stack.append((keep, bool(switches[marker[4:-1]])))
+            keep = keep and stack[-1][1]
+        elif marker in ("@else@", "@end@"):
+            if not stack:
+                raise ValueError(f"{marker} without @if")
+            outer, on = stack[-1]
+            if marker == "@else@":
+                keep = outer and not on
+            else:
+                stack.pop()
+                keep = outer
+        elif keep:
+            kept.append(line)
+    if stack:
+        raise ValueError("@if without @end")
+    return "".join(kept)
+
+
 @functools.cache
 def template(filename: str) -> str:
     """The text of ``templates/<filename>`` (package data)."""
@@ -68,8 +108,9 @@ def template(filename: str) -> str:
 
 
 def fill(text: str, name: str, model: Model, description: str, values: Mapping[str, str],
-         dims: Mapping[str, int]) -> str:
-    """``text`` with its placeholders ``@key@`` replaced (see the module's docstring).
+         dims: Mapping[str, int], switches: Mapping[str, bool] | None = None) -> str:
+    """``text`` with its sections chosen and its placeholders ``@key@`` replaced (see the
+    module's docstring).
 
     Parameters
     ----------
@@ -85,7 +126,10 @@ def fill(text: str, name: str, model: Model, description: str, values: Mapping[s
         Text by placeholder, replaced after the fixed ones.
     dims : mapping of str to int
         Integers by placeholder, replaced last.
+    switches : mapping of str to bool, optional
+        The switches of the template's sections (none by default).
     """
+    text = sections(text, switches or {})
     text = (text.replace("@name@", name).replace("@NAME@", name.upper())
             .replace("@filter@", description).replace("@model@", model.name)
             .replace("@version@", __version__).replace("@CFLAGS@", CFLAGS)
@@ -101,16 +145,18 @@ def fill(text: str, name: str, model: Model, description: str, values: Mapping[s
 
 
 def write_driver(paths: Mapping[str, Path], kind: str, name: str, model: Model,
-                 description: str, values: Mapping[str, str], dims: Mapping[str, int]) -> None:
+                 description: str, values: Mapping[str, str], dims: Mapping[str, int],
+                 switches: Mapping[str, bool] | None = None) -> None:
     """Write the driver's header and source, the Makefile and the README of ``kind``
     (``"kalman"`` or ``"mhe"``: the templates ``<kind>.h.in``, ``<kind>.c.in``,
-    ``<kind>.README.md.in`` and the shared ``Makefile.in``) to ``paths["h"]``,
-    ``paths["c"]``, ``paths["makefile"]`` and ``paths["readme"]``."""
+    ``<kind>.README.md.in`` and the shared ``Makefile.in``, their sections chosen by
+    ``switches``) to ``paths["h"]``, ``paths["c"]``, ``paths["makefile"]`` and
+    ``paths["readme"]``."""
     files = {"h": f"{kind}.h.in", "c": f"{kind}.c.in", "makefile": "Makefile.in",
              "readme": f"{kind}.README.md.in"}
     for key, filename in files.items():
         paths[key].write_text(fill(template(filename), name, model, description, values,
-                                   dims))
+                                   dims, switches))
 
 
 def c_double(v: float) -> str:
