@@ -74,6 +74,15 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     NaN in ``y`` marks a missing output, as in Python. For a model with sampled
     inputs (``hold="foh"``) the driver keeps the previous input, as ``step`` does.
 
+    A filter with ``form="sqrt"`` is exported in its square-root form: the filter
+    state is :math:`s = [x; \operatorname{vec}(S)]`, :math:`P = S S^\top`, the step
+    functions read the tuning :math:`[\operatorname{vec}(L_Q);
+    \operatorname{vec}(L_R)]`, and ``<name>_functions.c`` also holds
+    ``<name>_noise_factors``, ``<name>_cholesky``, ``<name>_add_P0`` (the factor
+    :math:`\operatorname{tria}([S, \operatorname{chol}(P_0)])` of :math:`P + P_0` that
+    the gate and the recovery keep) and ``<name>_covariance`` (:math:`S S^\top`, the
+    covariance the step writes); the struct's ``Q``, ``R`` and ``P0`` stay covariances.
+
     For an :class:`~estim.MHE` with ``rti=True`` the same six files hold the
     generated ``<name>_prepare_window``, ``<name>_feedback_window``,
     ``<name>_window_cost``, ``<name>_cov_step`` and ``<name>_transition``, and a
@@ -112,9 +121,8 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     ValueError
         An invalid ``name``; a model with ``variable_dt=True`` (the interval of each
         step would be an argument of the C step: not supported) or integrated by
-        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); a filter
-        with ``form="sqrt"`` (not exported yet); an MHE without ``rti=True`` or with
-        ``horizon=1``.
+        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); an MHE
+        without ``rti=True`` or with ``horizon=1``.
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
@@ -129,9 +137,6 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
         mhe.check(estimator)
     else:
         check_model(m)
-        if estimator.form != "covariance":
-            raise ValueError(f"form={estimator.form!r} is not exported yet: build the filter "
-                             f"with form='covariance' to export it")
     if name is None:
         name = re.sub(r"\W+", "_", f"{estimator.name}_{m.name}".lower()).strip("_")
         if name[:1].isdigit():
@@ -158,8 +163,9 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
 def memory(estimator: EKF | UKF | MHE) -> int:
     """Bytes of the struct ``<name>_t`` that :func:`export` writes for ``estimator``
     (8-byte doubles, pointers and ``casadi_int``; the filter state, the tuning, the
-    step's results and CasADi's work arrays; for the MHE also the window, the
-    arrival cost and the real-time iteration's intermediate results)."""
+    step's results and CasADi's work arrays; in the square-root form also the factor
+    of ``P0``; for the MHE also the window, the arrival cost and the real-time
+    iteration's intermediate results)."""
     from estim.estimators.mhe import MHE
 
     if isinstance(estimator, MHE):

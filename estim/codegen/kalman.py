@@ -6,6 +6,14 @@ innovation, flags, s_prior)`` with the filter state :math:`s = [x;
 \operatorname{vec}(P)]`, and the driver of ``templates/kalman.c.in``, which does with
 their flags what :meth:`~estim.Estimator.step` does (the gate, the suspect flag, the
 recovery of a failed update).
+
+In the square-root form (``form="sqrt"``) the filter state is :math:`s = [x;
+\operatorname{vec}(S)]`, :math:`P = S S^\top`, and the tuning
+:math:`[\operatorname{vec}(L_Q); \operatorname{vec}(L_R)]`; four more generated
+Functions serve the driver (:func:`factor_functions`): the factors of ``Q`` and ``R``
+that a step reads, the Cholesky factor of ``P0``, the factor
+:math:`\operatorname{tria}([S, \operatorname{chol}(P_0)])` of :math:`P + P_0` that the
+gate and the recovery keep, and :math:`S S^\top`, the covariance a step reports.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 
 from estim.codegen.files import c_array, generate, renamed, work_sizes, write_driver
+from estim.solvers.triangular import tria
 
 if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
@@ -32,9 +41,72 @@ _FILTER_IN = ["s", "w", "y", "tuning"]
 
 def functions(estimator: EKF | UKF, name: str) -> list[ca.Function]:
     """The filter's two step functions under the C names ``<name>_update`` and
-    ``<name>_predict_update``, every output dense."""
-    return [renamed(estimator._update.fun, f"{name}_update", _FILTER_IN),
+    ``<name>_predict_update``, every output dense; in the square-root form followed by
+    :func:`factor_functions`."""
+    funs = [renamed(estimator._update.fun, f"{name}_update", _FILTER_IN),
             renamed(estimator._predict_update.fun, f"{name}_predict_update", _FILTER_IN)]
+    return funs + (factor_functions(estimator, name) if estimator.form == "sqrt" else [])
+
+
+def cholesky(A: ca.SX) -> ca.SX:
+    r"""The lower Cholesky factor :math:`L` of a symmetric ``A`` (``(n, n)``),
+    :math:`L L^\top = A`, column by column; a pivot that is not positive gives a zero
+    column (a semi-definite ``A`` whose null space is spanned by unit vectors, such as a
+    ``Q`` without noise on some states, is factored exactly)."""
+    n = A.shape[0]
+    L = ca.SX.zeros(n, n)
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d = d - L[j, k] * L[j, k]
+        root = ca.sqrt(ca.fmax(d, 0))
+        L[j, j] = root
+        for i in range(j + 1, n):
+            a = A[i, j]
+            for k in range(j):
+                a = a - L[i, k] * L[j, k]
+            L[i, j] = ca.if_else(root > 0, a / root, 0)
+    return L
+
+
+def factor_functions(estimator: EKF | UKF, name: str) -> list[ca.Function]:
+    r"""The square-root form's Functions for the driver, under their C names:
+
+    ``<name>_noise_factors``
+        ``(Q, R) -> [vec(L_Q); vec(L_R)]``, the tuning a step reads: the square roots
+        of the diagonal where the filter reads the diagonal only, else
+        :func:`cholesky`.
+    ``<name>_cholesky``
+        ``P0 -> vec(chol(P0))``, the factor after a reset.
+    ``<name>_add_P0``
+        ``(vec(S), vec(L0)) -> vec(tria([S, L0]))``, the factor of
+        :math:`S S^\top + L_0 L_0^\top` (:func:`~estim.solvers.triangular.tria`, as
+        the Python gate and recovery form it).
+    ``<name>_covariance``
+        ``vec(S) -> vec(S S^T)``, the covariance a step reports.
+    """
+    m = estimator.model
+    nx, ny = m.nx, m.ny
+    Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)
+    diagonal = estimator._diagonal
+
+    def factor(M: ca.SX, key: str) -> ca.SX:
+        if diagonal[key]:
+            return ca.diag(ca.sqrt(ca.diag(M)))
+        return cholesky(M)
+
+    tuning = ca.vertcat(ca.vec(factor(Q, "Q")), ca.vec(factor(R, "R")))
+    P0, S, L0 = (ca.SX.sym(k, nx * nx) for k in ("P0", "S", "L0"))
+    Sm = ca.reshape(S, nx, nx)
+    added = tria(ca.horzcat(Sm, ca.reshape(L0, nx, nx)))
+    dense = ca.densify
+    return [ca.Function(f"{name}_noise_factors", [ca.vec(Q), ca.vec(R)], [dense(tuning)],
+                        ["Q", "R"], ["tuning"]),
+            ca.Function(f"{name}_cholesky", [P0], [dense(ca.vec(cholesky(
+                ca.reshape(P0, nx, nx))))], ["P0"], ["L0"]),
+            ca.Function(f"{name}_add_P0", [S, L0], [dense(ca.vec(added))], ["S", "L0"],
+                        ["S_added"]),
+            ca.Function(f"{name}_covariance", [S], [dense(ca.vec(Sm @ Sm.T))], ["S"], ["P"])]
 
 
 def dimensions(estimator: EKF | UKF, sizes: Mapping[str, int]) -> dict[str, int]:
@@ -52,6 +124,7 @@ def dimensions(estimator: EKF | UKF, sizes: Mapping[str, int]) -> dict[str, int]
     doubles = (nx * nx + ny * ny + nx + nx * nx  # Q, R, x0, P0
                + 2 * ns + d["NU1"] + 1 + d["NY1"]  # s, s_trusted, u_last, nis, innovation
                + d["NW1"] + nt + ns + d["NY1"] + 8 + ns  # w_in, tuning, results
+               + (nx * nx if estimator.form == "sqrt" else 0)  # L0, the factor of P0
                + sizes["w"])
     ints = 2  # first, trusted (int, 4 bytes each)
     d["BYTES"] = 8 * (doubles + sizes["arg"] + sizes["res"] + sizes["iw"]) + 4 * ints
@@ -71,8 +144,10 @@ def values(estimator: EKF | UKF) -> dict[str, str]:
 
 def describe(estimator: EKF | UKF) -> str:
     """What the filter is, as the files' comments say it: ``UKF, points='cubature',
-    clip=True, gate=1e-06``."""
+    clip=True, gate=1e-06`` (``EKF, form='sqrt'`` in the square-root form)."""
     parts = [type(estimator).__name__]
+    if estimator.form != "covariance":
+        parts.append(f"form={estimator.form!r}")
     points = getattr(estimator, "points", None)  # the UKF's sigma points
     if points:
         parts.append(f"points={points!r}")
@@ -89,7 +164,8 @@ def write(estimator: EKF | UKF, directory: Path, name: str,
     funs = functions(estimator, name)
     generate(funs, directory, name)
     write_driver(paths, "kalman", name, estimator.model, describe(estimator),
-                 values(estimator), dimensions(estimator, work_sizes(funs)))
+                 values(estimator), dimensions(estimator, work_sizes(funs)),
+                 {"sqrt": estimator.form == "sqrt"})
 
 
 def memory(estimator: EKF | UKF) -> int:
