@@ -221,12 +221,6 @@ def test_simulate_and_compare_with_sqrt_filters(scenario):
     np.testing.assert_allclose(log_s.P, log_c.P, rtol=0, atol=TOL)
 
 
-def test_export_refuses_the_sqrt_form(tmp_path):
-    sc = estim.scenarios.van_der_pol()
-    with pytest.raises(ValueError, match="form='sqrt' is not exported yet"):
-        estim.codegen.export(estim.EKF(sc.model, **sc.tuning, form="sqrt"), tmp_path)
-
-
 def test_a_singular_process_noise_and_new_tuning():
     """Q = 0 and a rank-one Q have factors; set_tuning rewrites them."""
     sys = make_linear(3)
