@@ -8,7 +8,7 @@ import ctypes
 
 import numpy as np
 import pytest
-from test_codegen import TOL, CFilter, _close, _code, _configuration
+from test_codegen import TOL, CFilter, _close, _code, _configuration, check_c_step
 
 import estim
 from estim import codegen
@@ -65,17 +65,7 @@ def exports(tmp_path_factory):
 def test_the_c_step_is_the_python_step(exports, key):
     est, Y, U, cf = exports(key)
     assert est.form == "sqrt"
-    log = estim.replay(est, Y, U, warn=False)
-    out = cf.run(Y, U, sampled=est.model.sampled)
-    assert out["status"].tolist() == [_code(s) for s in log.status]
-    assert _close(out["x"], log.x_hat) <= TOL
-    assert _close(out["P"], log.P) <= TOL
-    np.testing.assert_allclose(out["nis"], log.nis, rtol=TOL, atol=TOL)  # NaN where NaN
-    codes = set(out["status"].tolist())
-    for part, shown in SHOWN.items():
-        if part in key.split("_"):
-            assert shown <= codes
-    assert int(getattr(cf.lib, f"sqrt_{key}_size")()) == codegen.memory(est)
+    check_c_step(est, Y, U, cf, key, f"sqrt_{key}", SHOWN)
 
 
 def test_a_gated_step_and_a_recovery_are_exported():
