@@ -58,6 +58,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from estim.solvers.kalman import finite
 from estim.solvers.triangular import (
     cholesky_downdate,
     psd_factor,
@@ -141,11 +142,6 @@ def _measurement_noise(LR: ca.SX, mask: ca.SX, diagonal: bool) -> ca.SX:
     return D @ LR + E if diagonal else ca.horzcat(D @ LR, E)
 
 
-def _finite(v: ca.SX) -> ca.SX:
-    """1 where every entry of ``v`` is finite."""
-    return ca.fabs(ca.sum1(ca.vec(v))) < ca.inf
-
-
 def _positive_variances(S: ca.SX) -> ca.SX:
     """1 where every variance, the diagonal of :math:`S S^\\top`, is positive."""
     return ca.mmin(ca.sum2(S * S)) > 0
@@ -176,9 +172,9 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     nis = ca.sumsqr(z)
     s_new = ca.vertcat(xh, ca.vec(Sh))
     s_prior = ca.vertcat(xb, ca.vec(Sb))
-    ok = ca.logic_and(_finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
-    ok_mean = _finite(xb)
-    ok_prior = ca.logic_and(ok_mean, _finite(Sb))
+    ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
+    ok_mean = finite(xb)
+    ok_prior = ca.logic_and(ok_mean, finite(Sb))
     name = "ekf_sqrt_predict_update" if predict else "ekf_sqrt_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                ok_mean, mask, s_prior)
@@ -217,11 +213,11 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
         FX = [m.F(v, u, p) for v in sigma(x, S)]
         xb = mean(FX)
         Sb = _factor([v - xb for v in FX], Wc, LQ)
-        ok_mean = _finite(ca.vertcat(*FX))
+        ok_mean = finite(ca.vertcat(*FX))
     else:
         xb, Sb = x, S
         ok_mean = ca.SX(1)
-    ok_prior = ca.logic_and(ok_mean, _finite(ca.vertcat(xb, ca.vec(Sb))))
+    ok_prior = ca.logic_and(ok_mean, finite(ca.vertcat(xb, ca.vec(Sb))))
     sig = sigma(xb, Sb)
     uy = m.measurement_input(u)
     Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
@@ -241,7 +237,7 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
     nis = ca.sumsqr(solve_lower(Sy, e))
     s_new = ca.vertcat(xh, ca.vec(Sh))
     s_prior = ca.vertcat(xb, ca.vec(Sb))
-    ok = ca.logic_and(_finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
+    ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
     name = "ukf_sqrt_predict_update" if predict else "ukf_sqrt_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                ok_mean, mask, s_prior)

@@ -11,6 +11,7 @@ from estim.estimators.fused import FusedKalman
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariances, ukf_step
 from estim.model import Model
+from estim.solvers.kalman import finite
 from estim.solvers.rts import transitions
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
@@ -147,14 +148,14 @@ class UKF(FusedKalman):
             xb = mean(FX, Wm)
             dF = [v - xb for v in FX]
             Pb = cov(dF, dF, Wc) + Q
-            ok_mean = ca.logic_and(definite, _finite(ca.vertcat(*FX)))
+            ok_mean = ca.logic_and(definite, finite(ca.vertcat(*FX)))
         else:
             xb, Pb = x, P
             ok_mean = ca.SX(1)
         # the update draws the sigma points of the prediction again (as filterpy does)
         sig, definite = self._sigma_points(xb, Pb)
         ok_prior = ca.logic_and(ca.logic_and(ok_mean, definite),
-                                _finite(ca.vertcat(xb, ca.vec(Pb))))
+                                finite(ca.vertcat(xb, ca.vec(Pb))))
         uy = m.measurement_input(u)  # the input at this measurement
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]  # missing rows: 0
         zp = mean(Z, Wm)
@@ -175,7 +176,7 @@ class UKF(FusedKalman):
         s_new = ca.vertcat(xh, ca.vec(Ph))
         s_prior = ca.vertcat(xb, ca.vec(Pb))
         # finite, and a covariance the next sigma points can be drawn from
-        ok = ca.logic_and(_finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
+        ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
         name = "ukf_predict_update" if predict else "ukf_update"
         return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                     ok_mean, mask, s_prior)
@@ -301,11 +302,6 @@ def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
     if points == "merwe":
         Wc[0] += 1 - alpha ** 2 + beta
     return c, Wm, Wc
-
-
-def _finite(v) -> ca.SX:
-    """1 where every entry of ``v`` is finite (a NaN or inf makes the sum not finite)."""
-    return ca.fabs(ca.sum1(ca.vec(v))) < ca.inf
 
 
 def _cholesky(A) -> tuple[ca.SX, ca.SX]:

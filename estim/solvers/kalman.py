@@ -34,7 +34,12 @@ from estim.consistency import SUSPECT_TAIL, chi2_limit
 from estim.model import Model
 from estim.solvers.triangular import tria
 
-__all__ = ["fused_function", "matrix", "record_function", "step_symbols"]
+__all__ = ["finite", "fused_function", "matrix", "record_function", "step_symbols"]
+
+
+def finite(v) -> ca.SX:
+    """1 where every entry of ``v`` is finite (a NaN or inf makes the sum not finite)."""
+    return ca.fabs(ca.sum1(ca.vec(v))) < ca.inf
 
 
 def matrix(v, n: int, diagonal: bool):
