@@ -97,14 +97,14 @@ class FusedKalman(Estimator):
         Q, R = noise_factors(self.Q, self.R, self._diagonal) if self._sqrt else (self.Q, self.R)
         self._tun[:nx * nx] = Q.ravel(order="F")
         self._tun[nx * nx:] = R.ravel(order="F")
+        self._P0_data = P0_data(self.P0, self._sqrt)  # vec(P0), or vec(chol(P0)) if sqrt
 
     def _reset(self) -> None:
         nx = self.model.nx
         self._s[:nx] = self.x0
-        self._s[nx:] = P0_data(self.P0, self._sqrt)
-        # the anchor of a failed step: the filter state after the last step reported "ok"
-        # (the prior to begin with), which is in _s while every step is ok and saved in
-        # _s_trusted when a step is not
+        self._s[nx:] = self._P0_data = P0_data(self.P0, self._sqrt)  # a reset may change P0
+        # the anchor of a failed step: the state after the last step reported "ok" (the
+        # prior at first), in _s while every step is ok, else saved in _s_trusted
         self._s_trusted = self._s.copy()
         self._trusted = True  # _s holds the anchor
 
@@ -125,7 +125,7 @@ class FusedKalman(Estimator):
         self._trusted = not suspect
         if flags[7]:  # gated: the prediction, with P0 added
             self._s[:] = s_prior
-            self._s[nx:] = with_P0(self._s[nx:], self.P0, self._sqrt)
+            self._s[nx:] = with_P0(self._s[nx:], self._P0_data, self._sqrt)
         else:
             self._s[:] = s_new
         P = self._s[nx:].reshape(nx, nx, order="F")
@@ -161,7 +161,7 @@ class FusedKalman(Estimator):
             nx = self.model.nx
             if self._sqrt:  # the factor of S S^T + P0
                 x = self._anchor(self._s_trusted[:nx])[0]
-                self._s[nx:] = with_P0(self._s_trusted[nx:], self.P0, True)
+                self._s[nx:] = with_P0(self._s_trusted[nx:], self._P0_data, True)
             else:
                 x, P = self._anchor(self._s_trusted[:nx],
                                     self._s_trusted[nx:].reshape(nx, nx, order="F"))
@@ -175,7 +175,7 @@ class FusedKalman(Estimator):
         self._trusted = False
         nx = self.model.nx
         return self._s[:nx].copy(), StepInfo(status=status, success=False,
-                                             P=covariance(self._s[nx:], self._sqrt))
+                                             P=covariance(self._s[nx:], nx, self._sqrt))
 
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> FilterResult:
@@ -223,7 +223,7 @@ class FusedKalman(Estimator):
                                np.concatenate([[m.dt], dts]))
         self.reset()
         S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
-            self._s, Y.T, W.T, self._tun, P0_data(self.P0, self._sqrt)))
+            self._s, Y.T, W.T, self._tun, self._P0_data))
         failed = np.flatnonzero(F[1] == 0)
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nx, nx), np.nan)
@@ -324,7 +324,7 @@ class FusedKalman(Estimator):
         fun.build(S)
         t1 = time.perf_counter()
         Sx, _, F = fun([self._s, Y.reshape(S, -1), W.ravel(), self._tun,
-                        P0_data(self.P0, self._sqrt)], S)
+                        self._P0_data], S)
         seconds = time.perf_counter() - t1
         Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
         X = Sx[:, :, :nx]

@@ -98,10 +98,9 @@ def covariances(S: np.ndarray) -> np.ndarray:
     return S @ np.swapaxes(S, -1, -2)
 
 
-def covariance(v: np.ndarray, sqrt: bool) -> np.ndarray:
+def covariance(v: np.ndarray, n: int, sqrt: bool) -> np.ndarray:
     """The covariance ``(n, n)`` of the filter state's part ``v = vec(P)`` (a copy), or
     ``S S^T`` of ``v = vec(S)`` with ``sqrt``."""
-    n = int(round(np.sqrt(v.size)))
     P = v.reshape(n, n, order="F")
     return covariances(P) if sqrt else P.copy()
 
@@ -112,19 +111,19 @@ def P0_data(P0: np.ndarray, sqrt: bool) -> np.ndarray:
     return (np.linalg.cholesky(P0) if sqrt else P0).ravel(order="F")
 
 
-def with_P0(v: np.ndarray, P0: np.ndarray, sqrt: bool) -> np.ndarray:
-    r"""The covariance part of the filter state ``v`` with ``P0`` added: ``v + vec(P0)``,
+def with_P0(v: np.ndarray, p0: np.ndarray, sqrt: bool) -> np.ndarray:
+    r"""The covariance part of the filter state ``v`` with ``P0`` added, given as
+    ``p0 = P0_data(P0, sqrt)``: ``v + vec(P0)``,
     or with ``sqrt`` the factor of :math:`S S^\top + P_0`,
     :math:`\operatorname{vec}(\operatorname{tria}([S, \operatorname{chol}(P_0)]))`
     (the factor of ``P0`` alone where ``S`` is not finite), by the compiled
     :func:`~estim.solvers.triangular.tria` that the whole-record scan's gate uses, so
     that :meth:`~estim.EKF.step` and :meth:`~estim.EKF.filter` agree to the last bit."""
     if not sqrt:
-        return v + P0.ravel(order="F")
-    L0 = np.linalg.cholesky(P0).ravel(order="F")
+        return v + p0
     if not np.isfinite(v).all():
-        return L0
-    return np.asarray(_added_factor(P0.shape[0])(v, L0)).ravel()
+        return p0.copy()
+    return np.asarray(_added_factor(int(round(np.sqrt(p0.size))))(v, p0)).ravel()
 
 
 @cache

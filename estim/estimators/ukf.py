@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
 from estim.estimators.smoothing import SmoothResult, rts
-from estim.estimators.square_root import check_form, covariances, ukf_step
+from estim.estimators.square_root import check_form, covariance, ukf_step
 from estim.model import Model
 from estim.solvers.kalman import finite
 from estim.solvers.rts import transitions
@@ -268,9 +268,7 @@ class UKF(FusedKalman):
     @property
     def P(self) -> np.ndarray:
         """Current covariance."""
-        nx = self.model.nx
-        P = self._s[nx:].reshape(nx, nx, order="F")
-        return covariances(P) if self._sqrt else P.copy()
+        return covariance(self._s[self.model.nx:], self.model.nx, self._sqrt)
 
     def _failure_texts(self, flags) -> tuple[str, str]:
         return ("failed: update non-finite or its covariance not positive definite; "
