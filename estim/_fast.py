@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import threading
 import warnings
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -25,7 +26,8 @@ def jitted(fun: ca.Function) -> ca.Function:
     (:func:`estim._compile.compiled`: compiled once, loaded by later processes), or
     ``fun`` itself, with one :class:`~estim.EstimationWarning` per process saying why,
     when no C compiler is available."""
-    from estim._compile import CompilerUnavailable, compiled
+    from estim._compile import compiled
+    from estim.exceptions import CompilerUnavailable
 
     try:
         return compiled(fun)
@@ -131,11 +133,6 @@ class FastFunction:
 
 def _densified(fun: ca.Function) -> ca.Function:
     """Wrap ``fun`` so every output is dense."""
-    name = fun.name() + "_dense"
-    if fun.is_a("SXFunction"):
-        sx = fun.sx_in()
-        return ca.Function(name, sx, [ca.densify(o) for o in fun.call(sx)], fun.name_in(),
-                           fun.name_out())
-    mx = fun.mx_in()
-    return ca.Function(name, mx, [ca.densify(o) for o in fun.call(mx)], fun.name_in(),
-                       fun.name_out())
+    args: Any = fun.sx_in() if fun.is_a("SXFunction") else fun.mx_in()  # SX or MX symbols
+    return ca.Function(fun.name() + "_dense", args, [ca.densify(o) for o in fun.call(args)],
+                       fun.name_in(), fun.name_out())

@@ -10,7 +10,7 @@ that distribution makes the step ``"suspect"``.
 
 from __future__ import annotations
 
-from functools import cache, lru_cache
+from functools import lru_cache
 
 __all__ = ["SUSPECT_TAIL", "chi2_limit", "consistency_status"]
 
@@ -23,7 +23,6 @@ __all__ = ["SUSPECT_TAIL", "chi2_limit", "consistency_status"]
 SUSPECT_TAIL = 1e-9
 
 
-@cache
 @lru_cache(maxsize=4096)
 def chi2_limit(dof: int, tail: float = SUSPECT_TAIL) -> float:
     """The value that a chi-square variable with ``dof`` degrees of freedom exceeds

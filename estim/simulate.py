@@ -93,12 +93,13 @@ class _PlantOnly:
     def __init__(self, model: Model):
         self.model = model
         self.info = StepInfo(status="no estimator")
+        self._nan = np.full(model.nx, np.nan)  # the recorder copies it
 
     def reset(self) -> None:
         """Nothing to reset."""
 
     def step(self, y: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
-        return np.full(self.model.nx, np.nan)
+        return self._nan
 
 
 class _Recorder:
@@ -294,7 +295,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     feedback = feedback or "estimate"
     if feedback not in ("estimate", "truth"):
         raise ValueError(f"feedback must be 'estimate' or 'truth', got {feedback!r}")
-    if isinstance(est, _PlantOnly) and controller is not None and feedback != "truth":
+    if estimator is None and controller is not None and feedback != "truth":
         raise ValueError("estimator=None simulates the plant alone: its controller needs "
                          "feedback='truth'")
     nx, nu, ny, T = model.nx, model.nu, model.ny, int(n_steps)
