@@ -16,8 +16,6 @@ re-anchors on the last trusted estimate with ``P + P0`` (see
 
 from __future__ import annotations
 
-import time
-
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
@@ -27,6 +25,7 @@ from estim._validate import as_inputs, as_intervals, as_record
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
+from estim.estimators.fused_calls import filter_seeds, record_call, step_calls
 from estim.estimators.square_root import (
     P0_data,
     covariance,
@@ -34,21 +33,18 @@ from estim.estimators.square_root import (
     noise_factors,
     with_P0,
 )
-from estim.solvers.kalman import fused_function, record_function, step_symbols
-from estim.solvers.seeds import seed_map
+from estim.solvers.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
-
-#: :meth:`~FusedKalman.filter` keeps its compiled Function for this many record lengths.
-_RECORD_LENGTHS_KEPT = 8
 
 
 class FusedKalman(Estimator):
     """Step, reset and recovery of a filter compiled into one call per step.
 
-    Subclasses build ``self._update`` and ``self._predict_update`` (FastFunctions over
-    the buffers ``_s``, ``_u``, ``_y``, ``_tun``, compiled from ``self._build(predict)``,
-    which :meth:`filter` also scans over whole records) and say what a failed step was
-    in :meth:`_failure_texts`.
+    Subclasses give the step's Function (:meth:`_build`, which :meth:`filter` also
+    scans over whole records) and say what a failed step was in :meth:`_failure_texts`;
+    ``self._update`` and ``self._predict_update`` evaluate it on the buffers ``_s``,
+    ``_u``, ``_y``, ``_tun`` (:mod:`estim.estimators.fused_calls`: compiled to machine
+    code when :attr:`jit`).
     """
 
     #: The tail probability beyond which a measurement is rejected, or None (set by the
@@ -58,6 +54,8 @@ class FusedKalman(Estimator):
     P0: np.ndarray
     #: ``"covariance"``, or ``"sqrt"`` (``_sqrt``): the filter state holds a factor of P.
     form, _sqrt = "covariance", False
+    #: Whether the steps and the whole-record scans run compiled (``jit=True``).
+    jit = False
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -75,9 +73,8 @@ class FusedKalman(Estimator):
         self._y = np.zeros(m.ny)
         self._tun = np.zeros(nx * nx + m.ny ** 2)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
-        bound: list[np.ndarray | None] = [self._s, self._u, self._y, self._tun]
-        self._update = FastFunction(self._build(predict=False), bound)
-        self._predict_update = FastFunction(self._build(predict=True), bound)
+        self._update, self._predict_update = step_calls(
+            self, [self._s, self._u, self._y, self._tun])
         self._tuning_changed()
         self._reset()
 
@@ -269,18 +266,11 @@ class FusedKalman(Estimator):
     def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
         (the first an update), the filter state, innovation and flags of every sample
-        side by side; a gated step keeps the prediction with ``P0`` added. Kept for the
-        last :data:`_RECORD_LENGTHS_KEPT` record lengths. Not ``expand``: the step is
-        called in loops instead of inlined (the form to compile to C)."""
-        cache = self.__dict__.setdefault("_whole_records", {})
-        if (T, expand) in cache:
-            return cache[T, expand]
-        fun = FastFunction(record_function(f"{self.name}_record", self.model, self._build, T,
-                                           expand=expand, sqrt=self._sqrt))
-        if len(cache) >= _RECORD_LENGTHS_KEPT:  # the oldest length goes
-            del cache[next(iter(cache))]
-        cache[T, expand] = fun
-        return fun
+        side by side; a gated step keeps the prediction with ``P0`` added
+        (:func:`estim.estimators.fused_calls.record_call`: kept for the last few record
+        lengths; compiled with :attr:`jit`). Not ``expand``: the step is called in loops
+        instead of inlined (the form to compile to C)."""
+        return record_call(self, T, expand)
 
     @classmethod
     def _batchable(cls) -> bool:
@@ -313,32 +303,4 @@ class FusedKalman(Estimator):
             statuses) and ``how`` (``"compiled"`` or ``"interpreted"``, see
             :func:`estim.solvers.seeds.seed_map`).
         """
-        m = self.model
-        nx = m.nx
-        S, T = Y.shape[:2]
-        t0 = time.perf_counter()
-        W = m.step_transitions(u_step)
-        self.reset()
-        key = ("filter", self._predict_update.fun.serialize(), self._update.fun.serialize(), T)
-        fun = seed_map(key, lambda expand: self._whole_record(T, expand).fun, S * T)
-        fun.build(S)
-        t1 = time.perf_counter()
-        Sx, _, F = fun([self._s, Y.reshape(S, -1), W.ravel(), self._tun,
-                        self._P0_data], S)
-        seconds = time.perf_counter() - t1
-        Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
-        X = Sx[:, :, :nx]
-        P = Sx[:, :, nx:].reshape(S, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
-        if self._sqrt:
-            P = covariances(P)
-        nis = np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan)
-        failed = (F[:, :, 1] == 0).any(axis=1)
-        suspect = (F[:, :, 6] + F[:, :, 7]) > 0
-        status: list[dict[int, str] | None] = []
-        for i in range(S):
-            status.append(None if failed[i] else {
-                int(k): self._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
-                for k in np.flatnonzero(suspect[i])})
-        self.reset()
-        return {"x": X, "P": P, "nis": nis, "status": status, "seconds": seconds,
-                "total": time.perf_counter() - t0, "how": fun.how}
+        return filter_seeds(self, Y, u_step)

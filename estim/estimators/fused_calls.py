@@ -1,0 +1,133 @@
+r"""The compiled calls of the fused Kalman filters (:class:`~estim.estimators.fused.FusedKalman`):
+their two steps, the scan over a whole record and that scan over the records of many seeds.
+
+With ``jit=True`` each is compiled to machine code through the per-machine cache
+(:func:`estim._fast.jitted`, :mod:`estim._compile`: built once, loaded by later processes
+in milliseconds), with flags that keep CasADi's arithmetic (no fast-math, no contraction
+into fused multiply-adds), so the compiled filter gives the interpreted filter's numbers;
+without a C compiler they stay interpreted, with one
+:class:`~estim.EstimationWarning` per process. CasADi's interpreter spends a few
+nanoseconds on every instruction of a step, the compiled code a fraction of that: the
+whole-record scan runs several times faster compiled.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from estim._fast import FastFunction, jitted
+from estim.estimators.square_root import covariances
+from estim.solvers.kalman import record_function
+from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
+
+if TYPE_CHECKING:
+    from estim.estimators.fused import FusedKalman
+
+__all__ = ["JitFunction", "filter_seeds", "record_call", "step_calls"]
+
+#: :meth:`~estim.estimators.fused.FusedKalman.filter` keeps its Function for this many
+#: record lengths.
+RECORD_LENGTHS_KEPT = 8
+
+
+class JitFunction(FastFunction):
+    """A :class:`~estim._fast.FastFunction` that runs ``fun`` compiled through the
+    per-machine cache (:attr:`library`; ``fun`` itself without a C compiler, see
+    :func:`estim._fast.jitted`).
+
+    :attr:`fun` stays the interpreted Function: what code generation exports, what
+    identifies the computation, and what pickles, so that a copy in another process or
+    on another machine compiles it again (in practice: loads it from the cache) instead
+    of depending on this one's library path.
+    """
+
+    #: The Function that runs: the compiled library, or :attr:`fun` without a compiler.
+    library: ca.Function
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the Function runs compiled (False: no C compiler, interpreted)."""
+        return self.library is not self.fun
+
+    def _build(self) -> None:
+        self.library = jitted(self.fun)
+        self.args = [np.zeros(self.fun.numel_in(i)) if b is None else b
+                     for i, b in enumerate(self._bound)]
+        self.out = [np.zeros(self.fun.numel_out(i)) for i in range(self.fun.n_out())]
+        self._buf, self._eval = self.library.buffer()
+        self._build_views()
+
+
+def step_calls(est: FusedKalman, bound: list) -> tuple[FastFunction, FastFunction]:
+    """The filter's update-only and predict-and-update steps on the buffers ``bound``
+    (``est._build(predict)``), compiled when ``est.jit``."""
+    make = JitFunction if est.jit else FastFunction
+    return make(est._build(predict=False), bound), make(est._build(predict=True), bound)
+
+
+def record_call(est: FusedKalman, T: int, expand: bool = True) -> FastFunction:
+    """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
+    (:func:`estim.solvers.kalman.record_function`), kept in ``est`` for the last
+    :data:`RECORD_LENGTHS_KEPT` record lengths. ``expand``: inlined for CasADi's
+    interpreter, or, when ``est.jit``, compiled (the step's code once, called in
+    loops); not ``expand``: the form to compile, not compiled."""
+    cache = est.__dict__.setdefault("_whole_records", {})
+    if (T, expand) in cache:
+        return cache[T, expand]
+
+    def make(inlined: bool) -> ca.Function:
+        return record_function(f"{est.name}_record", est.model, est._build, T,
+                               expand=inlined, sqrt=est._sqrt)
+
+    fun: FastFunction | None = None
+    if est.jit and expand:
+        fun = JitFunction(make(False))
+        if not fun.compiled:  # no C compiler: the interpreter's (inlined) form
+            fun = None
+    if fun is None:
+        fun = FastFunction(make(expand))
+    if len(cache) >= RECORD_LENGTHS_KEPT:  # the oldest length goes
+        del cache[next(iter(cache))]
+    cache[T, expand] = fun
+    return fun
+
+
+def filter_seeds(est: FusedKalman, Y: np.ndarray, u_step: np.ndarray) -> dict:
+    r"""Filter the records of several seeds at once, as ``est.step`` at every sample
+    after a reset (see :meth:`FusedKalman._filter_seeds
+    <estim.estimators.fused.FusedKalman._filter_seeds>`, which documents the result).
+    The one-seed scan is compiled from :data:`~estim.solvers.seeds.COMPILE_MIN_SAMPLES`
+    samples on, or at any size when ``est.jit`` (:func:`estim.solvers.seeds.seed_map`)."""
+    m = est.model
+    nx = m.nx
+    S, T = Y.shape[:2]
+    t0 = time.perf_counter()
+    W = m.step_transitions(u_step)
+    est.reset()
+    key = ("filter", est._predict_update.fun.serialize(), est._update.fun.serialize(), T)
+    samples = max(S * T, COMPILE_MIN_SAMPLES) if est.jit else S * T
+    fun = seed_map(key, lambda expand: est._whole_record(T, expand).fun, samples)
+    fun.build(S)
+    t1 = time.perf_counter()
+    Sx, _, F = fun([est._s, Y.reshape(S, -1), W.ravel(), est._tun, est._P0_data], S)
+    seconds = time.perf_counter() - t1
+    Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
+    X = Sx[:, :, :nx]
+    P = Sx[:, :, nx:].reshape(S, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
+    if est._sqrt:
+        P = covariances(P)
+    nis = np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan)
+    failed = (F[:, :, 1] == 0).any(axis=1)
+    suspect = (F[:, :, 6] + F[:, :, 7]) > 0
+    status: list[dict[int, str] | None] = []
+    for i in range(S):
+        status.append(None if failed[i] else {
+            int(k): est._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
+            for k in np.flatnonzero(suspect[i])})
+    est.reset()
+    return {"x": X, "P": P, "nis": nis, "status": status, "seconds": seconds,
+            "total": time.perf_counter() - t0, "how": fun.how}
