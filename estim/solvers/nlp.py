@@ -89,17 +89,6 @@ class LeastSquaresNLP(Reweighted):
             start += size
         self.np = start
         self._p = np.zeros(self.np)
-        p = ca.SX.sym("p", self.np)
-        part: dict[str, ca.SX | ca.DM] = {k: p[s] for k, s in self._slices.items()}
-        Y = ca.reshape(part["y"], ny, N)
-        U = ca.reshape(part["u"], model.nw, N)  # transitions' inputs
-        Up = ca.reshape(part["up"], nu, N)
-        a: ca.SX | ca.DM = part["a"]
-        xbar = part["xbar"]
-        W0 = ca.reshape(part["w0"], nx, nx)
-        WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
-            ca.reshape(part["wq"], nx, nx)
-        pm = ca.DM(model.p)
         # (the estimators check the options by check_solver_options first)
         gn_opts = options if solver == "gauss-newton" else {}
         self.full = bool(full)
@@ -113,9 +102,20 @@ class LeastSquaresNLP(Reweighted):
         #: (N, ny): the robust loss's weights of the last solve's measurements
         self.weights: np.ndarray | None = None
         self._complete = False  # the last parameters: every slot holds every output
-        if solver == "gauss-newton":
+        if solver == "gauss-newton":  # its graphs are built from the per-slot Functions
             self.reset()
             return
+        p = ca.SX.sym("p", self.np)
+        part: dict[str, ca.SX | ca.DM] = {k: p[s] for k, s in self._slices.items()}
+        Y = ca.reshape(part["y"], ny, N)
+        U = ca.reshape(part["u"], model.nw, N)  # transitions' inputs
+        Up = ca.reshape(part["up"], nu, N)
+        a: ca.SX | ca.DM = part["a"]
+        xbar = part["xbar"]
+        W0 = ca.reshape(part["w0"], nx, nx)
+        WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
+            ca.reshape(part["wq"], nx, nx)
+        pm = ca.DM(model.p)
         if self.full:  # every slot active, arrival on the first: constants, not parameters
             a, part["omega"] = full_record_constants(N)
         if solver == "fatrop":
