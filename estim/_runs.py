@@ -86,16 +86,20 @@ def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
     }
 
 
-def run_batch(scenario: Scenario, est: FusedKalman, plant: PlantBatch, burn_in: int,
-              keep_logs: bool) -> tuple[list[Run], float, str]:
-    """Every seed's summary from the batched path (and the call's seconds and how it
-    ran); the seeds it cannot take (a plant that left the finite numbers, a failed
-    update) by :func:`run_seed`."""
-    from estim.batch import run_seeds
+def run_batch(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list[int],
+              burn_in: int, keep_logs: bool
+              ) -> tuple[PlantBatch, dict[str, tuple[list[Run], float, str]]]:
+    """Every seed's summary of each filter from the batched path
+    (:func:`estim.batch.run_batches`: the plant and every filter over all seeds, with
+    the plant's batch, each filter's seconds and how it ran); the seeds it cannot take
+    (a plant that left the finite numbers, a failed update) by :func:`run_seed`."""
+    from estim.batch import run_batches
 
-    runs, seconds, how = run_seeds(scenario, est, plant, burn_in, keep_logs)
-    return [r if r is not None else run_seed(scenario, est, s, burn_in, keep_logs)
-            for s, r in zip(plant.seeds, runs, strict=True)], seconds, how
+    plant, batched = run_batches(scenario, filters, seeds, burn_in, keep_logs)
+    return plant, {name: ([r if r is not None else run_seed(scenario, filters[name], s,
+                                                            burn_in, keep_logs)
+                           for s, r in zip(seeds, runs, strict=True)], seconds, how)
+                   for name, (runs, seconds, how) in batched.items()}
 
 
 def _peak(log: Log, seed: int) -> tuple[float, str]:

@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import casadi as ca
 import numpy as np
@@ -47,7 +49,10 @@ import numpy as np
 from estim._scan import blocked_scan
 from estim._validate import as_covariance, as_vector
 from estim.scenarios import Scenario
-from estim.solvers.seeds import seed_map
+from estim.solvers.seeds import CHUNK, seed_map
+
+if TYPE_CHECKING:
+    from estim.estimators.fused import FusedKalman
 
 
 def unsupported(scenario: Scenario) -> str:
@@ -95,6 +100,74 @@ class PlantBatch:
     how: str = "interpreted"
 
 
+class _Plant:
+    """The plant of a scenario set up for a batch of ``S`` seeds (as :func:`simulate_plant`
+    describes it): its inputs, noise factors and one-seed scan, run chunk by chunk."""
+
+    def __init__(self, scenario: Scenario, S: int):
+        from estim.simulate import _input_table, _sqrt_psd
+
+        why = unsupported(scenario)
+        if why:
+            raise ValueError(f"the plant of {scenario.name} cannot be batched: {why}")
+        m = scenario.model
+        nx, ny, nu, T = m.nx, m.ny, m.nu, int(scenario.n_steps)
+        self.T, self.nx, self.ny = T, nx, ny
+        self.x0 = as_vector(scenario.x0, nx, "x0")
+        self.Lq = _sqrt_psd(as_covariance(scenario.Q, nx, "Q", definite=False))
+        self.Lr = _sqrt_psd(as_covariance(scenario.R, ny, "R", definite=False))
+        U = _input_table(scenario.inputs, T, m)
+        # the inputs of simulate's loop: h sees u_step[k] at sample k; the transition from
+        # k to k+1 takes w[k]; the log's u[k] is the input applied after sample k
+        if U is None:
+            self.U_log = np.zeros((T, nu))
+            self.u_step = np.zeros((T, nu))
+        else:
+            self.U_log = U.copy()
+            self.u_step = U.copy() if m.sampled else np.vstack([U[:1], U[:-1]])
+        # into the next sample: the input applied after k (and, sampled, the next one's)
+        U_log = self.U_log
+        self.W = m.transitions(U_log, np.vstack([U_log[1:], U_log[-1:]]) if m.sampled
+                               else U_log).ravel()
+        self.t = np.arange(T) * m.dt
+        changes = sorted(scenario.plant_changes or [], key=lambda c: c[0])
+        P = np.empty((T, m.p.size))
+        p, nxt = m.p, 0
+        for k in range(T):
+            while nxt < len(changes) and self.t[k] >= changes[nxt][0] - 1e-12:
+                p = m.with_params(**changes[nxt][1]).p
+                nxt += 1
+            P[k] = p
+        self.P = P.ravel()
+        key = ("plant", m.F.serialize(), m.H.serialize(), bool(scenario.clip),
+               m.lower.tolist(), m.upper.tolist(), T)
+        self.fun = seed_map(key, lambda expand: _plant_scan(scenario, T, expand), S * T)
+        self.fun.build(S)
+
+    def noise(self, seeds: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """``(W, V)`` of the seeds, ``(n, T, nx)`` and ``(n, T, ny)``, as
+        :func:`~estim.simulate` draws them (:func:`estim.simulate.draw_noise`)."""
+        from estim.simulate import draw_noise
+
+        V, Wn = draw_noise(seeds, self.T, self.Lr, self.Lq)
+        return Wn, V
+
+    def run(self, Wn: np.ndarray, V: np.ndarray, out: tuple) -> None:
+        """The seeds' plant under the noise ``Wn``, ``V`` (see :meth:`noise`), into the
+        rows ``out = (x_T, X, Y)``: ``(n, nx)``, ``(n, T, nx)`` and ``(n, T, ny)``."""
+        n = len(Wn)
+        x_end, X, Y = self.fun([self.x0, self.W, self.P, self.u_step.ravel(),
+                                Wn.reshape(n, -1), V.reshape(n, -1)], n)
+        out[0][:], out[1][:], out[2][:] = x_end, X.reshape(n, self.T, -1), \
+            Y.reshape(n, self.T, -1)
+
+
+def _finite(x_end: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """The seeds whose plant stayed finite (state and outputs)."""
+    return np.isfinite(X).all(axis=(1, 2)) & ~np.isinf(Y).any(axis=(1, 2)) \
+        & np.isfinite(x_end).all(axis=1)
+
+
 def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
     """The scenario's plant over ``seeds``, as :func:`~estim.simulate` runs it.
 
@@ -111,48 +184,15 @@ def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
         States ``(S, T, nx)``, measurements ``(S, T, ny)`` and the inputs; seeds whose
         plant did not stay finite are marked in ``finite``.
     """
-    from estim.simulate import _input_table, _sqrt_psd, draw_noise
-
-    why = unsupported(scenario)
-    if why:
-        raise ValueError(f"the plant of {scenario.name} cannot be batched: {why}")
     t0 = time.perf_counter()
-    m = scenario.model
-    nx, ny, nu, T, S = m.nx, m.ny, m.nu, int(scenario.n_steps), len(seeds)
-    x0 = as_vector(scenario.x0, nx, "x0")
-    Lq = _sqrt_psd(as_covariance(scenario.Q, nx, "Q", definite=False))
-    Lr = _sqrt_psd(as_covariance(scenario.R, ny, "R", definite=False))
-    U = _input_table(scenario.inputs, T, m)
-    # the inputs of simulate's loop: h sees u_step[k] at sample k; the transition from k
-    # to k+1 takes w[k]; the log's u[k] is the input applied after sample k
-    if U is None:
-        U_log = np.zeros((T, nu))
-        u_step = np.zeros((T, nu))
-    else:
-        U_log = U.copy()
-        u_step = U.copy() if m.sampled else np.vstack([U[:1], U[:-1]])
-    # into the next sample: the input applied after k (and, sampled, the next one's)
-    W = m.transitions(U_log, np.vstack([U_log[1:], U_log[-1:]]) if m.sampled else U_log)
-    ts = np.arange(T) * m.dt
-    changes = sorted(scenario.plant_changes or [], key=lambda c: c[0])
-    P = np.empty((T, m.p.size))
-    p, nxt = m.p, 0
-    for k in range(T):
-        while nxt < len(changes) and ts[k] >= changes[nxt][0] - 1e-12:
-            p = m.with_params(**changes[nxt][1]).p
-            nxt += 1
-        P[k] = p
-    V, Wn = draw_noise(seeds, T, Lr, Lq)  # as simulate draws it
-    key = ("plant", m.F.serialize(), m.H.serialize(), bool(scenario.clip),
-           m.lower.tolist(), m.upper.tolist(), T)
-    fun = seed_map(key, lambda expand: _plant_scan(scenario, T, expand), S * T)
-    x_end, X, Y = fun([x0, W.ravel(), P.ravel(), u_step.ravel(), Wn.reshape(S, -1),
-                       V.reshape(S, -1)], S)
-    X, Y = X.reshape(S, T, nx), Y.reshape(S, T, ny)
-    finite = np.isfinite(X).all(axis=(1, 2)) & ~np.isinf(Y).any(axis=(1, 2)) \
-        & np.isfinite(x_end).all(axis=1)
-    return PlantBatch(seeds=list(seeds), t=ts, x=X, y=Y, u=U_log, u_step=u_step,
-                      finite=finite, seconds=time.perf_counter() - t0, how=fun.how)
+    S = len(seeds)
+    plant = _Plant(scenario, S)
+    out = (np.empty((S, plant.nx)), np.empty((S, plant.T, plant.nx)),
+           np.empty((S, plant.T, plant.ny)))
+    plant.run(*plant.noise(list(seeds)), out)
+    return PlantBatch(seeds=list(seeds), t=plant.t, x=out[1], y=out[2], u=plant.U_log,
+                      u_step=plant.u_step, finite=_finite(*out),
+                      seconds=time.perf_counter() - t0, how=plant.fun.how)
 
 
 def _plant_scan(scenario: Scenario, T: int, expand: bool) -> ca.Function:
@@ -172,67 +212,173 @@ def _plant_scan(scenario: Scenario, T: int, expand: bool) -> ca.Function:
     return blocked_scan(step, T, (1, 2, 3, 4, 5), expand=expand)
 
 
-def run_seeds(scenario: Scenario, estimator, plant: PlantBatch, burn_in: int,
-              keep_logs: bool) -> tuple[list[dict | None], float, str]:
-    """What :func:`~estim.compare` records of every seed's run (see
-    :func:`estim._runs.run_seed`), from one batched filter call over the seeds' records.
+def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list[int],
+                burn_in: int, keep_logs: bool
+                ) -> tuple[PlantBatch, dict[str, tuple[list[dict | None], float, str]]]:
+    """What :func:`~estim.compare` records of every seed's run of each filter (see
+    :func:`estim._runs.run_seed`), from batched calls over the seeds' records.
 
-    Returns the summaries in seed order, None for a seed that the per-seed path must
-    run (a plant that left the finite numbers, a failed update), the seconds of the
-    filter call and whether it was compiled (see :func:`~estim.solvers.seeds.seed_map`).
+    The seeds go in chunks of :data:`~estim.solvers.seeds.CHUNK` through a pipeline of
+    two threads: this one draws the noise of a chunk (numpy, holding the GIL) and scores
+    the last chunk (the NEES solves, the errors), while the other simulates the plant of
+    the chunk and filters it (CasADi, which releases the GIL). Every seed's numbers are
+    those of one call over all seeds (each is computed from its own rows alone).
+
+    Returns the plant (``seconds``: the noise and the plant's calls) and, per filter, the
+    summaries in seed order (None for a seed that the per-seed path must run: a plant
+    that left the finite numbers, a failed update), the seconds of its filter calls and
+    whether they were compiled (see :func:`~estim.solvers.seeds.seed_map`).
     """
-    from estim.metrics import nees_values, peak_location, startup_samples
-    from estim.simulate import _Recorder
+    from estim.estimators.fused_calls import SeedFilter
 
-    m = scenario.model
-    nx = m.nx
-    S, T = plant.x.shape[:2]
-    keep = np.flatnonzero(plant.finite)
-    out = estimator._filter_seeds(plant.y[keep], plant.u_step)
-    per_step = out["seconds"] / max(len(keep) * T, 1)
-    err = out["x"] - plant.x[keep]
-    ne = nees_values(err[:, burn_in:], out["P"][:, burn_in:])  # one batched solve
-    has_p = np.isfinite(out["P"]).any(axis=(1, 2, 3))
-    with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
-        warnings.simplefilter("ignore", RuntimeWarning)
-        nees = np.nanmean(ne, axis=1) / nx
-    # per state: each seed's squared errors of a state contiguous, as rmse() sums them
-    per_state = np.sqrt(np.mean(np.ascontiguousarray(
-        (err[:, burn_in:] ** 2).transpose(0, 2, 1)), axis=2))
-    # the largest error after the start-up, as compare finds it
-    size = np.abs(err).reshape(len(keep), T * nx)
-    size[:, :startup_samples(T) * nx] = -np.inf
-    size[np.isnan(size)] = -np.inf
-    where = np.argmax(size, axis=1)
-    results: list[dict | None] = [None] * S
-    states = list(range(nx))
-    for j, i in enumerate(keep):
-        status = out["status"][j]
-        if status is None:
-            continue
-        seed = plant.seeds[i]
-        e = err[j, burn_in:][:, states]  # the copy rmse() reduces: the same sums
-        k, n = divmod(int(where[j]), nx)
-        peak = size[j, where[j]]
-        log = None
-        if keep_logs:
-            rec = _Recorder(T, nx)
-            rec.x_hat, rec.P, rec.nis = out["x"][j], out["P"][j], out["nis"][j]
-            rec.solve_time[:] = per_step
-            rec.status[:] = "ok"
-            for sample, text in status.items():
-                rec.status[sample] = text
-            rec.extra[:] = [{} for _ in range(T)]
-            rec.done = T
-            log = rec.log(m, estimator, plant.t, plant.x[i], plant.y[i], plant.u)
-        results[i] = {
-            "seed": seed, "rmse": float(np.sqrt(np.mean(e ** 2))),
-            "per_state": per_state[j].tolist(),
-            "nees": float(nees[j]) if has_p[j] else np.nan,
-            "step": per_step, "failures": 0,
-            "flagged": len(status), "steps": T, "log": log,
-            "peak": (float(peak), peak_location(m.state_names[n], plant.t[k], seed))
-            if np.isfinite(peak) else (float("nan"), ""),
-            "kind": type(estimator).__name__, "caveat": estimator.caveat,
-        }
-    return results, out["seconds"], out["how"]
+    S = len(seeds)
+    plant = _Plant(scenario, S)
+    T, nx, ny = plant.T, plant.nx, plant.ny
+    runs = {name: SeedFilter(est, plant.u_step, S) for name, est in filters.items()}
+    x_end, X, Y = np.empty((S, nx)), np.empty((S, T, nx)), np.empty((S, T, ny))
+    states = {name: np.empty((S, T, nx + nx * nx)) for name in filters}
+    flags = {name: np.empty((S, T, 8)) for name in filters}
+    scores = {name: _Scores(S, nx) for name in filters}
+    outs: dict[str, list[dict]] = {name: [] for name in filters}
+    finite = np.empty(S, dtype=bool)
+    plant_seconds = [0.0]
+
+    def simulate_and_filter(lo: int, hi: int, Wn: np.ndarray, V: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        plant.run(Wn, V, (x_end[lo:hi], X[lo:hi], Y[lo:hi]))
+        plant_seconds[0] += time.perf_counter() - t0
+        for name, run in runs.items():
+            states[name][lo:hi], flags[name][lo:hi] = run.run(Y[lo:hi])
+
+    def score(lo: int, hi: int) -> None:
+        finite[lo:hi] = _finite(x_end[lo:hi], X[lo:hi], Y[lo:hi])
+        for name, run in runs.items():
+            out = run.results(states[name][lo:hi], flags[name][lo:hi])
+            outs[name].append(out)
+            scores[name].add(lo, out, X[lo:hi], finite[lo:hi], burn_in)
+
+    with ThreadPoolExecutor(1) as pool:
+        last = None
+        for lo in range(0, S, CHUNK):
+            hi = min(lo + CHUNK, S)
+            t0 = time.perf_counter()
+            noise = plant.noise(seeds[lo:hi])
+            plant_seconds[0] += time.perf_counter() - t0
+            job = pool.submit(simulate_and_filter, lo, hi, *noise)
+            if last is not None:
+                last[2].result()
+                score(*last[:2])
+            last = (lo, hi, job)
+        if last is not None:
+            last[2].result()
+            score(*last[:2])
+    for est in filters.values():
+        est.reset()
+    batch = PlantBatch(seeds=list(seeds), t=plant.t, x=X, y=Y, u=plant.U_log,
+                       u_step=plant.u_step, finite=finite, seconds=plant_seconds[0],
+                       how=plant.fun.how)
+    results = {}
+    for name, est in filters.items():
+        out: dict = {key: np.concatenate([o[key] for o in outs[name]])
+                     for key in ("x", "P", "nis")}
+        out["status"] = [st for o in outs[name] for st in o["status"]]
+        results[name] = (scores[name].runs(scenario, est, batch, out, runs[name].seconds,
+                                           keep_logs), runs[name].seconds, runs[name].how)
+    return batch, results
+
+
+class _Scores:
+    """What :func:`run_batches` scores of every seed, chunk by chunk: the time-averaged
+    NEES, the RMSE over the run and per state, the largest error after the start-up."""
+
+    def __init__(self, S: int, nx: int):
+        self.nees, self.has_p = np.full(S, np.nan), np.zeros(S, dtype=bool)
+        self.rmse, self.per_state = np.full(S, np.nan), np.full((S, nx), np.nan)
+        self.peak, self.where = np.full(S, np.nan), np.zeros(S, dtype=int)
+
+    def add(self, lo: int, out: dict, X: np.ndarray, finite: np.ndarray,
+            burn_in: int) -> None:
+        """Score the seeds ``lo, lo + 1, ...`` of a chunk whose plant stayed finite, from
+        the filter's ``out`` (see :meth:`SeedFilter.results
+        <estim.estimators.fused_calls.SeedFilter.results>`) and the true states ``X``."""
+        from estim.metrics import startup_samples
+
+        keep = np.flatnonzero(finite)
+        every = len(keep) == len(finite)  # no copies of the records
+        n, (T, nx) = len(keep), X.shape[1:]
+        err = out["x"] - X if every else out["x"][keep] - X[keep]
+        P = out["P"] if every else out["P"][keep]
+        rows = lo + keep
+        ne = _nees(err[:, burn_in:], P[:, burn_in:])
+        self.has_p[rows] = np.isfinite(P).any(axis=(1, 2, 3))
+        with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
+            warnings.simplefilter("ignore", RuntimeWarning)
+            self.nees[rows] = np.nanmean(ne, axis=1) / nx
+        # each seed's squared errors state by state, contiguous, as rmse() sums its copy
+        # of them (err[:, states], column-major): over the whole run and per state
+        squared = np.ascontiguousarray((err[:, burn_in:] ** 2).transpose(0, 2, 1))
+        self.rmse[rows] = np.sqrt(np.mean(squared.reshape(n, -1), axis=1))
+        self.per_state[rows] = np.sqrt(np.mean(squared, axis=2))
+        # the largest error after the start-up, as compare finds it
+        size = np.abs(err).reshape(n, T * nx)
+        size[:, :startup_samples(T) * nx] = -np.inf
+        size[np.isnan(size)] = -np.inf
+        where = np.argmax(size, axis=1)
+        self.where[rows] = where
+        self.peak[rows] = size[np.arange(n), where]
+
+    def runs(self, scenario: Scenario, estimator: FusedKalman, plant: PlantBatch, out: dict,
+             seconds: float, keep_logs: bool) -> list[dict | None]:
+        """Every seed's summary (see :func:`estim._runs.run_seed`; None for a seed the
+        per-seed path must run), with the filter's ``out`` over all seeds."""
+        from estim.metrics import peak_location
+        from estim.simulate import _Recorder
+
+        m = scenario.model
+        nx = m.nx
+        S, T = plant.x.shape[:2]
+        per_step = seconds / max(int(plant.finite.sum()) * T, 1)
+        kind, caveat = type(estimator).__name__, estimator.caveat
+        results: list[dict | None] = [None] * S
+        for i in np.flatnonzero(plant.finite):
+            status = out["status"][i]
+            if status is None:
+                continue
+            seed = plant.seeds[i]
+            k, n = divmod(int(self.where[i]), nx)
+            peak = self.peak[i]
+            log = None
+            if keep_logs:
+                rec = _Recorder(T, nx)
+                rec.x_hat, rec.P, rec.nis = out["x"][i], out["P"][i], out["nis"][i]
+                rec.solve_time[:] = per_step
+                rec.status[:] = "ok"
+                for sample, text in status.items():
+                    rec.status[sample] = text
+                rec.extra[:] = [{} for _ in range(T)]
+                rec.done = T
+                log = rec.log(m, estimator, plant.t, plant.x[i], plant.y[i], plant.u)
+            results[i] = {
+                "seed": seed, "rmse": float(self.rmse[i]),
+                "per_state": self.per_state[i].tolist(),
+                "nees": float(self.nees[i]) if self.has_p[i] else np.nan,
+                "step": per_step, "failures": 0,
+                "flagged": len(status), "steps": T, "log": log,
+                "peak": (float(peak), peak_location(m.state_names[n], plant.t[k], seed))
+                if np.isfinite(peak) else (float("nan"), ""),
+                "kind": kind, "caveat": caveat,
+            }
+        return results
+
+
+def _nees(err: np.ndarray, P: np.ndarray) -> np.ndarray:
+    r""":func:`estim.metrics.nees_values` of errors ``(S, T, nx)`` and covariances
+    ``(S, T, nx, nx)``: when every covariance is finite, one solve over all of them
+    without the copies that select the finite ones (the same solves and sums)."""
+    from estim.metrics import nees_values
+
+    if not np.isfinite(P).all():
+        return nees_values(err, P)
+    S, T, nx = err.shape
+    sol = np.linalg.solve(P, err[..., None])[..., 0]
+    return np.einsum("ki,ki->k", err.reshape(-1, nx), sol.reshape(-1, nx)).reshape(S, T)

@@ -306,16 +306,22 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
     pilot = seed_list if n_jobs == 1 else seed_list[:2]
     plant: PlantBatch | None = None
     batched: list[str] = []
+    building: dict[str, float] = {}
     for name, spec in estimators.items():
         t0 = time.perf_counter()
-        est = built[name] = build(spec, scenario)
-        building = time.perf_counter() - t0
-        if batch and isinstance(est, FusedKalman) and est._batchable():
-            plant = plant or batching.simulate_plant(scenario, seed_list)
-            per_name[name], seconds, how = run_batch(scenario, est, plant, burn_in, keep_logs)
+        built[name] = build(spec, scenario)
+        building[name] = time.perf_counter() - t0
+    filters = {name: est for name, est in built.items()
+               if batch and isinstance(est, FusedKalman) and est._batchable()}
+    if filters:  # the plant and these filters over all seeds at once
+        plant, batch_runs = run_batch(scenario, filters, seed_list, burn_in, keep_logs)
+        for name, (summaries, seconds, how) in batch_runs.items():
+            per_name[name] = summaries
             batched.append(f"{name} ({_fmt_s(seconds)}, {how})")
             costs[name] = (0.0, 0.0, 0)
             bar.update(len(seed_list))
+    for name, est in built.items():
+        if name in filters:
             continue
         times = []
         for s in pilot:
@@ -323,7 +329,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
             per_name[name].append(run_seed(scenario, est, s, burn_in, keep_logs))
             times.append(time.perf_counter() - t1)
             bar.update(1)
-        setup = building + (times[0] - times[-1] if len(times) > 1 else 0.0)
+        setup = building[name] + (times[0] - times[-1] if len(times) > 1 else 0.0)
         costs[name] = (max(setup, 0.0), times[-1], len(seed_list) - len(pilot))
     rest = seed_list[len(pilot):] if any(n for _, _, n in costs.values()) else []
     note = ""

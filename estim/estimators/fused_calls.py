@@ -27,7 +27,7 @@ from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
 if TYPE_CHECKING:
     from estim.estimators.fused import FusedKalman
 
-__all__ = ["JitFunction", "filter_seeds", "record_call", "step_calls"]
+__all__ = ["JitFunction", "SeedFilter", "filter_seeds", "record_call", "step_calls"]
 
 #: :meth:`~estim.estimators.fused.FusedKalman.filter` keeps its Function for this many
 #: record lengths.
@@ -96,38 +96,71 @@ def record_call(est: FusedKalman, T: int, expand: bool = True) -> FastFunction:
     return fun
 
 
+class SeedFilter:
+    """``est`` over the records of seeds of ``len(u_step)`` samples, chunk by chunk, each
+    as :meth:`~estim.estimators.fused.FusedKalman.step` at every sample after a reset.
+
+    The one-seed scan (:meth:`~estim.estimators.fused.FusedKalman._whole_record`) runs
+    over the seeds through :func:`estim.solvers.seeds.seed_map`: compiled from
+    :data:`~estim.solvers.seeds.COMPILE_MIN_SAMPLES` samples (``S`` seeds in all) on, or
+    at any size when ``est.jit``. :meth:`run` only evaluates (it may run in another
+    thread than :meth:`results`); ``est`` must not step meanwhile.
+
+    Attributes
+    ----------
+    seconds : float
+        Wall time of the evaluations so far.
+    how : str
+        ``"compiled"`` or ``"interpreted"`` (and why).
+    """
+
+    def __init__(self, est: FusedKalman, u_step: np.ndarray, S: int):
+        T = len(u_step)
+        self.est, self.T, self.seconds = est, T, 0.0
+        self.W = est.model.step_transitions(u_step).ravel()
+        est.reset()
+        key = ("filter", est._predict_update.fun.serialize(), est._update.fun.serialize(), T)
+        samples = max(S * T, COMPILE_MIN_SAMPLES) if est.jit else S * T
+        self.fun = seed_map(key, lambda expand: est._whole_record(T, expand).fun, samples)
+        self.fun.build(S)
+        self.how = self.fun.how
+
+    def run(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The filter states ``(n, T, nx + nx^2)`` and flags ``(n, T, 8)`` of the seeds'
+        measurements ``Y (n, T, ny)``."""
+        est, n = self.est, len(Y)
+        t0 = time.perf_counter()
+        Sx, _, F = self.fun([est._s, Y.reshape(n, -1), self.W, est._tun, est._P0_data], n)
+        self.seconds += time.perf_counter() - t0
+        return Sx.reshape(n, self.T, -1), F.reshape(n, self.T, -1)
+
+    def results(self, Sx: np.ndarray, F: np.ndarray) -> dict:
+        """``x``, ``P``, ``nis`` and ``status`` (see :meth:`FusedKalman._filter_seeds
+        <estim.estimators.fused.FusedKalman._filter_seeds>`) of :meth:`run`'s output."""
+        est = self.est
+        n, T, nx = len(Sx), self.T, est.model.nx
+        P = Sx[:, :, nx:].reshape(n, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
+        if est._sqrt:
+            P = covariances(P)
+        failed = (F[:, :, 1] == 0).any(axis=1)
+        suspect = (F[:, :, 6] + F[:, :, 7]) > 0
+        status: list[dict[int, str] | None] = []
+        for i in range(n):
+            status.append(None if failed[i] else {
+                int(k): est._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
+                for k in np.flatnonzero(suspect[i])})
+        return {"x": Sx[:, :, :nx], "P": P, "nis": np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan),
+                "status": status}
+
+
 def filter_seeds(est: FusedKalman, Y: np.ndarray, u_step: np.ndarray) -> dict:
     r"""Filter the records of several seeds at once, as ``est.step`` at every sample
     after a reset (see :meth:`FusedKalman._filter_seeds
-    <estim.estimators.fused.FusedKalman._filter_seeds>`, which documents the result).
-    The one-seed scan is compiled from :data:`~estim.solvers.seeds.COMPILE_MIN_SAMPLES`
-    samples on, or at any size when ``est.jit`` (:func:`estim.solvers.seeds.seed_map`)."""
-    m = est.model
-    nx = m.nx
-    S, T = Y.shape[:2]
+    <estim.estimators.fused.FusedKalman._filter_seeds>`, which documents the result), in
+    one evaluation of :class:`SeedFilter`."""
     t0 = time.perf_counter()
-    W = m.step_transitions(u_step)
+    seeds = SeedFilter(est, u_step, len(Y))
+    out = seeds.results(*seeds.run(Y))
     est.reset()
-    key = ("filter", est._predict_update.fun.serialize(), est._update.fun.serialize(), T)
-    samples = max(S * T, COMPILE_MIN_SAMPLES) if est.jit else S * T
-    fun = seed_map(key, lambda expand: est._whole_record(T, expand).fun, samples)
-    fun.build(S)
-    t1 = time.perf_counter()
-    Sx, _, F = fun([est._s, Y.reshape(S, -1), W.ravel(), est._tun, est._P0_data], S)
-    seconds = time.perf_counter() - t1
-    Sx, F = Sx.reshape(S, T, -1), F.reshape(S, T, -1)
-    X = Sx[:, :, :nx]
-    P = Sx[:, :, nx:].reshape(S, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
-    if est._sqrt:
-        P = covariances(P)
-    nis = np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan)
-    failed = (F[:, :, 1] == 0).any(axis=1)
-    suspect = (F[:, :, 6] + F[:, :, 7]) > 0
-    status: list[dict[int, str] | None] = []
-    for i in range(S):
-        status.append(None if failed[i] else {
-            int(k): est._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
-            for k in np.flatnonzero(suspect[i])})
-    est.reset()
-    return {"x": X, "P": P, "nis": nis, "status": status, "seconds": seconds,
-            "total": time.perf_counter() - t0, "how": fun.how}
+    out.update(seconds=seeds.seconds, total=time.perf_counter() - t0, how=seeds.how)
+    return out
