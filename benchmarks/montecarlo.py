@@ -9,13 +9,18 @@ seeds. Each row is timed end to end: the noise of every seed, the plant, the fil
 and the RMSE of every seed against the true states:
 
 * ``estim.compare(sc, {"EKF": estim.EKF}, range(SEEDS))``, the batched path (the
-  plant of all seeds in one compiled CasADi call, then the EKF of all seeds in one
-  compiled call, mapped over the seeds on the machine's cores; from 20000 samples
-  (seeds x samples) on, both are compiled to C and kept in a library cache), steady
+  seeds in chunks of 32: the plant of a chunk in one CasADi call, then the EKF of the
+  chunk in one call, mapped over the seeds on the machine's cores, while the noise of
+  the next chunk is drawn and the last one is scored; from 20000 samples (seeds x
+  samples) on, both are compiled to C and kept in a library cache), steady
   state (after a first call in this process) and its first call in a fresh Python
   process (after ``import estim``), once with an empty library cache
   (``ESTIM_CACHE_DIR`` a new directory: it builds every CasADi Function and compiles
   them) and once with the libraries of an earlier process in the cache;
+* the same with ``{"EKF": lambda m, tun: estim.EKF(m, jit=True, **tun)}``: the steps
+  and the scans of the EKF compiled to C at any batch size (here the batch is compiled
+  either way; ``jit=True`` also compiles the step functions), steady state and first
+  calls with an empty and with a warm library cache;
 * ``compare(..., batch=False)``, the per-run path (a Python loop of ``estim.simulate``,
   one plant step and one ``EKF.step`` per sample), timed on fewer seeds (``--loop-seeds``,
   default 16) and scaled to SEEDS;
@@ -47,7 +52,8 @@ the largest difference of the per-seed RMSEs, of the true states and of the esti
 
 Times are medians over ``--repeats`` calls with the garbage collector off (first calls:
 one fresh process per repeat), with the range; the ratios are to dynamax's steady
-state (and, for first calls, to dynamax's first call). estim's maps run on
+state with numpy's noise, to its steady state with ``jax.random`` noise inside (the
+goal's anchor) and, for first calls, to dynamax's first call. estim's maps run on
 ``os.cpu_count()`` threads; XLA runs the vmapped scan as it chooses (on CPU usually one
 thread per computation).
 
@@ -191,12 +197,18 @@ def unboosted_filter(sc: estim.Scenario, Y: np.ndarray) -> np.ndarray | None:
 
 
 # --------------------------------------------------------------- first calls (children)
+def jit_ekf(model: estim.Model, tuning: dict) -> estim.EKF:
+    """The EKF with ``jit=True``: its steps and scans compiled to C."""
+    return estim.EKF(model, jit=True, **tuning)
+
+
 def first_call(kind: str, seeds: int, steps: int) -> None:
     """Print the seconds of the first Monte Carlo call in this (fresh) process."""
-    if kind == "estim":
+    if kind in ("estim", "estim-jit"):
         t0 = time.perf_counter()
         sc = estim.scenarios.van_der_pol(n_steps=steps)
-        estim.compare(sc, {"EKF": estim.EKF}, range(seeds))
+        estim.compare(sc, {"EKF": jit_ekf if kind == "estim-jit" else estim.EKF},
+                      range(seeds))
     else:
         import dynamax  # noqa: F401 - imported before the clock starts, as estim is
         import jax
@@ -268,6 +280,19 @@ def main() -> None:
         rows[first + ", cache warm"] = first_calls("estim", S, T, repeats, cache=cache)
     agree[first + ", cache warm"] = "fresh process, libraries cached"
 
+    # estim, batched, EKF(jit=True)
+    fast = estim.compare(sc, {"EKF": jit_ekf}, seeds)
+    label = "estim compare, batched, EKF(jit=True)"
+    rows[label] = timed(lambda: estim.compare(sc, {"EKF": jit_ekf}, seeds), repeats)
+    agree[label] = f"dRMSE {float(np.max(np.abs(fast.rmse['EKF'] - rmse))):.1e}"
+    rows[label + ", first call"] = first_calls("estim-jit", S, T, repeats, cache="empty")
+    agree[label + ", first call"] = "fresh process, empty library cache"
+    with tempfile.TemporaryDirectory(prefix="estim-bench-") as cache:
+        first_calls("estim-jit", S, T, 1, cache=cache)  # fills it
+        rows[label + ", first call, cache warm"] = first_calls("estim-jit", S, T, repeats,
+                                                               cache=cache)
+    agree[label + ", first call, cache warm"] = "fresh process, libraries cached"
+
     # estim, per run
     loop_seeds = seeds[:n_loop]
     loop = estim.compare(sc, {"EKF": estim.EKF}, loop_seeds, batch=False)
@@ -296,7 +321,7 @@ def main() -> None:
 
     # dynamax
     runs = dynamax_runs(sc)
-    dyn_steady = dyn_first = None
+    dyn_steady = dyn_first = dyn_keys = None
     if runs is None:
         print("dynamax is not installed: its rows are skipped")
     else:
@@ -329,6 +354,7 @@ def main() -> None:
         r_keys = np.asarray(jax.block_until_ready(run_keys(keys)))  # compiles
         label = "dynamax jit(vmap), jax.random noise inside"
         rows[label] = timed(lambda: jax.block_until_ready(run_keys(keys)), repeats)
+        dyn_keys = statistics.median(rows[label])
         # other noise streams: the mean RMSE agrees within Monte Carlo error
         se = float(np.hypot(np.std(r_keys), np.std(rmse)) / np.sqrt(S))
         agree[label] = (f"mean RMSE {np.mean(r_keys):.4f} vs {np.mean(rmse):.4f} "
@@ -345,14 +371,15 @@ def main() -> None:
                   f"{float(np.max(np.abs(Xh0 - out['x']))):.2e}, first filtered means "
                   f"{float(np.max(np.abs(Xh0[:, 0] - out['x'][:, 0]))):.2e}")
 
-    print(f"\n{'row':<48} {'median s':>9} {'min-max s':>17} {'/dyn steady':>12} "
-          f"{'/dyn first':>11}  agreement")
+    print(f"\n{'row':<56} {'median s':>9} {'min-max s':>17} {'/dyn steady':>12} "
+          f"{'/dyn jax.random':>16} {'/dyn first':>11}  agreement")
     for label, times in rows.items():
         med = statistics.median(times)
         r1 = f"{med / dyn_steady:.2f}x" if dyn_steady else "-"
+        r3 = f"{med / dyn_keys:.2f}x" if dyn_keys else "-"
         r2 = f"{med / dyn_first:.2f}x" if dyn_first and "first" in label else ""
         span = f"{min(times):.3f}-{max(times):.3f}"
-        print(f"{label:<48} {med:>9.3f} {span:>17} {r1:>12} {r2:>11}  "
+        print(f"{label:<56} {med:>9.3f} {span:>17} {r1:>12} {r3:>16} {r2:>11}  "
               f"{agree.get(label, '')}")
     print(f"\nestim's per-run row: {n_loop} seeds timed, multiplied by {scale:g}. "
           f"RMSE over the seeds: mean {np.mean(rmse):.4f}. estim's batched call: "

@@ -16,13 +16,18 @@ ones of ``benchmarks/ekf.py`` (the RK4 Jacobian by the chain rule); dynamax gets
 same RK4 maps written in ``jax.numpy`` (its Jacobians by ``jax.jacfwd``), runs in
 float64 and is timed after a first call that compiles it (``jax.jit``), waiting for
 its result (``block_until_ready``). ``EKF.filter`` is timed after a first call that
-builds its Function for that record length (the build time is printed too).
+builds its Function for that record length (the build time is printed too), and so is
+``EKF(..., jit=True).filter``, whose steps and scan run compiled to C (through estim's
+library cache: the first call of the first process compiles them, later ones load
+them; the time of that first call is printed).
 
 The script prints the largest difference of each filter's estimates from the step
 loop's (``EKF.filter`` should equal it to rounding; filterpy and dynamax update
 ``P`` as ``P - K S K^T`` where estim uses the Joseph form), then the median
-per-sample time over the repeats and the ratios. dynamax is skipped when it is not
-installed (``pip install dynamax``).
+per-sample time over the repeats and the ratios, to the interpreted filter and to
+dynamax; then, for the interpreted and the compiled filter, the ratio to dynamax in
+each of the repeats (the two timed one after the other, each the median of three calls).
+dynamax is skipped when it is not installed (``pip install dynamax``).
 
 Run from the repository root::
 
@@ -189,7 +194,8 @@ def main() -> None:
 
 def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
     """Check every filter against the step loop on one record (also a warm-up), then
-    print the median per-sample times: the EKF's, then the UKF's."""
+    print the median per-sample times: the EKF's, then the UKF's; and each run's ratio of
+    the filters (interpreted and compiled) to dynamax, timed in turn in every run."""
     Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0).y
     T = len(Y)
     for kind in ("EKF", "UKF"):
@@ -197,30 +203,51 @@ def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
         t0 = time.perf_counter()
         est.filter(Y)  # builds the Function for this record length
         build = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        fast = getattr(estim, kind)(sc.model, jit=True, **sc.tuning)
+        fast.filter(Y)  # compiles (or loads from the cache) its steps and this record's scan
+        jit_build = time.perf_counter() - t0
         print(f"\n{name}, {kind}: {T} samples; {kind}.filter's first call (build + run) "
-              f"{build * 1e3:.1f} ms")
+              f"{build * 1e3:.1f} ms; with jit=True (construction + first call: compile or "
+              f"load from the cache) {jit_build * 1e3:.1f} ms")
         ref = step_loop(est, Y)
         runs = {f"{kind}.filter": lambda est=est: est.filter(Y).x,
-                "step loop": lambda est=est: step_loop(est, Y)}
+                f"{kind}.filter jit": lambda fast=fast: fast.filter(Y).x,
+                "step loop": lambda est=est: step_loop(est, Y),
+                "step loop jit": lambda fast=fast: step_loop(fast, Y)}
         if kind == "EKF":
             problem = Problem(name, sc, step, h, h_x)
             runs["filterpy EKF loop"] = lambda problem=problem: filterpy_loop(problem, Y)
         dyn = dynamax_filter(name, sc, kind)
+        label = f"dynamax {kind} (jit)"
         if dyn is not None:
             t0 = time.perf_counter()
             dyn(Y)  # compiles
             print(f"  dynamax's jit compilation {time.perf_counter() - t0:.2f} s")
-            runs[f"dynamax {kind} (jit)"] = lambda dyn=dyn: dyn(Y)
+            runs[label] = lambda dyn=dyn: dyn(Y)
         print(f"  {'filter':<20} {'max |x - step loop|':>20} {'us/sample':>10} "
-              f"{'/ ' + kind + '.filter':>13}")
-        times = {}
-        for label, run in runs.items():
-            diff = float(np.max(np.abs(run() - ref)))
-            times[label] = timed(run, repeats) / T
-            ratio = times[label] / times[f"{kind}.filter"]
-            print(f"  {label:<20} {diff:>20.2e} {times[label] * 1e6:>10.2f} {ratio:>12.2f}x")
+              f"{'/ ' + kind + '.filter':>13} {'/ dynamax':>10}")
+        times, diffs = {}, {}
+        for key, run in runs.items():
+            diffs[key] = float(np.max(np.abs(run() - ref)))
+            times[key] = timed(run, repeats) / T
+        for key in runs:
+            ratio = times[key] / times[f"{kind}.filter"]
+            vs = f"{times[key] / times[label]:>9.2f}x" if dyn is not None else ""
+            print(f"  {key:<20} {diffs[key]:>20.2e} {times[key] * 1e6:>10.2f} {ratio:>12.2f}x "
+                  f"{vs}")
         if dyn is None:
             print("  dynamax is not installed: skipped")
+            continue
+        # every run: the filter, then dynamax (each the median of three calls), and their
+        # ratio
+        for key in (f"{kind}.filter", f"{kind}.filter jit"):
+            pairs = [(timed(runs[key], 3), timed(runs[label], 3)) for _ in range(repeats)]
+            ratios = [a / b for a, b in pairs]
+            print(f"  {key} / dynamax, each of {repeats} runs: "
+                  + " ".join(f"{r:.2f}" for r in ratios)
+                  + f" (median {statistics.median(ratios):.2f}, at most 1.0 in "
+                  f"{sum(r <= 1.0 for r in ratios)} of {repeats})")
 
 
 if __name__ == "__main__":
