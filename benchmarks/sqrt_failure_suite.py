@@ -16,9 +16,12 @@ The cases (``suite_cases`` in ``tests/sqrt_cases.py``, which the tests import to
 * long run: a constant-velocity target with white-noise acceleration (``Q`` of rank
   one, variance 1e-6), its position measured with ``R = 1e-12``. Run twice: 1000
   samples for every seed (``--seeds`` x 1000 = 10^6 steps per filter and form at the
-  default 1000 seeds), and 10^6 samples in one record for ``--long-seeds`` seeds
-  (default 4: 4 x 10^6 steps per filter and form; 1000 seeds of 10^6 samples would be
-  10^9 steps per filter and form, hours on this machine);
+  default 1000 seeds), and ``--long-steps`` (10^6) samples in one record for
+  ``--long-seeds`` seeds (default 4: 4 x 10^6 steps per filter and form; 1000 records
+  of 10^6 samples would be 10^9 steps per filter and form, hours on this machine).
+  The one long record goes through ``step`` at every sample ("long run, by step"):
+  building ``filter``'s whole-record Function for 10^6 samples takes about 50 s and
+  5 GB here (its blocks of sqrt(T) steps are expanded), each filter and form anew;
 * badly scaled state: components of about 1e6 and 1e-6 measured through their sum
   (``C = [1, 1e12]``), 100 samples.
 
@@ -26,8 +29,8 @@ Every filter is exact on its case (the plant draws its initial state from the pr
 the noises from ``Q`` and ``R``), so the normalised estimation error squared (NEES)
 ``e_k' P_k^-1 e_k`` of every sample is chi-square with ``nx`` degrees of freedom. Per
 case, filter and form the records of all seeds are filtered one ``filter(Y, U)`` call
-per record (one compiled scan; from a failed step on, ``filter`` goes on step by step),
-and the table gives:
+per record (one compiled scan; from a failed step on, ``filter`` goes on step by step;
+the long record by ``step``), and the table gives:
 
 * the seeds with a failed step and the failed steps (a status ``"failed: ..."``: a kept
   prediction or a re-anchoring on the last trusted estimate);
@@ -40,12 +43,15 @@ and the table gives:
   of one sample, so the band is conservative), "no" where a sample has no NEES;
   and whether the NEES summed over the seeds stays inside its 95 % band at every
   sample (Bonferroni over the samples, ``nees_band``), the test's criterion;
-* the time of a step: the ``filter`` call's seconds over its samples, the median over
-  the seeds (where the covariance form fails a step, ``filter`` goes on with the step
-  loop, so this includes its recoveries), and the compiled scan's seconds over its
-  samples alone, the median over repeats on the first record (the cost of the step
-  itself, both forms doing the same work per sample), each with the ratio
-  sqrt / covariance.
+* the time of a step, with the ratio sqrt / covariance: "filter us/step", the
+  ``filter`` call's seconds over its samples (``step``'s for the long record), the
+  median over the seeds (where the covariance form fails a step, ``filter`` goes on
+  with the step loop, so this includes its recoveries); and "scan us/step", the
+  seconds over its samples of the compiled scan alone (the Function ``filter`` calls,
+  whatever the step's outcome) on one record of the case of ``--timing-steps``
+  (10^4) samples or the case's length where longer (not for the record run by
+  ``step``), the median over ``--repeats`` (15) with both forms taking turns: the
+  cost of the step itself.
 
 Failures of the covariance form are the point of the suite. On a failed step the
 covariance form's estimate is kept or re-anchored, so its NEES over a run is not that
@@ -56,10 +62,11 @@ Run from the repository root::
     python benchmarks/sqrt_failure_suite.py [--seeds 1000] [--long-seeds 4]
         [--long-steps 1000000] [--quick] [--output PATH]
 
-``--quick`` runs 50 seeds and a long run of 2 x 10^5 samples and writes no file
-unless ``--output`` is given; the full run writes the table as markdown to
-``benchmarks/results/sqrt_failure_suite.md``. The full run takes about three minutes on
-two cores. There are no timing assertions; the numbers depend on the machine.
+``--quick`` runs 50 seeds, a long record of 2 x 10^5 samples and times the scan on
+2000 samples, and writes no file unless ``--output`` is given (about 30 s); the full
+run writes the table as markdown to ``benchmarks/results/sqrt_failure_suite.md``
+(the machine and versions in its header) and takes about five minutes on two cores.
+There are no timing assertions; the numbers depend on the machine.
 """
 
 from __future__ import annotations
@@ -87,7 +94,8 @@ from sqrt_cases import (  # noqa: E402  (tests/sqrt_cases.py)
     filter_runs,
     mean_nees_band,
     nees_band,
-    scan,
+    scan_function,
+    step_runs,
     suite_cases,
 )
 
@@ -100,29 +108,42 @@ COLUMNS = ("case", "filter", "form", "seeds", "steps/seed", "seeds failed", "fai
            "filter us/step", "ratio", "scan us/step", "ratio")
 
 
-def scan_seconds(case: Case, cls: type, form: str, Y: np.ndarray, repeats: int) -> float:
-    """The median over ``repeats`` of the compiled scan's seconds per sample on ``Y``."""
-    est = cls(case.model(), Q=case.Q, R=case.R, x0=case.x0, P0=case.P0, form=form)
-    scan(est, Y, case.U)  # builds it
-    times = []
+def scan_seconds(case: Case, ests: list[estim.Estimator], T: int, seed: int, repeats: int
+                 ) -> list[float]:
+    """Per filter of ``ests`` (the forms of one filter on the case), the median over
+    ``repeats`` of the compiled scan's seconds per sample on one record of ``T``
+    samples of the case (its inputs repeated where longer), the filters taking turns
+    in each repeat."""
+    if T != case.T:
+        U = None if case.U is None else np.resize(case.U, (T - 1, case.U.shape[1]))
+        case = dataclasses.replace(case, T=T, U=U)
+    Y = case.records(1, seed)[1][0]
+    calls = [scan_function(est, Y, case.U) for est in ests]
+    for fun, args in calls:
+        fun(*args)  # builds it
+    times: list[list[float]] = [[] for _ in calls]
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        scan(est, Y, case.U)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) / len(Y)
+        for (fun, args), t in zip(calls, times, strict=True):
+            t0 = time.perf_counter()
+            fun(*args)
+            t.append(time.perf_counter() - t0)
+    return [statistics.median(t) / T for t in times]
 
 
-def rows_of(case: Case, n: int, seed: int, repeats: int) -> list[dict]:
-    """The table's rows of one case: every filter and form on the same ``n`` records."""
+def rows_of(case: Case, n: int, seed: int, repeats: int, timing_T: int,
+            stepwise: bool = False) -> list[dict]:
+    """The table's rows of one case: every filter and form on the same ``n`` records
+    (by ``filter``, or with ``stepwise`` by ``step``), the scan timed on a record of
+    ``max(T, timing_T)`` samples (``timing_T`` where ``stepwise``)."""
     X, Y = case.records(n, seed)
     nx = len(case.A)
     lo, hi = mean_nees_band(n, nx)
     lo_k, hi_k = nees_band(n, nx, case.T)
     rows = []
     for kind, cls in FILTERS.items():
+        ests = []
         for form in FORMS:
-            r = without_gc(lambda cls=cls, form=form: filter_runs(case, cls, form, n,
-                                                                 records=(X, Y)))
+            r = (step_runs if stepwise else filter_runs)(case, cls, form, n, records=(X, Y))
             nees = r["nees"]
             undefined = int(np.isnan(nees).sum())
             mean = float(np.mean(np.nanmean(nees, axis=1)))
@@ -135,11 +156,12 @@ def rows_of(case: Case, n: int, seed: int, repeats: int) -> list[dict]:
                 "in band": not undefined and lo <= mean <= hi,
                 "every": bool(np.all((total >= lo_k) & (total <= hi_k))),
                 "filter s": float(np.median(r["seconds"])) / case.T,
-                "scan s": without_gc(lambda cls=cls, form=form: scan_seconds(
-                    case, cls, form, Y[0], repeats)),
             })
+            ests.append(r["estimator"])
             del r, nees
-    for cov, sqrt in zip(rows[::2], rows[1::2], strict=True):
+        cov, sqrt = rows[-2:]
+        cov["scan s"], sqrt["scan s"] = without_gc(lambda ests=ests: scan_seconds(
+            case, ests, timing_T if stepwise else max(case.T, timing_T), seed + 1, repeats))
         sqrt["filter ratio"] = sqrt["filter s"] / cov["filter s"]
         sqrt["scan ratio"] = sqrt["scan s"] / cov["scan s"]
     return rows
@@ -190,8 +212,10 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=1000)
     parser.add_argument("--long-seeds", type=int, default=4)
     parser.add_argument("--long-steps", type=int, default=10 ** 6)
-    parser.add_argument("--repeats", type=int, default=20,
-                        help="repeats of the scan timing (3 for the long record)")
+    parser.add_argument("--repeats", type=int, default=15,
+                        help="repeats of the scan timing")
+    parser.add_argument("--timing-steps", type=int, default=10 ** 4,
+                        help="the samples of the record the scan is timed on")
     parser.add_argument("--seed", type=int, default=0, help="the records' random seed")
     parser.add_argument("--quick", action="store_true",
                         help="50 seeds, a long run of 2 x 10^5 samples, no file written")
@@ -199,6 +223,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.seeds, args.long_seeds, args.long_steps = 50, 2, 2 * 10 ** 5
+        args.timing_steps = 2000
     output = args.output or (None if args.quick else HERE / "results" / "sqrt_failure_suite.md")
     head = header()
     print(head, "\n")
@@ -206,11 +231,12 @@ def main() -> None:
     t0 = time.perf_counter()
     rows = []
     for case in suite_cases():
-        runs = [(case, args.seeds, args.repeats)]
+        runs = [(case, args.seeds, False)]
         if case.name == "long run":
-            runs.append((dataclasses.replace(case, T=args.long_steps), args.long_seeds, 3))
-        for c, n, repeats in runs:
-            for row in rows_of(c, n, args.seed, repeats):
+            runs.append((dataclasses.replace(case, T=args.long_steps, name="long run, by step"),
+                         args.long_seeds, True))
+        for c, n, stepwise in runs:
+            for row in rows_of(c, n, args.seed, args.repeats, args.timing_steps, stepwise):
                 rows.append(row)
                 print(" | ".join(cells(row)), flush=True)
     seconds = time.perf_counter() - t0

@@ -82,15 +82,16 @@ class Case:
         x = self.x0 + rng.standard_normal((n, nx)) @ G0.T
         X, Y = np.empty((n, T, nx)), np.empty((n, T, ny))
         block = max(1, 2 ** 20 // (n * (nx + ny)))  # noise drawn a block of samples at once
+        AT = self.A.T
         for k0 in range(0, T, block):
             k1 = min(T, k0 + block)
             V = rng.standard_normal((k1 - k0, n, ny)) @ GR.T
             W = rng.standard_normal((k1 - k0, n, nx)) @ GQ.T
             for k in range(k0, k1):
                 X[:, k] = x
-                Y[:, k] = x @ self.C.T + V[k - k0]
                 if k + 1 < T:
-                    x = x @ self.transition(k).T + W[k - k0]
+                    x = x @ (AT if self.Au is None else self.transition(k).T) + W[k - k0]
+            Y[:, k0:k1] = X[:, k0:k1] @ self.C.T + V.transpose(1, 0, 2)
         return X, Y
 
 
@@ -213,20 +214,26 @@ def failed(status: tuple[str, ...]) -> int:
     return sum(s.startswith("failed") for s in status)
 
 
-def scan(est: estim.Estimator, Y: np.ndarray, U: np.ndarray | None) -> np.ndarray:
-    """The filter states ``(T, nx + nx^2)`` (``[x; vec(P)]``, or ``[x; vec(S)]`` in the
-    square-root form) of a record from the compiled scan that
-    :meth:`~estim.EKF.filter` runs, after a :meth:`~estim.EKF.reset`; valid up to the
-    first failed step (where ``filter`` goes on step by step). For a model with held
-    inputs, without ``t``."""
+def scan_function(est: estim.Estimator, Y: np.ndarray, U: np.ndarray | None
+                  ) -> tuple:
+    """The compiled scan that :meth:`~estim.EKF.filter` runs over a record, and its
+    arguments after a :meth:`~estim.EKF.reset`: ``fun(*args)`` gives the filter states
+    ``[x; vec(P)]`` (``[x; vec(S)]`` in the square-root form) of every sample side by
+    side, valid up to the first failed step (where ``filter`` goes on step by step).
+    For a model with held inputs, without ``t``."""
     m = est.model
     T = len(Y)
     held = np.zeros((T, m.nu)) if U is None else np.vstack([U, np.zeros((1, m.nu))])
     W = m.step_transitions(np.vstack([np.zeros((1, m.nu)), held[:-1]]))
     est.reset()
-    s = np.asarray(est._whole_record(T)(est._s, Y.T, W.T, est._tun, est._P0_data)[0])
-    est.reset()
-    return s.reshape(T, -1)
+    return est._whole_record(T), [est._s.copy(), Y.T, W.T, est._tun.copy(),
+                                  est._P0_data.copy()]
+
+
+def scan(est: estim.Estimator, Y: np.ndarray, U: np.ndarray | None) -> np.ndarray:
+    """The filter states ``(T, nx + nx^2)`` of a record by :func:`scan_function`."""
+    fun, args = scan_function(est, Y, U)
+    return np.array(fun(*args)[0]).reshape(len(Y), -1)
 
 
 def factors(est: estim.Estimator, Y: np.ndarray, U: np.ndarray | None) -> np.ndarray:
@@ -270,8 +277,9 @@ def filter_runs(case: Case, cls: type, form: str, n: int, seed: int = 0,
     :meth:`Case.records` (or ``records``, ``(X, Y)`` of that shape): the failed steps
     of every run (:func:`failed`), the NEES ``(n, T)`` (NaN where the covariance is not
     positive definite: its Cholesky factor in the covariance form, the filter's own
-    factor in the square-root form, see :func:`factors`) and the seconds of every
-    ``filter`` call, after one call that builds the record's Function."""
+    factor in the square-root form, see :func:`factors`), the seconds of every
+    ``filter`` call, after one call that builds the record's Function, and the
+    filter."""
     X, Y = case.records(n, seed) if records is None else records
     est = cls(case.model(), Q=case.Q, R=case.R, x0=case.x0, P0=case.P0, form=form)
     est.filter(Y[0], case.U)  # builds the whole-record Function of this length
@@ -290,7 +298,35 @@ def filter_runs(case: Case, cls: type, form: str, n: int, seed: int = 0,
         else:
             L = cholesky(res.P)
         nees[i] = normalised_errors(L, res.x - X[i])
-    return {"failed": fails, "nees": nees, "seconds": seconds}
+    return {"failed": fails, "nees": nees, "seconds": seconds, "estimator": est}
+
+
+def step_runs(case: Case, cls: type, form: str, n: int, seed: int = 0,
+              records: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """What :func:`filter_runs` gives, from ``step`` at every sample instead of one
+    ``filter`` call per record (for records too long to build the whole-record
+    Function of): the seconds are those of the steps, the filter state
+    ``[x; vec(P)]`` (``[x; vec(S)]``) of every sample is read after its step."""
+    X, Y = case.records(n, seed) if records is None else records
+    est = cls(case.model(), Q=case.Q, R=case.R, x0=case.x0, P0=case.P0, form=form)
+    T, nx = Y.shape[1], len(case.A)
+    fails, seconds = np.zeros(n, dtype=int), np.zeros(n)
+    nees = np.full(Y.shape[:2], np.nan)
+    states = np.empty((T, nx + nx * nx))
+    for i in range(n):
+        est.reset()
+        steps, bad = est.step, 0
+        t0 = time.perf_counter()
+        for k in range(T):
+            steps(Y[i, k], None if case.U is None or k == 0 else case.U[k - 1])
+            bad += est.info.status.startswith("failed")
+            states[k] = est._s  # the filter state after the step
+        seconds[i] = time.perf_counter() - t0
+        fails[i] = bad
+        M = states[:, nx:].reshape(T, nx, nx).transpose(0, 2, 1)  # column-major
+        L = M if form == "sqrt" else cholesky(M)
+        nees[i] = normalised_errors(L, states[:, :nx] - X[i])
+    return {"failed": fails, "nees": nees, "seconds": seconds, "estimator": est}
 
 
 def mean_nees_band(n_runs: int, nx: int, level: float = 0.95) -> tuple[float, float]:
