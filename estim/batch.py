@@ -101,10 +101,11 @@ class PlantBatch:
 
 
 class _Plant:
-    """The plant of a scenario set up for a batch of ``S`` seeds (as :func:`simulate_plant`
-    describes it): its inputs, noise factors and one-seed scan, run chunk by chunk."""
+    """The plant of a scenario set up for a batch of seeds (as :func:`simulate_plant`
+    describes it): its inputs and noise factors, then (:meth:`build`) its one-seed scan,
+    run chunk by chunk."""
 
-    def __init__(self, scenario: Scenario, S: int):
+    def __init__(self, scenario: Scenario):
         from estim.simulate import _input_table, _sqrt_psd
 
         why = unsupported(scenario)
@@ -139,6 +140,12 @@ class _Plant:
                 nxt += 1
             P[k] = p
         self.P = P.ravel()
+        self.scenario = scenario
+
+    def build(self, S: int) -> None:
+        """The one-seed scan, ready for ``S`` seeds (see
+        :func:`~estim.solvers.seeds.seed_map`: compiled for a large batch)."""
+        m, T, scenario = self.scenario.model, self.T, self.scenario
         key = ("plant", m.F.serialize(), m.H.serialize(), bool(scenario.clip),
                m.lower.tolist(), m.upper.tolist(), T)
         self.fun = seed_map(key, lambda expand: _plant_scan(scenario, T, expand), S * T)
@@ -186,7 +193,8 @@ def simulate_plant(scenario: Scenario, seeds: list[int]) -> PlantBatch:
     """
     t0 = time.perf_counter()
     S = len(seeds)
-    plant = _Plant(scenario, S)
+    plant = _Plant(scenario)
+    plant.build(S)
     out = (np.empty((S, plant.nx)), np.empty((S, plant.T, plant.nx)),
            np.empty((S, plant.T, plant.ny)))
     plant.run(*plant.noise(list(seeds)), out)
@@ -219,10 +227,10 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     :func:`estim._runs.run_seed`), from batched calls over the seeds' records.
 
     The seeds go in chunks of :data:`~estim.solvers.seeds.CHUNK` through a pipeline of
-    two threads: this one draws the noise of a chunk (numpy, holding the GIL) and scores
-    the last chunk (the NEES solves, the errors), while the other simulates the plant of
-    the chunk and filters it (CasADi, which releases the GIL). Every seed's numbers are
-    those of one call over all seeds (each is computed from its own rows alone).
+    two threads: one draws the noise of a chunk, simulates its plant and filters it
+    (numpy's generators and CasADi, which release the GIL), this one scores the chunks
+    as they come (the NEES solves, the errors). Every seed's numbers are those of one
+    call over all seeds (each is computed from its own rows alone).
 
     Returns the plant (``seconds``: the noise and the plant's calls) and, per filter, the
     summaries in seed order (None for a seed that the per-seed path must run: a plant
@@ -232,9 +240,12 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     from estim.estimators.fused_calls import SeedFilter
 
     S = len(seeds)
-    plant = _Plant(scenario, S)
+    plant = _Plant(scenario)
     T, nx, ny = plant.T, plant.nx, plant.ny
-    runs = {name: SeedFilter(est, plant.u_step, S) for name, est in filters.items()}
+    with ThreadPoolExecutor(1) as pool:  # the plant's Function built (compiled) meanwhile
+        building = pool.submit(plant.build, S)
+        runs = {name: SeedFilter(est, plant.u_step, S) for name, est in filters.items()}
+        building.result()
     x_end, X, Y = np.empty((S, nx)), np.empty((S, T, nx)), np.empty((S, T, ny))
     states = {name: np.empty((S, T, nx + nx * nx)) for name in filters}
     flags = {name: np.empty((S, T, 8)) for name in filters}
@@ -243,9 +254,9 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     finite = np.empty(S, dtype=bool)
     plant_seconds = [0.0]
 
-    def simulate_and_filter(lo: int, hi: int, Wn: np.ndarray, V: np.ndarray) -> None:
+    def simulate_and_filter(lo: int, hi: int) -> None:
         t0 = time.perf_counter()
-        plant.run(Wn, V, (x_end[lo:hi], X[lo:hi], Y[lo:hi]))
+        plant.run(*plant.noise(seeds[lo:hi]), (x_end[lo:hi], X[lo:hi], Y[lo:hi]))
         plant_seconds[0] += time.perf_counter() - t0
         for name, run in runs.items():
             states[name][lo:hi], flags[name][lo:hi] = run.run(Y[lo:hi])
@@ -257,33 +268,20 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
             outs[name].append(out)
             scores[name].add(lo, out, X[lo:hi], finite[lo:hi], burn_in)
 
-    with ThreadPoolExecutor(1) as pool:
-        last = None
-        for lo in range(0, S, CHUNK):
-            hi = min(lo + CHUNK, S)
-            t0 = time.perf_counter()
-            noise = plant.noise(seeds[lo:hi])
-            plant_seconds[0] += time.perf_counter() - t0
-            job = pool.submit(simulate_and_filter, lo, hi, *noise)
-            if last is not None:
-                last[2].result()
-                score(*last[:2])
-            last = (lo, hi, job)
-        if last is not None:
-            last[2].result()
-            score(*last[:2])
+    chunks = [(lo, min(lo + CHUNK, S)) for lo in range(0, S, CHUNK)]
+    with ThreadPoolExecutor(1) as pool:  # the chunks in turn, while this thread scores
+        jobs = [pool.submit(simulate_and_filter, lo, hi) for lo, hi in chunks]
+        for (lo, hi), job in zip(chunks, jobs, strict=True):
+            job.result()
+            score(lo, hi)
     for est in filters.values():
         est.reset()
     batch = PlantBatch(seeds=list(seeds), t=plant.t, x=X, y=Y, u=plant.U_log,
                        u_step=plant.u_step, finite=finite, seconds=plant_seconds[0],
                        how=plant.fun.how)
-    results = {}
-    for name, est in filters.items():
-        out: dict = {key: np.concatenate([o[key] for o in outs[name]])
-                     for key in ("x", "P", "nis")}
-        out["status"] = [st for o in outs[name] for st in o["status"]]
-        results[name] = (scores[name].runs(scenario, est, batch, out, runs[name].seconds,
-                                           keep_logs), runs[name].seconds, runs[name].how)
+    results = {name: (scores[name].runs(scenario, est, batch, outs[name], runs[name].seconds,
+                                        keep_logs), runs[name].seconds, runs[name].how)
+               for name, est in filters.items()}
     return batch, results
 
 
@@ -327,10 +325,10 @@ class _Scores:
         self.where[rows] = where
         self.peak[rows] = size[np.arange(n), where]
 
-    def runs(self, scenario: Scenario, estimator: FusedKalman, plant: PlantBatch, out: dict,
-             seconds: float, keep_logs: bool) -> list[dict | None]:
+    def runs(self, scenario: Scenario, estimator: FusedKalman, plant: PlantBatch,
+             outs: list[dict], seconds: float, keep_logs: bool) -> list[dict | None]:
         """Every seed's summary (see :func:`estim._runs.run_seed`; None for a seed the
-        per-seed path must run), with the filter's ``out`` over all seeds."""
+        per-seed path must run), with the filter's ``outs``, chunk by chunk."""
         from estim.metrics import peak_location
         from estim.simulate import _Recorder
 
@@ -341,7 +339,8 @@ class _Scores:
         kind, caveat = type(estimator).__name__, estimator.caveat
         results: list[dict | None] = [None] * S
         for i in np.flatnonzero(plant.finite):
-            status = out["status"][i]
+            out, j = outs[i // CHUNK], i % CHUNK
+            status = out["status"][j]
             if status is None:
                 continue
             seed = plant.seeds[i]
@@ -350,7 +349,7 @@ class _Scores:
             log = None
             if keep_logs:
                 rec = _Recorder(T, nx)
-                rec.x_hat, rec.P, rec.nis = out["x"][i], out["P"][i], out["nis"][i]
+                rec.x_hat, rec.P, rec.nis = out["x"][j], out["P"][j], out["nis"][j]
                 rec.solve_time[:] = per_step
                 rec.status[:] = "ok"
                 for sample, text in status.items():

@@ -14,6 +14,7 @@ whole-record scan runs several times faster compiled.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -65,8 +66,14 @@ class JitFunction(FastFunction):
 def step_calls(est: FusedKalman, bound: list) -> tuple[FastFunction, FastFunction]:
     """The filter's update-only and predict-and-update steps on the buffers ``bound``
     (``est._build(predict)``), compiled when ``est.jit``."""
-    make = JitFunction if est.jit else FastFunction
-    return make(est._build(predict=False), bound), make(est._build(predict=True), bound)
+    funs = [est._build(predict=False), est._build(predict=True)]
+    if not est.jit:
+        return FastFunction(funs[0], bound), FastFunction(funs[1], bound)
+    with ThreadPoolExecutor(1) as pool:  # both compiled (or loaded) at once
+        other = pool.submit(jitted, funs[1])
+        jitted(funs[0])
+        other.result()
+    return JitFunction(funs[0], bound), JitFunction(funs[1], bound)  # loaded: at once
 
 
 def record_call(est: FusedKalman, T: int, expand: bool = True) -> FastFunction:
