@@ -307,8 +307,9 @@ class _Scores:
         err = out["x"] - X if every else out["x"][keep] - X[keep]
         P = out["P"] if every else out["P"][keep]
         rows = lo + keep
-        ne = _nees(err[:, burn_in:], P[:, burn_in:])
-        self.has_p[rows] = np.isfinite(P).any(axis=(1, 2, 3))
+        finite_P = np.isfinite(P)
+        self.has_p[rows] = finite_P.any(axis=(1, 2, 3))
+        ne = _nees(err[:, burn_in:], P[:, burn_in:], bool(finite_P[:, burn_in:].all()))
         with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
             warnings.simplefilter("ignore", RuntimeWarning)
             self.nees[rows] = np.nanmean(ne, axis=1) / nx
@@ -370,13 +371,13 @@ class _Scores:
         return results
 
 
-def _nees(err: np.ndarray, P: np.ndarray) -> np.ndarray:
+def _nees(err: np.ndarray, P: np.ndarray, finite: bool) -> np.ndarray:
     r""":func:`estim.metrics.nees_values` of errors ``(S, T, nx)`` and covariances
-    ``(S, T, nx, nx)``: when every covariance is finite, one solve over all of them
+    ``(S, T, nx, nx)``: when every covariance is ``finite``, one solve over all of them
     without the copies that select the finite ones (the same solves and sums)."""
     from estim.metrics import nees_values
 
-    if not np.isfinite(P).all():
+    if not finite:
         return nees_values(err, P)
     S, T, nx = err.shape
     sol = np.linalg.solve(P, err[..., None])[..., 0]
