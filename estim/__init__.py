@@ -28,14 +28,15 @@ if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
     from estim.estimators.fie import FitResult, FullInformation
     from estim.estimators.mhe import MHE
+    from estim.estimators.particle import ParticleFilter
     from estim.estimators.shooting import ShootingObserver
     from estim.estimators.ukf import UKF
     from estim.uncertainty import ParameterEstimates, parameter_uncertainty
 
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
-    "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
-    "ShootingObserver", "StepInfo", "chi2_bounds",
+    "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
+    "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
     "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth", "tuning",
 ]
@@ -44,6 +45,7 @@ __all__ = [
 #: ``import estim`` does not need, so that it stays fast.
 _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
          "codegen": "estim.codegen", "observability": "estim.observability",
          "smooth": "estim.smooth", "tuning": "estim.tuning",

@@ -64,8 +64,8 @@ def test_cli_list_leaves_heavy_modules_alone():
 def test_lazy_names_are_public_names():
     assert estim.__all__ == [
         "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
-        "FullInformation", "Log", "Model", "ParameterEstimates", "RMSE", "Record", "Scenario",
-        "ShootingObserver", "StepInfo", "chi2_bounds",
+        "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
+        "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
         "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",
         "tuning"]

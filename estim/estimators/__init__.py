@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
     from estim.estimators.fie import FitResult, FullInformation
     from estim.estimators.mhe import MHE
+    from estim.estimators.particle import ParticleFilter
     from estim.estimators.shooting import ShootingObserver
     from estim.estimators.ukf import UKF
 
@@ -24,6 +25,7 @@ if TYPE_CHECKING:
 #: Where each lazily imported name is defined.
 _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf"}
 
 #: The short names of :data:`ESTIMATORS` and their classes.
@@ -31,6 +33,7 @@ _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformatio
                 "shooting": "ShootingObserver"}
 
 __all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "FitResult", "FullInformation",
+           "ParticleFilter",
            "ShootingObserver", "StepInfo", "UKF"]
 
 

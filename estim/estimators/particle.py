@@ -1,0 +1,387 @@
+r"""Bootstrap particle filter on any :class:`~estim.Model`.
+
+The posterior :math:`p(x_k \mid y_{0:k})` is carried by :math:`N` particles
+:math:`x^i_k` with normalised weights :math:`W^i_k` (Gordon, Salmond, Smith 1993;
+Chopin, Papaspiliopoulos 2020, ch. 10). At every step after the first,
+
+.. math::
+    x^i_k = F(x^i_{k-1}, u_{k-1}) + L_Q v^i, \quad v^i \sim N(0, I), \quad
+    L_Q L_Q^\top = Q,
+
+    \log W^i_k = \log W^i_{k-1} + \ell(y_k \mid x^i_k) - \log \sum_j W^j_{k-1}
+    e^{\ell(y_k \mid x^j_k)},
+
+with the measurement log-density :math:`\ell` Gaussian,
+:math:`\ell = \log N(y_k;\, h(x^i_k), R)` over the measured outputs, or any
+log-density the user writes (``loglik``). The first step draws
+:math:`x^i_0 \sim N(x_0, P_0)` and weights them by :math:`y_0`. When the
+effective sample size :math:`1/\sum_i (W^i)^2` falls below ``ess_threshold``
+:math:`\cdot N` the particles are resampled (:mod:`estim.solvers.resampling`).
+The log-likelihood estimate :math:`\log \hat p(y_{0:k}) = \sum_k \log \sum_i
+W^i_{k-1} e^{\ell(y_k \mid x^i_k)}` is unbiased for the likelihood (not its
+logarithm) at every :math:`N`.
+
+Propagation and weighting of all particles are one call per step of a function
+generated from the model's CasADi graph with one numpy operation per
+instruction over all particles (:mod:`estim._vectorised`), or CasADi's ``map``
+for a model whose graph calls other Functions (an integrator).
+
+References
+----------
+N. J. Gordon, D. J. Salmond, A. F. M. Smith, "Novel approach to
+nonlinear/non-Gaussian Bayesian state estimation", IEE Proc. F 140(2), 1993;
+N. Chopin, O. Papaspiliopoulos, *An Introduction to Sequential Monte Carlo*,
+Springer 2020.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
+from estim._vectorised import vectorised
+from estim.estimators.base import Estimator, StepInfo
+from estim.model import Model
+from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
+
+__all__ = ["ParticleFilter", "ParticleFilterResult"]
+
+#: an effective sample size below this fraction of the particles (and below 2) is a
+#: collapse of the weights, reported as ``"suspect: ..."``
+COLLAPSE = 0.01
+
+
+@dataclass(frozen=True)
+class ParticleFilterResult:
+    """A record filtered by :meth:`ParticleFilter.filter`.
+
+    Attributes
+    ----------
+    x : (T, nx) array
+        Weighted means of the particles after each update.
+    P : (T, nx, nx) array
+        Their weighted covariances.
+    ess : (T,) array
+        Effective sample sizes after each update (before resampling).
+    log_likelihood : float
+        The estimate :math:`\\log \\hat p(y_{0:T-1})` (its exponential is unbiased).
+    log_likelihood_increments : (T,) array
+        Its terms :math:`\\log \\hat p(y_k \\mid y_{0:k-1})`.
+    status : tuple of str
+        The status of every sample.
+    success : bool
+        Every step succeeded.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    ess: np.ndarray
+    log_likelihood: float
+    log_likelihood_increments: np.ndarray
+    status: tuple[str, ...]
+    success: bool
+
+
+def _root(M: np.ndarray) -> np.ndarray:
+    """A square root ``L`` with ``L L^T = M`` of a positive semi-definite ``M`` (Cholesky,
+    or the symmetric eigen-decomposition when ``M`` is singular)."""
+    try:
+        return np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        lam, V = np.linalg.eigh(0.5 * (M + M.T))
+        return V * np.sqrt(np.clip(lam, 0.0, None))
+
+
+def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """The weighted second moment ``sum_i W_i D[:, i] D[:, i]^T`` of deviations ``D``
+    ``(n, N)``, entry by entry (long vectors: no threaded BLAS call per step)."""
+    n = D.shape[0]
+    DW = D * W
+    P = np.empty((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            P[i, j] = P[j, i] = float((DW[i] * D[j]).sum())
+    return P
+
+
+def _graphs(model: Model, loglik: Callable | None) -> tuple[ca.Function, ca.Function]:
+    """``weigh(x, w, y0, WR, miss) -> (yhat, l)`` and ``advance(x, v, w, LQ, y0, WR, miss)
+    -> (x_next, yhat, l)`` for one particle (see :class:`ParticleFilter`): ``y0`` the
+    measurement with 0 where missing (``miss`` 1 there), ``WR`` the inverse Cholesky
+    factor of the measured rows of ``R`` embedded in ``(ny, ny)`` (the Gaussian term
+    without its constant)."""
+    nx, ny, nw = model.nx, model.ny, model.nw
+    p = ca.DM(model.p)
+    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nx), ca.SX.sym("w", nw)
+    LQ, y0 = ca.SX.sym("LQ", nx * nx), ca.SX.sym("y0", ny)
+    WR, miss = ca.SX.sym("WR", ny * ny), ca.SX.sym("miss", ny)
+
+    def measure(xk):
+        yhat = model.H(xk, model.measurement_input(w), p)
+        if loglik is None:
+            e = (1 - miss) * (y0 - yhat)
+            return yhat, -0.5 * ca.sumsqr(ca.reshape(WR, ny, ny) @ e)
+        y = (1 - miss) * y0 + miss * yhat
+        params = {n: ca.SX(val) for n, val in model.params.items()}
+        return yhat, _scalar(loglik(y, yhat, params))
+
+    yhat, ell = measure(x)
+    weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])
+    xn = model.F(x, w, p) + ca.reshape(LQ, nx, nx) @ v
+    yhat_n, ell_n = measure(xn)
+    advance = ca.Function("pf_advance", [x, v, w, LQ, y0, WR, miss], [xn, yhat_n, ell_n])
+    return weigh, advance
+
+
+def _scalar(value) -> ca.SX:
+    """The user's log-density as a scalar SX expression (a clear error otherwise)."""
+    try:
+        out = ca.SX(value)
+    except (NotImplementedError, RuntimeError, TypeError):
+        raise TypeError(f"loglik must return a scalar CasADi expression of y, yhat and p, "
+                        f"got {type(value).__name__}") from None
+    if out.numel() != 1:
+        raise ValueError(f"loglik must return a scalar expression, got shape {out.shape}")
+    return out
+
+
+def _over_particles(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
+    """``fun`` evaluated on column-stacked particles: vectorised, or CasADi's ``map``."""
+    fast = vectorised(fun)
+    if fast is not None:
+        return fast
+
+    def mapped(*args: np.ndarray, n: int) -> list[np.ndarray]:
+        out = fun.map(n)(*[a if a.ndim == 2 else a[:, None] for a in args])
+        out = out if isinstance(out, tuple | list) else [out]
+        return [np.asarray(o, dtype=float).reshape(fun.nnz_out(i), n)
+                for i, o in enumerate(out)]
+
+    return mapped
+
+
+class ParticleFilter(Estimator):
+    r"""Bootstrap particle filter (sequential importance resampling; see the module).
+
+    Parameters
+    ----------
+    model : Model
+    Q, R, x0, P0 :
+        Process-noise covariance (additive, may be singular), measurement-noise
+        covariance (the Gaussian log-density; also the innovation's covariance
+        reported with a custom ``loglik``), initial guess and its covariance.
+    n_particles : int
+        Number of particles :math:`N` (at least 2).
+    resampling : {"systematic", "stratified", "residual", "multinomial"}
+        The resampling scheme (:mod:`estim.solvers.resampling`).
+    ess_threshold : float in (0, 1]
+        Resample when the effective sample size falls below ``ess_threshold * N``
+        (1: at every step).
+    loglik : callable, optional
+        ``loglik(y, yhat, p)``: the measurement log-density of ``y`` (ny,) given the
+        prediction ``yhat = h(x)`` (ny,) and the model's parameters ``p`` (a dict of
+        names), as a scalar CasADi expression. Student-t noise with 3 degrees of
+        freedom and scale 0.3 on one output:
+        ``lambda y, yhat, p: -2 * ca.log1p(((y[0] - yhat[0]) / 0.3) ** 2 / 3)``;
+        Laplace noise of scale 0.3: ``lambda y, yhat, p: -ca.fabs(y[0] - yhat[0]) / 0.3``
+        (constant terms only shift :attr:`ParticleFilterResult.log_likelihood`). A
+        missing output enters as ``y_i = yhat_i``: exact for a log-density that is a
+        sum over outputs whose terms vanish at a zero residual. Default: Gaussian with
+        covariance ``R``.
+    seed : int
+        Seed of the filter's random numbers (``numpy.random.default_rng``); every
+        :meth:`reset` starts the same stream again, so a run is reproducible
+        bit for bit.
+
+    Notes
+    -----
+    ``info.P`` is the weighted covariance of the particles after the update,
+    ``info.extra`` holds ``"ess"`` (before resampling), ``"log_likelihood"``
+    (this step's term) and ``"resampled"``. The innovation is
+    :math:`y_k - \sum_i W^i_{k-1} h(x^i_k)`, its NIS taken against the particles'
+    predicted output covariance plus ``R``. When every weight is zero or not
+    finite, the step fails and re-anchors: new particles from
+    :math:`N(\hat x, P + P_0)` around the last trusted estimate, weighted by the
+    same measurement.
+    """
+
+    name = "pf"
+
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                 P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
+                 ess_threshold: float = 0.5, loglik: Callable | None = None, seed: int = 0):
+        super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.n_particles = as_int(n_particles, "n_particles", minimum=2,
+                                  expected="an integer >= 2")
+        self.resampling = as_choice(resampling, RESAMPLING, "resampling")
+        self.ess_threshold = as_float(ess_threshold, "ess_threshold", positive=True,
+                                      maximum=1.0, expected="a number in (0, 1]")
+        if loglik is not None and not callable(loglik):
+            raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
+                            f"or None, got {type(loglik).__name__}")
+        seed_ = as_seed(seed)
+        self.seed = 0 if seed_ is None else seed_
+        self.loglik = loglik
+        self._build()
+        self._tuning_changed()
+        self._reset()
+
+    def _build(self) -> None:
+        weigh, advance = _graphs(self.model, self.loglik)
+        self._weigh, self._advance = _over_particles(weigh), _over_particles(advance)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        del state["_weigh"], state["_advance"]  # generated functions: built again
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._build()
+
+    # ------------------------------------------------------------ tuning
+    def _tuning_changed(self) -> None:
+        self._LQ = _root(self.Q).ravel(order="F")
+        self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray]] = {}
+
+    def _measured(self, observed: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+        """``WR`` (flat), the Gaussian constant and the block of ``R`` of the measured
+        outputs ``observed`` (kept by pattern)."""
+        key = observed.tobytes()
+        if key not in self._whitening:
+            ny, idx = self.model.ny, np.flatnonzero(observed)
+            WR, const, Ro = np.zeros((ny, ny)), 0.0, self.R[np.ix_(idx, idx)]
+            if idx.size:
+                L = np.linalg.cholesky(Ro)
+                WR[np.ix_(idx, idx)] = np.linalg.inv(L)
+                const = -0.5 * idx.size * np.log(2 * np.pi) - float(np.log(np.diag(L)).sum())
+            self._whitening[key] = (WR.ravel(order="F"), const, Ro)
+        return self._whitening[key]
+
+    def _reset(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+        self._X: np.ndarray | None = None
+        self._logW = np.full(self.n_particles, -np.log(self.n_particles))
+        self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
+
+    # -------------------------------------------------------------- step
+    def _step(self, y, u, first):
+        m, N, nx = self.model, self.n_particles, self.model.nx
+        observed = ~np.isnan(y)
+        y0, miss = np.where(observed, y, 0.0), (~observed).astype(float)
+        WR, const, _ = self._measured(observed)
+        w = self._transition(u) if m.nw else np.zeros(0)
+        if first or self._X is None:
+            X = self.x0[:, None] + _root(self.P0) @ self._rng.standard_normal((nx, N))
+            Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
+        else:
+            V = self._rng.standard_normal((nx, N))
+            X, Yh, ell = self._advance(self._X, V, w, self._LQ, y0, WR, miss, n=N)
+        status, success = "ok", True
+        W, inc, X = self._update(X, ell[0], observed, const, self._logW)
+        if W is None:  # every weight zero or not finite: re-anchor
+            x_t, P_t = self._anchor(*self._trusted)
+            X = x_t[:, None] + _root(P_t) @ self._rng.standard_normal((nx, N))
+            Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
+            uniform = np.full(N, -np.log(N))
+            W, inc, X = self._update(X, ell[0], observed, const, uniform)
+            status, success = ("failed: every particle weight is zero or not finite; "
+                               "re-anchored on the last trusted estimate with P + P0"), False
+            if W is None:
+                W, inc = np.full(N, 1.0 / N), float("nan")
+                status += " (no update: the new particles' weights are not finite either)"
+        x_hat = (X * W).sum(axis=1)
+        P = _spread(X - x_hat[:, None], W)
+        ess = effective_sample_size(W)
+        e, nis = self._innovation(y, observed, Yh, X)
+        if success and ess < max(2.0, COLLAPSE * N):
+            status = f"suspect: effective sample size {ess:.1f} of {N}"
+        if status == "ok":
+            self._trusted = (x_hat, P)
+        resampled = ess < self.ess_threshold * N or not np.all(W > 0)
+        if resampled:
+            X = X[:, resample(W, self.resampling, self._rng)]
+            self._logW = np.full(N, -np.log(N))
+        else:
+            self._logW = np.log(W)
+        self._X = X
+        info = StepInfo._fast(status=status, success=success, P=P, innovation=e, nis=nis)
+        info.extra.update(ess=ess, log_likelihood=inc, resampled=bool(resampled))
+        return x_hat, info
+
+    def _update(self, X, ell, observed, const, logW_prev):
+        """Normalised weights, the log-likelihood term and the particles (non-finite
+        ones zeroed, their weight zero); ``(None, nan, X)`` when no weight is left."""
+        finite = np.isfinite(X).all(axis=0)
+        if not observed.any():
+            ell = np.zeros_like(ell)
+        a = np.where(finite & ~np.isnan(ell), logW_prev + ell, -np.inf)
+        top = a.max()
+        if not np.isfinite(top):
+            return None, float("nan"), X
+        if not finite.all():
+            X = np.where(finite, X, 0.0)
+        W = np.exp(a - top)
+        s = W.sum()
+        W /= s
+        # with a user's log-density, const is not used (loglik is the full density)
+        return W, float(top + np.log(s) + (const if self.loglik is None else 0.0)), X
+
+    def _innovation(self, y, observed, Yh, X):
+        """``y`` less the particles' predicted output under the previous weights, and its
+        NIS against their spread plus ``R`` (0 and NaN without a measured output)."""
+        ny = self.model.ny
+        e = np.zeros(ny)
+        if not observed.any():
+            return e, float("nan")
+        Wp = np.exp(self._logW)
+        Yh = np.where(np.isfinite(Yh), Yh, 0.0)
+        Yh = Yh[observed]
+        yb = (Yh * Wp).sum(axis=1)
+        eo = y[observed] - yb
+        e[observed] = eo
+        S = _spread(Yh - yb[:, None], Wp) + self._measured(observed)[2]
+        try:
+            return e, float(eo @ np.linalg.solve(S, eo))
+        except np.linalg.LinAlgError:
+            return e, float("nan")
+
+    # ------------------------------------------------------------ record
+    def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> ParticleFilterResult:
+        """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
+
+        Parameters
+        ----------
+        Y : (T, ny) array
+            Measurements, NaN where missing.
+        U : (T-1, nu) or (T, nu) array, optional
+            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
+            the input at each sample), as in :meth:`EKF.filter <estim.EKF.filter>`.
+
+        Returns
+        -------
+        ParticleFilterResult
+        """
+        m = self.model
+        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+        T = Y.shape[0]
+        U = as_inputs(U, T, m)
+        steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
+        self.reset()
+        X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
+        ess, inc, status = np.empty(T), np.empty(T), []
+        for k in range(T):
+            X[k] = self.step(Y[k], steps_u[k])
+            info = self.info
+            P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
+            status.append(info.status)
+        return ParticleFilterResult(
+            x=X, P=P, ess=ess, log_likelihood=float(inc.sum()),
+            log_likelihood_increments=inc, status=tuple(status),
+            success=not any(s.startswith("failed") for s in status))
