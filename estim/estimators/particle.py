@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
 from estim._vectorised import vectorised
 from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
 
@@ -110,12 +111,13 @@ def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
     return P
 
 
-def _graphs(model: Model, loglik: Callable | None) -> tuple[ca.Function, ca.Function]:
-    """``weigh(x, w, y0, WR, miss) -> (yhat, l)`` and ``advance(x, v, w, LQ, y0, WR, miss)
-    -> (x_next, yhat, l)`` for one particle (see :class:`ParticleFilter`): ``y0`` the
-    measurement with 0 where missing (``miss`` 1 there), ``WR`` the inverse Cholesky
-    factor of the measured rows of ``R`` embedded in ``(ny, ny)`` (the Gaussian term
-    without its constant)."""
+def _graphs(model: Model, loglik: Callable | None
+            ) -> tuple[ca.Function, ca.Function, ca.Function]:
+    """``weigh(x, w, y0, WR, miss) -> (yhat, l)``, ``advance(x, v, w, LQ, y0, WR, miss)
+    -> (x_next, yhat, l)`` and ``transit(x, w) -> F(x, w)`` for one particle (see
+    :class:`ParticleFilter`): ``y0`` the measurement with 0 where missing (``miss`` 1
+    there), ``WR`` the inverse Cholesky factor of the measured rows of ``R`` embedded in
+    ``(ny, ny)`` (the Gaussian term without its constant)."""
     nx, ny, nw = model.nx, model.ny, model.nw
     p = ca.DM(model.p)
     x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nx), ca.SX.sym("w", nw)
@@ -136,7 +138,8 @@ def _graphs(model: Model, loglik: Callable | None) -> tuple[ca.Function, ca.Func
     xn = model.F(x, w, p) + ca.reshape(LQ, nx, nx) @ v
     yhat_n, ell_n = measure(xn)
     advance = ca.Function("pf_advance", [x, v, w, LQ, y0, WR, miss], [xn, yhat_n, ell_n])
-    return weigh, advance
+    transit = ca.Function("pf_transit", [x, w], [model.F(x, w, p)])
+    return weigh, advance, transit
 
 
 def _scalar(value) -> ca.SX:
@@ -233,12 +236,13 @@ class ParticleFilter(Estimator):
         self._reset()
 
     def _build(self) -> None:
-        weigh, advance = _graphs(self.model, self.loglik)
-        self._weigh, self._advance = _over_particles(weigh), _over_particles(advance)
+        self._weigh, self._advance, self._transit = (
+            _over_particles(f) for f in _graphs(self.model, self.loglik))
+        self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        del state["_weigh"], state["_advance"]  # generated functions: built again
+        del state["_weigh"], state["_advance"], state["_transit"]  # built again
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -304,6 +308,8 @@ class ParticleFilter(Estimator):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
         if status == "ok":
             self._trusted = (x_hat, P)
+        if self._trace is not None:
+            self._trace.append((X, W, w))
         resampled = ess < self.ess_threshold * N or not np.all(W > 0)
         if resampled:
             X = X[:, resample(W, self.resampling, self._rng)]
@@ -385,3 +391,36 @@ class ParticleFilter(Estimator):
             x=X, P=P, ess=ess, log_likelihood=float(inc.sum()),
             log_likelihood_increments=inc, status=tuple(status),
             success=not any(s.startswith("failed") for s in status))
+
+    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               n_paths: int = 100) -> ParticleSmoothResult:
+        """Smoothed trajectories of a whole record by forward-filtering
+        backward-simulation (:mod:`estim.estimators.particle_smoothing`).
+
+        Parameters
+        ----------
+        Y, U :
+            The record, as for :meth:`filter` (which runs first, from a :meth:`reset`).
+        n_paths : int
+            Number of trajectories drawn backwards (cost ``O(T N n_paths)``).
+
+        Returns
+        -------
+        ParticleSmoothResult
+            ``paths (n_paths, T, nx)``, their mean ``x (T, nx)`` and covariances
+            ``P (T, nx, nx)``.
+        """
+        n_paths = as_int(n_paths, "n_paths", minimum=1)
+        try:
+            LQ = np.linalg.cholesky(self.Q)
+        except np.linalg.LinAlgError:
+            raise ValueError("smooth needs a positive definite Q (the transition density "
+                             "of the backward draws); this Q is singular") from None
+        self._trace = []
+        try:
+            self.filter(Y, U)
+            trace = self._trace
+        finally:
+            self._trace = None
+        return backward_simulation(self._transit, np.linalg.inv(LQ), trace, self._rng,
+                                   n_paths)
