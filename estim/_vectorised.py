@@ -27,6 +27,7 @@ CasADi's ``map``.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -165,7 +166,7 @@ def vectorised(fun: ca.Function) -> Callable[..., list[np.ndarray]] | None:
         return None
     head, body = src.split("\n", 1)
     head = head[:-2] + ", n):" if fun.n_in() else head[:-2] + "n):"
-    scope = {"_np": np, "_f": _f, "_rows": _rows}
+    scope: dict[str, Any] = {"_np": np, "_f": _f, "_rows": _rows}
     if "_erf(" in src:  # scipy.special only when needed
         from scipy import special
         scope["_erf"] = special.erf
