@@ -271,7 +271,7 @@ class ParticleFilter(Estimator):
     def _reset(self) -> None:
         self._rng = np.random.default_rng(self.seed)
         self._X: np.ndarray | None = None
-        self._logW = np.full(self.n_particles, -np.log(self.n_particles))
+        self._W: np.ndarray | None = None  # the weights after the last step (None: equal)
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
 
     # -------------------------------------------------------------- step
@@ -288,13 +288,12 @@ class ParticleFilter(Estimator):
             V = self._rng.standard_normal((nx, N))
             X, Yh, ell = self._advance(self._X, V, w, self._LQ, y0, WR, miss, n=N)
         status, success = "ok", True
-        W, inc, X = self._update(X, ell[0], observed, const, self._logW)
+        W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
             X = x_t[:, None] + _root(P_t) @ self._rng.standard_normal((nx, N))
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
-            uniform = np.full(N, -np.log(N))
-            W, inc, X = self._update(X, ell[0], observed, const, uniform)
+            W, inc, X = self._update(X, ell[0], observed, const, None)
             status, success = ("failed: every particle weight is zero or not finite; "
                                "re-anchored on the last trusted estimate with P + P0"), False
             if W is None:
@@ -303,56 +302,70 @@ class ParticleFilter(Estimator):
         x_hat = (X * W).sum(axis=1)
         P = _spread(X - x_hat[:, None], W)
         ess = effective_sample_size(W)
-        e, nis = self._innovation(y, observed, Yh, X)
+        e, nis = self._innovation(y, observed, Yh)
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
         if status == "ok":
             self._trusted = (x_hat, P)
         if self._trace is not None:
             self._trace.append((X, W, w))
-        resampled = ess < self.ess_threshold * N or not np.all(W > 0)
+        resampled = ess < self.ess_threshold * N or not W.all()
         if resampled:
             X = X[:, resample(W, self.resampling, self._rng)]
-            self._logW = np.full(N, -np.log(N))
-        else:
-            self._logW = np.log(W)
-        self._X = X
+        self._X, self._W = X, None if resampled else W
         info = StepInfo._fast(status=status, success=success, P=P, innovation=e, nis=nis)
         info.extra.update(ess=ess, log_likelihood=inc, resampled=bool(resampled))
         return x_hat, info
 
-    def _update(self, X, ell, observed, const, logW_prev):
-        """Normalised weights, the log-likelihood term and the particles (non-finite
-        ones zeroed, their weight zero); ``(None, nan, X)`` when no weight is left."""
-        finite = np.isfinite(X).all(axis=0)
+    def _update(self, X, ell, observed, const, W_prev):
+        r"""Normalised weights :math:`W_k \propto W_{k-1} e^{\ell}` (``W_prev`` None:
+        equal), the log-likelihood term and the particles (non-finite ones zeroed, their
+        weight zero); ``(None, nan, X)`` when no weight is left."""
+        N = X.shape[1]
         if not observed.any():
-            ell = np.zeros_like(ell)
-        a = np.where(finite & ~np.isnan(ell), logW_prev + ell, -np.inf)
-        top = a.max()
-        if not np.isfinite(top):
-            return None, float("nan"), X
-        if not finite.all():
-            X = np.where(finite, X, 0.0)
+            ell = np.zeros(N)
+        a = ell if W_prev is None else ell + np.log(W_prev)
+        top = a.max()  # NaN if any is NaN
+        finite = bool(np.isfinite(X).all())
+        if not (np.isfinite(top) and finite):  # the slow path: some particles are lost
+            ok = np.isfinite(X).all(axis=0) & ~np.isnan(a)
+            a = np.where(ok, a, -np.inf)
+            top = a.max()
+            if not np.isfinite(top):
+                return None, float("nan"), X
+            X = np.where(ok, X, 0.0)
         W = np.exp(a - top)
         s = W.sum()
         W /= s
-        # with a user's log-density, const is not used (loglik is the full density)
-        return W, float(top + np.log(s) + (const if self.loglik is None else 0.0)), X
+        # log sum_i W_prev_i e^{l_i}; a user's log-density is the full density
+        inc = float(top + np.log(s / N if W_prev is None else s))
+        return W, inc + (const if self.loglik is None else 0.0), X
 
-    def _innovation(self, y, observed, Yh, X):
+    def _innovation(self, y, observed, Yh):
         """``y`` less the particles' predicted output under the previous weights, and its
         NIS against their spread plus ``R`` (0 and NaN without a measured output)."""
-        ny = self.model.ny
-        e = np.zeros(ny)
+        e = np.zeros(self.model.ny)
         if not observed.any():
             return e, float("nan")
-        Wp = np.exp(self._logW)
-        Yh = np.where(np.isfinite(Yh), Yh, 0.0)
-        Yh = Yh[observed]
-        yb = (Yh * Wp).sum(axis=1)
+        if not observed.all():
+            Yh = Yh[observed]
+        Wp = self._W
+        yb = Yh.mean(axis=1) if Wp is None else (Yh * Wp).sum(axis=1)
+        if not np.isfinite(yb).all():  # lost particles: without them
+            ok = np.isfinite(Yh).all(axis=0)
+            Wp = (np.ones(Yh.shape[1]) if Wp is None else Wp) * ok
+            Wp = Wp / Wp.sum() if Wp.sum() > 0 else None
+            if Wp is None:
+                return e, float("nan")
+            Yh = np.where(ok, Yh, 0.0)
+            yb = (Yh * Wp).sum(axis=1)
+        if Wp is None:
+            Wp = np.full(Yh.shape[1], 1.0 / Yh.shape[1])
         eo = y[observed] - yb
         e[observed] = eo
         S = _spread(Yh - yb[:, None], Wp) + self._measured(observed)[2]
+        if len(eo) == 1:
+            return e, float(eo[0] ** 2 / S[0, 0])
         try:
             return e, float(eo @ np.linalg.solve(S, eo))
         except np.linalg.LinAlgError:
