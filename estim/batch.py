@@ -37,6 +37,7 @@ and interpreted batches give the same numbers.
 
 from __future__ import annotations
 
+import threading
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -49,7 +50,8 @@ import numpy as np
 from estim._scan import blocked_scan
 from estim._validate import as_covariance, as_vector
 from estim.scenarios import Scenario
-from estim.solvers.seeds import CHUNK, seed_map
+from estim.solvers.seed_threads import evaluate
+from estim.solvers.seeds import CHUNK, seed_map, threads
 
 if TYPE_CHECKING:
     from estim.estimators.fused import FusedKalman
@@ -159,12 +161,19 @@ class _Plant:
         V, Wn = draw_noise(seeds, self.T, self.Lr, self.Lq)
         return Wn, V
 
-    def run(self, Wn: np.ndarray, V: np.ndarray, out: tuple) -> None:
+    def run(self, Wn: np.ndarray, V: np.ndarray, out: tuple, slot: int | None = None
+            ) -> None:
         """The seeds' plant under the noise ``Wn``, ``V`` (see :meth:`noise`), into the
-        rows ``out = (x_T, X, Y)``: ``(n, nx)``, ``(n, T, nx)`` and ``(n, T, ny)``."""
+        rows ``out = (x_T, X, Y)``: ``(n, nx)``, ``(n, T, nx)`` and ``(n, T, ny)`` (C
+        contiguous); with the serial map of ``slot`` when given (for a pipeline's
+        threads, :func:`estim.solvers.seed_threads.evaluate`)."""
         n = len(Wn)
-        x_end, X, Y = self.fun([self.x0, self.W, self.P, self.u_step.ravel(),
-                                Wn.reshape(n, -1), V.reshape(n, -1)], n)
+        inputs = [self.x0, self.W, self.P, self.u_step.ravel(), Wn.reshape(n, -1),
+                  V.reshape(n, -1)]
+        if slot is not None:
+            evaluate(self.fun, slot, inputs, [o.reshape(n, -1) for o in out])
+            return
+        x_end, X, Y = self.fun(inputs, n)
         out[0][:], out[1][:], out[2][:] = x_end, X.reshape(n, self.T, -1), \
             Y.reshape(n, self.T, -1)
 
@@ -226,16 +235,18 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     """What :func:`~estim.compare` records of every seed's run of each filter (see
     :func:`estim._runs.run_seed`), from batched calls over the seeds' records.
 
-    The seeds go in chunks of :data:`~estim.solvers.seeds.CHUNK` through a pipeline of
-    two threads: one draws the noise of a chunk, simulates its plant and filters it
-    (numpy's generators and CasADi, which release the GIL), this one scores the chunks
-    as they come (the NEES solves, the errors). Every seed's numbers are those of one
-    call over all seeds (each is computed from its own rows alone).
+    The seeds go in chunks of :data:`~estim.solvers.seeds.CHUNK` through a pipeline:
+    workers, one per core, take the chunks in turn, each drawing the noise of a chunk,
+    simulating its plant and filtering it (numpy's generators and CasADi's serial maps,
+    which release the GIL), while this thread scores the chunks as they come (the NEES
+    solves, the errors). Every seed's numbers are those of one call over all seeds (each
+    is computed from its own rows alone).
 
-    Returns the plant (``seconds``: the noise and the plant's calls) and, per filter, the
-    summaries in seed order (None for a seed that the per-seed path must run: a plant
-    that left the finite numbers, a failed update), the seconds of its filter calls and
-    whether they were compiled (see :func:`~estim.solvers.seeds.seed_map`).
+    Returns the plant (``seconds``: the noise and the plant's calls, summed over the
+    workers) and, per filter, the summaries in seed order (None for a seed that the
+    per-seed path must run: a plant that left the finite numbers, a failed update), the
+    seconds of its filter calls (summed over the workers) and whether they were
+    compiled (see :func:`~estim.solvers.seeds.seed_map`).
     """
     from estim.estimators.fused_calls import SeedFilter
 
@@ -252,14 +263,28 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     scores = {name: _Scores(S, nx) for name in filters}
     outs: dict[str, list[dict]] = {name: [] for name in filters}
     finite = np.empty(S, dtype=bool)
-    plant_seconds = [0.0]
+    chunks = [(lo, min(lo + CHUNK, S)) for lo in range(0, S, CHUNK)]
+    nw = min(threads(S), len(chunks))  # the pipeline's workers
+    seconds = np.zeros((nw, 1 + len(filters)))  # each worker's: the plant's, each filter's
+    ready = [threading.Event() for _ in chunks]
+    failed: list[BaseException] = []
 
-    def simulate_and_filter(lo: int, hi: int) -> None:
-        t0 = time.perf_counter()
-        plant.run(*plant.noise(seeds[lo:hi]), (x_end[lo:hi], X[lo:hi], Y[lo:hi]))
-        plant_seconds[0] += time.perf_counter() - t0
-        for name, run in runs.items():
-            states[name][lo:hi], flags[name][lo:hi] = run.run(Y[lo:hi])
+    def work(w: int) -> None:  # chunks w, w + nw, ...: noise, plant, filters
+        try:
+            for c in range(w, len(chunks), nw):
+                lo, hi = chunks[c]
+                t0 = time.perf_counter()
+                plant.run(*plant.noise(seeds[lo:hi]), (x_end[lo:hi], X[lo:hi], Y[lo:hi]),
+                          slot=w)
+                seconds[w, 0] += time.perf_counter() - t0
+                for j, (name, run) in enumerate(runs.items()):
+                    seconds[w, 1 + j] += run.run_into(Y[lo:hi], states[name][lo:hi],
+                                                      flags[name][lo:hi], w)
+                ready[c].set()
+        except BaseException as exc:  # noqa: BLE001 - raised again by this thread
+            failed.append(exc)
+            for event in ready:
+                event.set()
 
     def score(lo: int, hi: int) -> None:
         finite[lo:hi] = _finite(x_end[lo:hi], X[lo:hi], Y[lo:hi])
@@ -268,20 +293,23 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
             outs[name].append(out)
             scores[name].add(lo, out, X[lo:hi], finite[lo:hi], burn_in)
 
-    chunks = [(lo, min(lo + CHUNK, S)) for lo in range(0, S, CHUNK)]
-    with ThreadPoolExecutor(1) as pool:  # the chunks in turn, while this thread scores
-        jobs = [pool.submit(simulate_and_filter, lo, hi) for lo, hi in chunks]
-        for (lo, hi), job in zip(chunks, jobs, strict=True):
-            job.result()
+    with ThreadPoolExecutor(nw) as pool:  # the chunks in turn, while this thread scores
+        for w in range(nw):
+            pool.submit(work, w)
+        for c, (lo, hi) in enumerate(chunks):
+            ready[c].wait()
+            if failed:
+                raise failed[0]
             score(lo, hi)
     for est in filters.values():
         est.reset()
+    took = seconds.sum(axis=0)
     batch = PlantBatch(seeds=list(seeds), t=plant.t, x=X, y=Y, u=plant.U_log,
-                       u_step=plant.u_step, finite=finite, seconds=plant_seconds[0],
+                       u_step=plant.u_step, finite=finite, seconds=float(took[0]),
                        how=plant.fun.how)
-    results = {name: (scores[name].runs(scenario, est, batch, outs[name], runs[name].seconds,
-                                        keep_logs), runs[name].seconds, runs[name].how)
-               for name, est in filters.items()}
+    results = {name: (scores[name].runs(scenario, est, batch, outs[name], float(took[1 + j]),
+                                        keep_logs), float(took[1 + j]), runs[name].how)
+               for j, (name, est) in enumerate(filters.items())}
     return batch, results
 
 

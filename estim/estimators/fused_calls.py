@@ -23,6 +23,7 @@ import numpy as np
 from estim._fast import FastFunction, jitted
 from estim.estimators.square_root import covariances
 from estim.solvers.kalman import record_function
+from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
 
 if TYPE_CHECKING:
@@ -140,6 +141,17 @@ class SeedFilter:
         Sx, _, F = self.fun([est._s, Y.reshape(n, -1), self.W, est._tun, est._P0_data], n)
         self.seconds += time.perf_counter() - t0
         return Sx.reshape(n, self.T, -1), F.reshape(n, self.T, -1)
+
+    def run_into(self, Y: np.ndarray, Sx: np.ndarray, F: np.ndarray, slot: int) -> float:
+        """:meth:`run` into the rows ``Sx (n, T, nx + nx^2)`` and ``F (n, T, 8)`` (C
+        contiguous, written in place) with the serial map of ``slot``
+        (:func:`estim.solvers.seed_threads.evaluate`: for a pipeline's threads); returns
+        the seconds it took (not added to :attr:`seconds`)."""
+        est, n = self.est, len(Y)
+        t0 = time.perf_counter()
+        evaluate(self.fun, slot, [est._s, Y.reshape(n, -1), self.W, est._tun, est._P0_data],
+                 [Sx.reshape(n, -1), np.empty((n, Y[0].size)), F.reshape(n, -1)])
+        return time.perf_counter() - t0
 
     def results(self, Sx: np.ndarray, F: np.ndarray) -> dict:
         """``x``, ``P``, ``nis`` and ``status`` (see :meth:`FusedKalman._filter_seeds
