@@ -144,14 +144,16 @@ class _Plant:
         self.P = P.ravel()
         self.scenario = scenario
 
-    def build(self, S: int) -> None:
-        """The one-seed scan, ready for ``S`` seeds (see
-        :func:`~estim.solvers.seeds.seed_map`: compiled for a large batch)."""
+    def build(self, S: int, maps: bool = True) -> None:
+        """The one-seed scan for ``S`` seeds (see :func:`~estim.solvers.seeds.seed_map`:
+        compiled for a large batch), with the maps of a call over all of them if
+        ``maps`` (a pipeline's workers use serial maps of their own)."""
         m, T, scenario = self.scenario.model, self.T, self.scenario
         key = ("plant", m.F.serialize(), m.H.serialize(), bool(scenario.clip),
                m.lower.tolist(), m.upper.tolist(), T)
         self.fun = seed_map(key, lambda expand: _plant_scan(scenario, T, expand), S * T)
-        self.fun.build(S)
+        if maps:
+            self.fun.build(S)
 
     def noise(self, seeds: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """``(W, V)`` of the seeds, ``(n, T, nx)`` and ``(n, T, ny)``, as
@@ -254,7 +256,7 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     plant = _Plant(scenario)
     T, nx, ny = plant.T, plant.nx, plant.ny
     with ThreadPoolExecutor(1) as pool:  # the plant's Function built (compiled) meanwhile
-        building = pool.submit(plant.build, S)
+        building = pool.submit(plant.build, S, False)
         runs = {name: SeedFilter(est, plant.u_step, S) for name, est in filters.items()}
         building.result()
     x_end, X, Y = np.empty((S, nx)), np.empty((S, T, nx)), np.empty((S, T, ny))
