@@ -39,6 +39,7 @@ There are no timing assertions; the numbers depend on the machine.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import sys
@@ -183,13 +184,17 @@ def main() -> None:
     args = parser.parse_args()
     repeats = max(3, args.repeats)
     print(f"Python {platform.python_version()}, CasADi {casadi.__version__}, "
-          f"numpy {np.__version__}, {platform.machine()}; median of {repeats} runs")
+          f"numpy {np.__version__}, {platform.machine()}, {os.cpu_count()} cores; median of "
+          f"{repeats} runs; load average "
+          + ", ".join(f"{v:.2f}" for v in os.getloadavg()) + " (1, 5, 15 min) at start")
     problems = [("batch_reactor", estim.scenarios.batch_reactor(), reactor_step, reactor_h,
                  reactor_h_x),
                 ("van_der_pol", estim.scenarios.van_der_pol(n_steps=1000), vdp_step, vdp_h,
                  vdp_h_x)]
     for problem in problems:
         benchmark(*problem, repeats)
+    print("\nload average " + ", ".join(f"{v:.2f}" for v in os.getloadavg())
+          + " (1, 5, 15 min) at the end")
 
 
 def benchmark(name, sc, step, h, h_x, repeats: int) -> None:
