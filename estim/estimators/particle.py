@@ -30,6 +30,8 @@ References
 ----------
 N. J. Gordon, D. J. Salmond, A. F. M. Smith, "Novel approach to
 nonlinear/non-Gaussian Bayesian state estimation", IEE Proc. F 140(2), 1993;
+A. Doucet, S. Godsill, C. Andrieu, "On sequential Monte Carlo sampling methods for
+Bayesian filtering", Statistics and Computing 10(3), 2000;
 N. Chopin, O. Papaspiliopoulos, *An Introduction to Sequential Monte Carlo*,
 Springer 2020.
 """
@@ -53,6 +55,9 @@ from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
 
 __all__ = ["ParticleFilter", "ParticleFilterResult"]
 
+#: the proposals: the transition (bootstrap), or the transition updated by the
+#: measurement linearised at the predicted particle
+PROPOSALS = ("bootstrap", "ekf")
 #: an effective sample size below this fraction of the particles (and below 2) is a
 #: collapse of the weights, reported as ``"suspect: ..."``
 COLLAPSE = 0.01
@@ -89,6 +94,14 @@ class ParticleFilterResult:
     success: bool
 
 
+def _definite(Q: np.ndarray) -> None:
+    """Refuse a singular ``Q`` for the linearised proposal (its density ratio needs one)."""
+    if np.linalg.eigvalsh(Q).min() <= 0.0:
+        raise ValueError("Q must be positive definite with proposal='ekf' (the weights hold "
+                         "the transition density); use the bootstrap proposal for a "
+                         "singular Q")
+
+
 def _root(M: np.ndarray) -> np.ndarray:
     """A square root ``L`` with ``L L^T = M`` of a positive semi-definite ``M`` (Cholesky,
     or the symmetric eigen-decomposition when ``M`` is singular)."""
@@ -111,17 +124,22 @@ def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
     return P
 
 
-def _graphs(model: Model, loglik: Callable | None
-            ) -> tuple[ca.Function, ca.Function, ca.Function]:
-    """``weigh(x, w, y0, WR, miss) -> (yhat, l)``, ``advance(x, v, w, LQ, y0, WR, miss)
-    -> (x_next, yhat, l)`` and ``transit(x, w) -> F(x, w)`` for one particle (see
+def _graphs(model: Model, loglik: Callable | None, proposal: str
+            ) -> tuple[ca.Function, ca.Function, ca.Function | None, ca.Function]:
+    """``weigh(x, w, y0, WR, miss) -> (yhat, l)``, ``advance(x, v, w, tun, y0, WR, miss)
+    -> (x_next, yhat, l)``, the linearised proposal's first step ``start`` (from the
+    prior; None for the bootstrap filter) and ``transit(x, w) -> F(x, w)`` for one
+    particle (see
     :class:`ParticleFilter`): ``y0`` the measurement with 0 where missing (``miss`` 1
     there), ``WR`` the inverse Cholesky factor of the measured rows of ``R`` embedded in
-    ``(ny, ny)`` (the Gaussian term without its constant)."""
+    ``(ny, ny)`` (the Gaussian term without its constant), ``tun`` what the
+    ``proposal`` reads of the tuning (see :meth:`ParticleFilter._proposal_tuning`); with
+    the linearised proposal ``l`` includes the ratio of the transition density to the
+    proposal's."""
     nx, ny, nw = model.nx, model.ny, model.nw
     p = ca.DM(model.p)
     x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nx), ca.SX.sym("w", nw)
-    LQ, y0 = ca.SX.sym("LQ", nx * nx), ca.SX.sym("y0", ny)
+    y0 = ca.SX.sym("y0", ny)
     WR, miss = ca.SX.sym("WR", ny * ny), ca.SX.sym("miss", ny)
 
     def measure(xk):
@@ -135,11 +153,46 @@ def _graphs(model: Model, loglik: Callable | None
 
     yhat, ell = measure(x)
     weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])
-    xn = model.F(x, w, p) + ca.reshape(LQ, nx, nx) @ v
-    yhat_n, ell_n = measure(xn)
-    advance = ca.Function("pf_advance", [x, v, w, LQ, y0, WR, miss], [xn, yhat_n, ell_n])
-    transit = ca.Function("pf_transit", [x, w], [model.F(x, w, p)])
-    return weigh, advance, transit
+    xb = model.F(x, w, p)
+    if proposal == "bootstrap":  # tun: L_Q
+        tun = ca.SX.sym("tun", nx * nx)
+        xn = xb + ca.reshape(tun, nx, nx) @ v
+        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
+                              [xn, *measure(xn)])
+        start = None
+    else:  # "ekf", tun: Q, L_Q^-1, R (identity rows where missing)
+        tun = ca.SX.sym("tun", 2 * nx * nx + ny * ny)
+        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
+                              list(_linearised(model, measure, xb, v, w, tun, y0, miss)))
+        # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
+        start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss],
+                            list(_linearised(model, measure, x, v, w, tun, y0, miss)))
+    transit = ca.Function("pf_transit", [x, w], [xb])
+    return weigh, advance, start, transit
+
+
+def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, tun: ca.SX,
+                y0: ca.SX, miss: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
+    r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement with the
+    output linearised at :math:`\bar x` (see :class:`ParticleFilter`'s ``proposal``):
+    the particle, its predicted output and its log-weight factor (measurement density
+    times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel)."""
+    nx, ny, p = model.nx, model.ny, ca.DM(model.p)
+    Qm, LQi = ca.reshape(tun[:nx * nx], nx, nx), ca.reshape(tun[nx * nx:2 * nx * nx], nx, nx)
+    Rm = ca.reshape(tun[2 * nx * nx:], ny, ny)
+    uy = model.measurement_input(w)
+    Cm = ca.diag(1 - miss) @ model.H_x(xb, uy, p)
+    e = (1 - miss) * (y0 - model.H(xb, uy, p))
+    K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
+    IKC = ca.DM.eye(nx) - K @ Cm
+    Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
+    LS = ca.chol(0.5 * (Sig + Sig.T)).T
+    xn = xb + K @ e + LS @ v
+    yhat, ell = measure(xn)
+    d = LQi @ (xn - xb)
+    ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
+        ca.sum1(ca.log(ca.diag(LS)))
+    return xn, yhat, ell
 
 
 def _scalar(value) -> ca.SX:
@@ -197,6 +250,16 @@ class ParticleFilter(Estimator):
         missing output enters as ``y_i = yhat_i``: exact for a log-density that is a
         sum over outputs whose terms vanish at a zero residual. Default: Gaussian with
         covariance ``R``.
+    proposal : {"bootstrap", "ekf"}
+        Where new particles are drawn: from the transition,
+        :math:`N(F(x^i_{k-1}), Q)` (``"bootstrap"``, the default), or from the
+        transition updated by :math:`y_k` with the output linearised at
+        :math:`\bar x^i = F(x^i_{k-1})` (``"ekf"``, Doucet, Godsill, Andrieu 2000):
+        :math:`N(\bar x^i + K_i (y_k - h(\bar x^i)),\, (I - K_i C_i) Q)`,
+        :math:`K_i = Q C_i^\top (C_i Q C_i^\top + R)^{-1}`, the weights multiplied by
+        the transition density over the proposal's. Exact (the optimal proposal) for a
+        linear output; far fewer particles are lost when the measurements are precise.
+        Needs a positive definite ``Q``.
     seed : int
         Seed of the filter's random numbers (``numpy.random.default_rng``); every
         :meth:`reset` starts the same stream again, so a run is reproducible
@@ -218,7 +281,8 @@ class ParticleFilter(Estimator):
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
-                 ess_threshold: float = 0.5, loglik: Callable | None = None, seed: int = 0):
+                 ess_threshold: float = 0.5, loglik: Callable | None = None,
+                 proposal: str = "bootstrap", seed: int = 0):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.n_particles = as_int(n_particles, "n_particles", minimum=2,
                                   expected="an integer >= 2")
@@ -228,6 +292,7 @@ class ParticleFilter(Estimator):
         if loglik is not None and not callable(loglik):
             raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
                             f"or None, got {type(loglik).__name__}")
+        self.proposal = as_choice(proposal, PROPOSALS, "proposal")
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
@@ -236,13 +301,16 @@ class ParticleFilter(Estimator):
         self._reset()
 
     def _build(self) -> None:
+        weigh, advance, start, transit = _graphs(self.model, self.loglik, self.proposal)
         self._weigh, self._advance, self._transit = (
-            _over_particles(f) for f in _graphs(self.model, self.loglik))
+            _over_particles(f) for f in (weigh, advance, transit))
+        self._start = None if start is None else _over_particles(start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        del state["_weigh"], state["_advance"], state["_transit"]  # built again
+        for key in ("_weigh", "_advance", "_start", "_transit"):  # built again
+            del state[key]
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -250,13 +318,21 @@ class ParticleFilter(Estimator):
         self._build()
 
     # ------------------------------------------------------------ tuning
-    def _tuning_changed(self) -> None:
-        self._LQ = _root(self.Q).ravel(order="F")
-        self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray]] = {}
+    def _check_tuning(self, new: dict) -> None:
+        if getattr(self, "proposal", "bootstrap") == "ekf" and "Q" in new:
+            _definite(new["Q"])
 
-    def _measured(self, observed: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-        """``WR`` (flat), the Gaussian constant and the block of ``R`` of the measured
-        outputs ``observed`` (kept by pattern)."""
+    def _tuning_changed(self) -> None:
+        if self.proposal == "ekf":
+            _definite(self.Q)
+        self._LQ = _root(self.Q).ravel(order="F")
+        self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray]] = {}
+
+    def _measured(self, observed: np.ndarray
+                  ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+        """``WR`` (flat), the Gaussian constant, the block of ``R`` of the measured
+        outputs ``observed`` and the proposal's tuning (see :func:`_graphs`), kept by
+        pattern."""
         key = observed.tobytes()
         if key not in self._whitening:
             ny, idx = self.model.ny, np.flatnonzero(observed)
@@ -265,8 +341,21 @@ class ParticleFilter(Estimator):
                 L = np.linalg.cholesky(Ro)
                 WR[np.ix_(idx, idx)] = np.linalg.inv(L)
                 const = -0.5 * idx.size * np.log(2 * np.pi) - float(np.log(np.diag(L)).sum())
-            self._whitening[key] = (WR.ravel(order="F"), const, Ro)
+            tun = self._LQ
+            if self.proposal == "ekf":  # Q, L_Q^-1, R with identity rows where missing
+                Rm = np.eye(ny)
+                Rm[np.ix_(idx, idx)] = Ro
+                LQi = np.linalg.inv(self._LQ.reshape(self.model.nx, -1, order="F"))
+                tun = np.concatenate([self.Q.ravel(order="F"), LQi.ravel(order="F"),
+                                      Rm.ravel(order="F")])
+            self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun)
         return self._whitening[key]
+
+    def _prior_tuning(self, tun: np.ndarray) -> np.ndarray:
+        """The linearised proposal's tuning ``tun`` with ``P0`` in place of ``Q``."""
+        nx, P0 = self.model.nx, np.asarray(self.P0, dtype=float)  # required: never None
+        L0i = np.linalg.inv(np.linalg.cholesky(P0))
+        return np.concatenate([P0.ravel(order="F"), L0i.ravel(order="F"), tun[2 * nx * nx:]])
 
     def _reset(self) -> None:
         self._rng = np.random.default_rng(self.seed)
@@ -279,14 +368,17 @@ class ParticleFilter(Estimator):
         m, N, nx = self.model, self.n_particles, self.model.nx
         observed = ~np.isnan(y)
         y0, miss = np.where(observed, y, 0.0), (~observed).astype(float)
-        WR, const, _ = self._measured(observed)
+        WR, const, _, tun = self._measured(observed)
         w = self._transition(u) if m.nw else np.zeros(0)
-        if first or self._X is None:
+        if (first or self._X is None) and self._start is not None:
+            V = self._rng.standard_normal((nx, N))
+            X, Yh, ell = self._start(self.x0, V, w, self._prior_tuning(tun), y0, WR, miss, n=N)
+        elif first or self._X is None:
             X = self.x0[:, None] + _root(self.P0) @ self._rng.standard_normal((nx, N))
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
-            X, Yh, ell = self._advance(self._X, V, w, self._LQ, y0, WR, miss, n=N)
+            X, Yh, ell = self._advance(self._X, V, w, tun, y0, WR, miss, n=N)
         status, success = "ok", True
         W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
