@@ -32,7 +32,9 @@ the predicted outputs :math:`y^i = h(x^i)` of the measured components (NaN rows 
 
 (by a linear solve), and the analysis is one of
 
-``"stochastic"`` (perturbed observations; Burgers, van Leeuwen, Evensen 1998)
+``"stochastic"``
+    Perturbed observations (Burgers, van Leeuwen, Evensen 1998):
+
     .. math::
         x^i_k \leftarrow x^i_k + K (y_k + \epsilon^i - y^i), \quad
         \epsilon^i \sim N(0, R).
@@ -40,9 +42,10 @@ the predicted outputs :math:`y^i = h(x^i)` of the measured components (NaN rows 
     The gain uses the exact :math:`R`; the perturbations are drawn and then centred
     (their ensemble mean subtracted), so the mean moves by exactly :math:`K e` and
     the analysis covariance is right in expectation.
-``"etkf"`` (ensemble transform Kalman filter, symmetric square root; Bishop,
-Etherton, Majumdar 2001; Hunt, Kostelich, Szunyogh 2007)
-    with :math:`\tilde S = L_R^{-1} S` (:math:`L_R L_R^\top = R`) and
+``"etkf"``
+    The ensemble transform Kalman filter with the symmetric square root (Bishop,
+    Etherton, Majumdar 2001; Hunt, Kostelich, Szunyogh 2007): with
+    :math:`\tilde S = L_R^{-1} S` (:math:`L_R L_R^\top = R`) and
     :math:`T = (I + \tilde S^\top \tilde S)^{-1}` (:math:`N \times N`),
 
     .. math::
@@ -53,9 +56,9 @@ Etherton, Majumdar 2001; Hunt, Kostelich, Szunyogh 2007)
     :math:`\tilde S^\top \tilde S = V \Sigma^2 V^\top`, taken as the thin singular value
     decomposition :math:`\tilde S = U \Sigma V^\top` (so the :math:`N \times N` matrix
     is never formed): :math:`T^{1/2} = I + V [(I + \Sigma^2)^{-1/2} - I] V^\top`. The
-    transform keeps the anomalies' mean at zero and makes the analysis covariance
-    exactly :math:`(I - K H) P_f` for a linear :math:`h` (no sampling of the
-    measurement noise).
+    transform keeps the anomalies' mean at zero and, for a linear :math:`h(x) = H x`,
+    makes the analysis covariance exactly :math:`(I - K H) P_f`, :math:`P_f` the
+    forecast ensemble's covariance (no sampling of the measurement noise).
 
 The innovation reported is :math:`e` (0 for missing outputs) and its normalised square
 :math:`e^\top (P_{yy} + R)^{-1} e`, tested against :math:`\chi^2` as for the other
