@@ -362,6 +362,17 @@ def main() -> None:
         print(f"estim against dynamax over {S} seeds: largest |RMSE difference| {dr:.2e}, "
               f"true states {dx:.2e}, filtered means {dxh:.2e}, "
               f"first filtered means (update of x0 by y[0]) {d0:.2e}")
+        # every run: estim's compare, then dynamax with jax.random noise, one after the
+        # other (the same load on the machine), and their ratio
+        for name, spec in (("estim compare", estim.EKF), ("estim compare jit", jit_ekf)):
+            pairs = [(timed(lambda spec=spec: estim.compare(sc, {"EKF": spec}, seeds), 1)[0],
+                      timed(lambda: jax.block_until_ready(run_keys(keys)), 1)[0])
+                     for _ in range(repeats)]
+            ratios = [a / b for a, b in pairs]
+            print(f"{name} / dynamax with jax.random noise, each of {repeats} runs (timed in "
+                  "turn): " + " ".join(f"{r:.2f}" for r in ratios)
+                  + f" (median {statistics.median(ratios):.2f}, at most 1.0 in "
+                  f"{sum(r <= 1.0 for r in ratios)} of {repeats})")
         Xh0 = unboosted_filter(sc, plant.y)
         if Xh0 is not None:
             r0 = np.sqrt(np.mean((Xh0 - plant.x) ** 2, axis=(1, 2)))
