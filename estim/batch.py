@@ -3,9 +3,10 @@ r"""Monte Carlo runs of an open-loop scenario over many seeds in compiled calls.
 :func:`~estim.compare` runs every seed of a scenario through :func:`~estim.simulate`,
 a Python loop of one plant step and one estimator step per sample. When the plant's
 inputs are known in advance (no controller), the plant does not depend on the
-estimator, and both halves can be batched:
+estimator, and both halves can be batched (:func:`run_batches`, seed by seed the same
+numbers as :func:`simulate_plant` and one filter call over all seeds):
 
-1. :func:`simulate_plant`: the noise of every seed is drawn up front exactly as
+1. :func:`simulate_plant`: the noise of every seed is drawn exactly as
    :func:`~estim.simulate` draws it (``numpy.random.default_rng(seed)``: first
    :math:`V` (T, ny), then :math:`W` (T, nx), through the same square roots of
    :math:`R` and :math:`Q`), and the plant
@@ -23,13 +24,19 @@ estimator, and both halves can be batched:
 3. the metrics of :func:`~estim.compare` (RMSE, NEES, the largest error) are
    computed over the batch with numpy.
 
+:func:`run_batches` runs the three as a pipeline over chunks of seeds: workers, one
+per core, draw the noise of a chunk, simulate its plant and filter it, while the
+calling thread scores the chunks done (numpy's generators and CasADi release the GIL;
+the NEES solves do not).
+
 A seed whose plant leaves the finite numbers, or whose filter meets a failed update
 (whose recovery depends on the filter's history), is run by the per-seed path
 instead, so the numbers are those of :func:`~estim.simulate` in every case.
 
 The one-seed Functions run over the seeds through :func:`estim.solvers.seeds.seed_map`:
-mapped over chunks of seeds, evaluated in threads on the machine's cores, reading and
-writing the seeds' rows in place. Batches of at least
+mapped over chunks of seeds (in the pipeline: by the serial maps of its workers,
+:mod:`estim.solvers.seed_threads`), reading and writing the seeds' rows in place.
+Batches of at least
 :data:`~estim.solvers.seeds.COMPILE_MIN_SAMPLES` samples are compiled to C once per machine
 (:mod:`estim._compile`) with flags that keep the interpreter's arithmetic, so compiled
 and interpreted batches give the same numbers.

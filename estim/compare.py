@@ -44,6 +44,7 @@ from estim._validate import as_bool, as_float, as_int, check_keywords
 from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.scenarios import Scenario
+from estim.solvers.seeds import CHUNK
 from estim.solvers.seeds import threads as seed_threads
 
 if TYPE_CHECKING:
@@ -264,11 +265,11 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         and why. The numbers are the same either way.
     batch : bool, optional
         Run the filters that support it (:class:`~estim.EKF`, :class:`~estim.UKF`)
-        over all seeds at once (see :mod:`estim.batch`): the plant of every seed
-        in one compiled call, then each such filter over every record in one
-        compiled call, on the machine's cores. The numbers are those of the
-        per-run path (a seed whose filter meets a failed update is run per run);
-        their ``step`` time is that call's time per sample. By default (None)
+        over all seeds at once (see :mod:`estim.batch`): the seeds in chunks, the
+        plant and each such filter over a chunk's whole records in one compiled call,
+        the chunks on the machine's cores while they are scored. The numbers are
+        those of the per-run path (a seed whose filter meets a failed update is run
+        per run); their ``step`` time is those calls' time per sample. By default (None)
         whenever the scenario's inputs are known in advance (no controller);
         ``False``: never; ``True``: a ValueError if the scenario cannot be batched.
         :attr:`Comparison.batched` says what was batched.
@@ -369,11 +370,13 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         note = "serial: every run was one of the first runs, timed in this process"
     batch_note = ""
     if batched and plant is not None:
-        threads = seed_threads(len(seed_list))
-        batch_note = (f"{', '.join(batched)}: the {len(seed_list)} runs of each filtered at once "
-                      f"(whole records over all seeds, on {threads} thread(s)), "
-                      f"after the plant of every seed ({_fmt_s(plant.seconds)}, {plant.how}); "
-                      f"their step time is that call's time per sample")
+        S = len(seed_list)
+        threads = min(seed_threads(S), -(-S // CHUNK))
+        batch_note = (f"{', '.join(batched)}: the {S} runs of each filtered in chunks of "
+                      f"{CHUNK} seeds (whole records in one call per chunk, on {threads} "
+                      f"thread(s)), with the plant of every seed ({_fmt_s(plant.seconds)}, "
+                      f"{plant.how}); times summed over the threads; their step time is the "
+                      f"filter's time per sample")
     rows: list[ComparisonRow] = []
     all_rmse: dict[str, np.ndarray] = {}
     logs: dict[str, list[Log | None]] = {}
