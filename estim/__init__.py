@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from estim import codegen as codegen  # not in __all__: imported on first use
     from estim import observability, smooth, tuning
     from estim.estimators.ekf import EKF
+    from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
     from estim.estimators.mhe import MHE
     from estim.estimators.particle import ParticleFilter
@@ -34,7 +35,8 @@ if TYPE_CHECKING:
     from estim.uncertainty import ParameterEstimates, parameter_uncertainty
 
 __all__ = [
-    "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
+    "EKF", "MHE", "UKF", "Comparison", "EnKF", "EstimationWarning", "Estimator",
+    "FitResult",
     "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
     "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
@@ -43,7 +45,8 @@ __all__ = [
 
 #: Names imported on first use (PEP 562): the estimators and the modules that
 #: ``import estim`` does not need, so that it stays fast.
-_LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
+_LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
+         "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
          "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",

@@ -63,7 +63,8 @@ def test_cli_list_leaves_heavy_modules_alone():
 
 def test_lazy_names_are_public_names():
     assert estim.__all__ == [
-        "EKF", "MHE", "UKF", "Comparison", "EstimationWarning", "Estimator", "FitResult",
+        "EKF", "MHE", "UKF", "Comparison", "EnKF", "EstimationWarning", "Estimator",
+        "FitResult",
         "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
         "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",

@@ -13,6 +13,7 @@ from estim.estimators.base import Estimator, StepInfo
 
 if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
+    from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
     from estim.estimators.mhe import MHE
     from estim.estimators.particle import ParticleFilter
@@ -23,7 +24,8 @@ if TYPE_CHECKING:
     ESTIMATORS: dict[str, type[Estimator]]
 
 #: Where each lazily imported name is defined.
-_LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
+_LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
+         "FitResult": "estim.estimators.fie",
          "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
          "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf"}
@@ -32,7 +34,7 @@ _LAZY = {"EKF": "estim.estimators.ekf", "FitResult": "estim.estimators.fie",
 _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",
                 "shooting": "ShootingObserver"}
 
-__all__ = ["EKF", "ESTIMATORS", "MHE", "Estimator", "FitResult", "FullInformation",
+__all__ = ["EKF", "ESTIMATORS", "EnKF", "MHE", "Estimator", "FitResult", "FullInformation",
            "ParticleFilter",
            "ShootingObserver", "StepInfo", "UKF"]
 

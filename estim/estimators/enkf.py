@@ -92,7 +92,6 @@ filtering problem to produce ensemble assimilations and forecasts", Mon. Weather
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -101,9 +100,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
-from estim._vectorised import vectorised
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.ensembles import over_points, square_root
 from estim.model import Model
 
 __all__ = ["VARIANTS", "EnKF", "EnKFResult"]
@@ -138,31 +137,6 @@ class EnKFResult:
     nis: np.ndarray
     status: tuple[str, ...]
     success: bool
-
-
-def _root(M: np.ndarray) -> np.ndarray:
-    """A square root ``L`` with ``L L^T = M`` of a positive semi-definite ``M`` (Cholesky,
-    or the symmetric eigen-decomposition when ``M`` is singular)."""
-    try:
-        return np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        lam, V = np.linalg.eigh(0.5 * (M + M.T))
-        return V * np.sqrt(np.clip(lam, 0.0, None))
-
-
-def _over_members(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
-    """``fun`` evaluated on column-stacked members: vectorised, or CasADi's ``map``."""
-    fast = vectorised(fun)
-    if fast is not None:
-        return fast
-
-    def mapped(*args: np.ndarray, n: int) -> list[np.ndarray]:
-        out = fun.map(n)(*[a if a.ndim == 2 else a[:, None] for a in args])
-        out = out if isinstance(out, tuple | list) else [out]
-        return [np.asarray(o, dtype=float).reshape(fun.nnz_out(i), n)
-                for i, o in enumerate(out)]
-
-    return mapped
 
 
 def _graphs(model: Model) -> tuple[ca.Function, ca.Function]:
@@ -284,7 +258,7 @@ class EnKF(Estimator):
 
     def _build(self) -> None:
         measure, advance = _graphs(self.model)
-        self._measure, self._advance = _over_members(measure), _over_members(advance)
+        self._measure, self._advance = over_points(measure), over_points(advance)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -297,7 +271,7 @@ class EnKF(Estimator):
 
     # ------------------------------------------------------------ tuning
     def _tuning_changed(self) -> None:
-        self._LQ = _root(self.Q).ravel(order="F")
+        self._LQ = square_root(self.Q).ravel(order="F")
         self._blocks: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
     def _measured(self, observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -327,7 +301,7 @@ class EnKF(Estimator):
         w = self._transition(u) if m.nw else np.zeros(0)
         status, success = "ok", True
         if first or self._X is None:
-            X = self.x0[:, None] + _root(self.P0) @ self._rng.standard_normal((nx, N))
+            X = self.x0[:, None] + square_root(self.P0) @ self._rng.standard_normal((nx, N))
         else:
             V = self._rng.standard_normal((nx, N))
             X = self._advance(self._X, V, w, self._LQ, n=N)[0]
@@ -339,7 +313,7 @@ class EnKF(Estimator):
         moments = None if Xa is None else _moments(Xa)
         if moments is None:  # a forecast or analysis that is not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = x_t[:, None] + _root(P_t) @ self._rng.standard_normal((nx, N))
+            X = x_t[:, None] + square_root(P_t) @ self._rng.standard_normal((nx, N))
             Xa, e, nis = self._analyse(X, y, observed, w)
             moments = None if Xa is None else _moments(Xa)
             status, success = ("failed: non-finite ensemble; re-anchored on the last "

@@ -47,8 +47,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
-from estim._vectorised import vectorised
 from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.ensembles import over_points, square_root
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -102,16 +102,6 @@ def _definite(Q: np.ndarray) -> None:
                          "singular Q")
 
 
-def _root(M: np.ndarray) -> np.ndarray:
-    """A square root ``L`` with ``L L^T = M`` of a positive semi-definite ``M`` (Cholesky,
-    or the symmetric eigen-decomposition when ``M`` is singular)."""
-    try:
-        return np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        lam, V = np.linalg.eigh(0.5 * (M + M.T))
-        return V * np.sqrt(np.clip(lam, 0.0, None))
-
-
 def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
     """The weighted second moment ``sum_i W_i D[:, i] D[:, i]^T`` of deviations ``D``
     ``(n, N)``, entry by entry (long vectors: no threaded BLAS call per step)."""
@@ -122,6 +112,38 @@ def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
         for j in range(i + 1):
             P[i, j] = P[j, i] = float((DW[i] * D[j]).sum())
     return P
+
+
+def _innovation(y: np.ndarray, observed: np.ndarray, Yh: np.ndarray, Wp: np.ndarray | None,
+                Ro: np.ndarray) -> tuple[np.ndarray, float]:
+    """``y`` less the particles' predicted outputs ``Yh`` ``(ny, N)`` under the previous
+    weights ``Wp`` (None: equal), and its NIS against their spread plus ``Ro``, the
+    measured outputs' block of ``R`` (0 and NaN without a measured output)."""
+    e = np.zeros(len(y))
+    if not observed.any():
+        return e, float("nan")
+    if not observed.all():
+        Yh = Yh[observed]
+    yb = Yh.mean(axis=1) if Wp is None else (Yh * Wp).sum(axis=1)
+    if not np.isfinite(yb).all():  # lost particles: without them
+        ok = np.isfinite(Yh).all(axis=0)
+        Wp = (np.ones(Yh.shape[1]) if Wp is None else Wp) * ok
+        Wp = Wp / Wp.sum() if Wp.sum() > 0 else None
+        if Wp is None:
+            return e, float("nan")
+        Yh = np.where(ok, Yh, 0.0)
+        yb = (Yh * Wp).sum(axis=1)
+    if Wp is None:
+        Wp = np.full(Yh.shape[1], 1.0 / Yh.shape[1])
+    eo = y[observed] - yb
+    e[observed] = eo
+    S = _spread(Yh - yb[:, None], Wp) + Ro
+    if len(eo) == 1:
+        return e, float(eo[0] ** 2 / S[0, 0])
+    try:
+        return e, float(eo @ np.linalg.solve(S, eo))
+    except np.linalg.LinAlgError:
+        return e, float("nan")
 
 
 def _graphs(model: Model, loglik: Callable | None, proposal: str
@@ -207,21 +229,6 @@ def _scalar(value) -> ca.SX:
     return out
 
 
-def _over_particles(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
-    """``fun`` evaluated on column-stacked particles: vectorised, or CasADi's ``map``."""
-    fast = vectorised(fun)
-    if fast is not None:
-        return fast
-
-    def mapped(*args: np.ndarray, n: int) -> list[np.ndarray]:
-        out = fun.map(n)(*[a if a.ndim == 2 else a[:, None] for a in args])
-        out = out if isinstance(out, tuple | list) else [out]
-        return [np.asarray(o, dtype=float).reshape(fun.nnz_out(i), n)
-                for i, o in enumerate(out)]
-
-    return mapped
-
-
 class ParticleFilter(Estimator):
     r"""Bootstrap particle filter (sequential importance resampling; see the module).
 
@@ -303,8 +310,8 @@ class ParticleFilter(Estimator):
     def _build(self) -> None:
         weigh, advance, start, transit = _graphs(self.model, self.loglik, self.proposal)
         self._weigh, self._advance, self._transit = (
-            _over_particles(f) for f in (weigh, advance, transit))
-        self._start = None if start is None else _over_particles(start)
+            over_points(f) for f in (weigh, advance, transit))
+        self._start = None if start is None else over_points(start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
 
     def __getstate__(self) -> dict[str, Any]:
@@ -325,7 +332,7 @@ class ParticleFilter(Estimator):
     def _tuning_changed(self) -> None:
         if self.proposal == "ekf":
             _definite(self.Q)
-        self._LQ = _root(self.Q).ravel(order="F")
+        self._LQ = square_root(self.Q).ravel(order="F")
         self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray]] = {}
 
     def _measured(self, observed: np.ndarray
@@ -374,7 +381,7 @@ class ParticleFilter(Estimator):
             V = self._rng.standard_normal((nx, N))
             X, Yh, ell = self._start(self.x0, V, w, self._prior_tuning(tun), y0, WR, miss, n=N)
         elif first or self._X is None:
-            X = self.x0[:, None] + _root(self.P0) @ self._rng.standard_normal((nx, N))
+            X = self.x0[:, None] + square_root(self.P0) @ self._rng.standard_normal((nx, N))
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
@@ -383,7 +390,7 @@ class ParticleFilter(Estimator):
         W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = x_t[:, None] + _root(P_t) @ self._rng.standard_normal((nx, N))
+            X = x_t[:, None] + square_root(P_t) @ self._rng.standard_normal((nx, N))
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
             W, inc, X = self._update(X, ell[0], observed, const, None)
             status, success = ("failed: every particle weight is zero or not finite; "
@@ -394,7 +401,7 @@ class ParticleFilter(Estimator):
         x_hat = (X * W).sum(axis=1)
         P = _spread(X - x_hat[:, None], W)
         ess = effective_sample_size(W)
-        e, nis = self._innovation(y, observed, Yh)
+        e, nis = _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
         if status == "ok":
@@ -433,35 +440,14 @@ class ParticleFilter(Estimator):
         inc = float(top + np.log(s / N if W_prev is None else s))
         return W, inc + (const if self.loglik is None else 0.0), X
 
-    def _innovation(self, y, observed, Yh):
-        """``y`` less the particles' predicted output under the previous weights, and its
-        NIS against their spread plus ``R`` (0 and NaN without a measured output)."""
-        e = np.zeros(self.model.ny)
-        if not observed.any():
-            return e, float("nan")
-        if not observed.all():
-            Yh = Yh[observed]
-        Wp = self._W
-        yb = Yh.mean(axis=1) if Wp is None else (Yh * Wp).sum(axis=1)
-        if not np.isfinite(yb).all():  # lost particles: without them
-            ok = np.isfinite(Yh).all(axis=0)
-            Wp = (np.ones(Yh.shape[1]) if Wp is None else Wp) * ok
-            Wp = Wp / Wp.sum() if Wp.sum() > 0 else None
-            if Wp is None:
-                return e, float("nan")
-            Yh = np.where(ok, Yh, 0.0)
-            yb = (Yh * Wp).sum(axis=1)
-        if Wp is None:
-            Wp = np.full(Yh.shape[1], 1.0 / Yh.shape[1])
-        eo = y[observed] - yb
-        e[observed] = eo
-        S = _spread(Yh - yb[:, None], Wp) + self._measured(observed)[2]
-        if len(eo) == 1:
-            return e, float(eo[0] ** 2 / S[0, 0])
-        try:
-            return e, float(eo @ np.linalg.solve(S, eo))
-        except np.linalg.LinAlgError:
-            return e, float("nan")
+    @property
+    def particles(self) -> tuple[np.ndarray, np.ndarray]:
+        """The particles ``(N, nx)`` and their normalised weights ``(N,)`` after the last
+        step (equal weights after a resampling); before any step, empty arrays."""
+        N = self.n_particles
+        if self._X is None:
+            return np.empty((0, self.model.nx)), np.empty(0)
+        return self._X.T.copy(), np.full(N, 1.0 / N) if self._W is None else self._W.copy()
 
     # ------------------------------------------------------------ record
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> ParticleFilterResult:

@@ -1,0 +1,47 @@
+"""What the particle filter and the ensemble Kalman filter share: square roots of
+covariances for drawing noise, and a model's Functions evaluated over many points.
+
+Both carry their distribution by ``N`` points stored as the columns of an
+``(nx, N)`` array and evaluate the model at all of them in one call: through
+:func:`estim._vectorised.vectorised` (one numpy operation per instruction of the
+SX graph, over all points), or CasADi's ``map`` for a graph that calls other
+Functions (an integrator).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import casadi as ca
+import numpy as np
+
+from estim._vectorised import vectorised
+
+__all__ = ["over_points", "square_root"]
+
+
+def square_root(M: np.ndarray) -> np.ndarray:
+    """A square root ``L`` with ``L L^T = M`` of a positive semi-definite ``M`` (Cholesky,
+    or the symmetric eigen-decomposition when ``M`` is singular)."""
+    try:
+        return np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        lam, V = np.linalg.eigh(0.5 * (M + M.T))
+        return V * np.sqrt(np.clip(lam, 0.0, None))
+
+
+def over_points(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
+    """``fun`` evaluated on column-stacked points, ``g(*args, n=N)``: inputs ``(n_i, N)``
+    (one column per point) or ``(n_i,)`` (the same at every point), outputs
+    ``(n_o, N)``; vectorised, or CasADi's ``map``."""
+    fast = vectorised(fun)
+    if fast is not None:
+        return fast
+
+    def mapped(*args: np.ndarray, n: int) -> list[np.ndarray]:
+        out = fun.map(n)(*[a if a.ndim == 2 else a[:, None] for a in args])
+        out = out if isinstance(out, tuple | list) else [out]
+        return [np.asarray(o, dtype=float).reshape(fun.nnz_out(i), n)
+                for i, o in enumerate(out)]
+
+    return mapped
