@@ -263,3 +263,16 @@ def test_linearised_proposal_is_exact_on_a_linear_output():
         estim.ParticleFilter(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ekf")
     with pytest.raises(ValueError, match="did you mean 'ekf'"):
         estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, proposal="ekff")
+
+
+def test_compare_is_deterministic_in_any_number_of_jobs():
+    """The same seeds give the same particle filter runs in one process or two workers."""
+    sc = estim.scenarios.van_der_pol(n_steps=40)
+
+    def pf(model, tuning):
+        return estim.ParticleFilter(model, n_particles=200, seed=3, **tuning)
+
+    one = estim.compare(sc, {"pf": pf}, seeds=range(3), n_jobs=1)
+    two = estim.compare(sc, {"pf": pf}, seeds=range(3), n_jobs=2)
+    assert np.array_equal(one.rmse["pf"], two.rmse["pf"])
+    assert one.rows[0].failures == 0 and 0.3 < one.rows[0].nees_mean < 3.0
