@@ -1,0 +1,136 @@
+r"""Silverbox, short and zero-order-hold records: estim's fit against least_squares in wall time.
+
+The two cases where fixed costs and iterations weigh most: the Duffing grey-box of
+``examples/silverbox_model.py`` fitted on the first 2000 training samples with the
+first-order hold (native ``hold="foh"``), and on 10 000 samples with the zero-order
+hold. Both fits are those of ``benchmarks/silverbox.py`` (whose docstring describes
+them): ``scipy.optimize.least_squares`` (``method="trf"``) on the simulation error
+with CasADi Jacobians, its wall time including building the CasADi Functions, and
+``estim.FullInformation`` (structured Gauss-Newton, ``q = 1e-8``, ``q_θ = 1e-14``)
+on the model augmented with its five parameters, from the same start (the
+"measured" trajectory and the ARX parameters).
+
+Each run is a fresh process (``--run``): the imports first (``from estim import
+FullInformation`` included), then least_squares (build and solve), then estim's
+first fit (model, estimator, graphs built, solve: what a first call costs) and a
+second fit of the same estimator. Printed per case: the median and range over the
+runs of each wall time, of the ratios estim / least_squares measured within each
+process, and the agreement of the optima, :math:`\max_i |\theta_i^{estim} /
+\theta_i^{lsq} - 1|` (the five parameters; it should stay below 1e-4).
+
+Run from the repository root::
+
+    python benchmarks/silverbox_short.py [--runs 3] [--cases 2000:foh 10000:zoh]
+
+There are no timing assertions; the numbers depend on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import scipy
+
+import estim
+from estim import FullInformation  # noqa: F401 - imported before timing, as a user does
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+from silverbox_identification import load  # noqa: E402 - the shipped data
+from silverbox_model import fit_estim, fit_least_squares  # noqa: E402 - the two fits
+
+#: the estim fit's process noise, relative (q for the states, q_θ for the parameters)
+Q, Q_PARAM = 1e-8, 1e-14
+DEFAULT_CASES = ["2000:foh", "10000:zoh"]
+
+
+def run(samples: int, hold: str) -> dict:
+    """One run in this process: least_squares, then estim's first and second fits."""
+    data = load()
+    u, y = data.u_train[:samples], data.y_train[:samples]
+    t0 = time.perf_counter()
+    ls = fit_least_squares(u, y, hold, method="trf")
+    ls_s = time.perf_counter() - t0
+    fit = fit_estim(u, y, hold, "gauss-newton", Q, Q_PARAM, None, "measured", foh="native")
+    return {"samples": samples, "hold": hold, "ls_s": ls_s, "ls_build_s": ls.build_seconds,
+            "ls_nfev": ls.nfev, "first_s": fit.first_seconds, "build_s": fit.build_seconds,
+            "second_s": fit.second_seconds, "solve_s": fit.solve_seconds,
+            "iterations": fit.iterations, "success": fit.success,
+            "agreement": float(np.max(np.abs(fit.theta / ls.theta - 1))),
+            "theta": fit.theta.tolist(), "theta_ls": ls.theta.tolist()}
+
+
+def run_isolated(samples: int, hold: str) -> dict:
+    """:func:`run` in a fresh process."""
+    proc = subprocess.run([sys.executable, __file__, "--run", f"{samples}:{hold}"], cwd=ROOT,
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(proc.stderr.strip().splitlines()[-1])
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def stat(values: list[float], fmt: str) -> str:
+    """``median [min-max]``."""
+    v = np.asarray(values)
+    return f"{np.median(v):{fmt}} [{v.min():{fmt}}-{v.max():{fmt}}]"
+
+
+def case(text: str) -> tuple[int, str]:
+    """``"samples:hold"``."""
+    n, _, hold = text.partition(":")
+    if hold not in ("foh", "zoh"):
+        raise argparse.ArgumentTypeError(f"expected samples:foh or samples:zoh, got {text!r}")
+    return int(n), hold
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run every case ``--runs`` times, each in a fresh process; print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--cases", type=case, nargs="+", default=[case(c) for c in DEFAULT_CASES])
+    parser.add_argument("--run", type=case, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.run:
+        print(json.dumps(run(*args.run)))
+        return {}
+    print(f"estim {estim.__version__}, casadi {ca.__version__}, scipy {scipy.__version__}, "
+          f"numpy {np.__version__}, Python {platform.python_version()}, "
+          f"{platform.machine()}, {os.cpu_count()} CPUs; estim from {Path(estim.__file__).parent}")
+    rows = {}
+    for n, hold in args.cases:
+        rows[n, hold] = [run_isolated(n, hold) for _ in range(args.runs)]
+    print(f"\nSilverbox, q = {Q:g}, q_θ = {Q_PARAM:g}, 'measured' start; median [range] of "
+          f"{args.runs} processes, seconds\n")
+    head = (f"{'case':<10} {'estim 1st fit':>20} {'estim 2nd fit':>20} {'least_squares':>20} "
+            f"{'1st / lsq':>17} {'2nd / lsq':>17} {'agreement':>9}  iterations")
+    print(head)
+    print("-" * len(head))
+    for (n, hold), rs in rows.items():
+        first, second, ls = ([r[k] for r in rs] for k in ("first_s", "second_s", "ls_s"))
+        print(f"{n:>5} {hold.upper():<4} {stat(first, '.3f'):>20} {stat(second, '.3f'):>20} "
+              f"{stat(ls, '.3f'):>20} "
+              f"{stat([a / b for a, b in zip(first, ls, strict=True)], '.2f'):>17} "
+              f"{stat([a / b for a, b in zip(second, ls, strict=True)], '.2f'):>17} "
+              f"{max(r['agreement'] for r in rs):>9.1e}  "
+              f"{rs[0]['iterations']} (lsq nfev {rs[0]['ls_nfev']})")
+    print("\nestim 1st fit: model, estimator, graphs built and solve in a fresh process; of "
+          "which building:")
+    for (n, hold), rs in rows.items():
+        print(f"  {n} {hold.upper()}: build {stat([r['build_s'] for r in rs], '.3f')}, "
+              f"solve {stat([r['solve_s'] for r in rs], '.3f')} (2nd fit); least_squares "
+              f"build {stat([r['ls_build_s'] for r in rs], '.3f')}")
+    print("agreement: max over the runs of max_i |θ_i(estim) / θ_i(least_squares) - 1|.")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
