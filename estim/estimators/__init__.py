@@ -32,7 +32,7 @@ _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
 
 #: The short names of :data:`ESTIMATORS` and their classes.
 _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",
-                "shooting": "ShootingObserver"}
+                "shooting": "ShootingObserver", "pf": "ParticleFilter", "enkf": "EnKF"}
 
 __all__ = ["EKF", "ESTIMATORS", "EnKF", "MHE", "Estimator", "FitResult", "FullInformation",
            "ParticleFilter",
