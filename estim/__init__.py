@@ -28,6 +28,7 @@ if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
     from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
+    from estim.estimators.imm import IMM
     from estim.estimators.mhe import MHE
     from estim.estimators.particle import ParticleFilter
     from estim.estimators.shooting import ShootingObserver
@@ -37,7 +38,7 @@ if TYPE_CHECKING:
 __all__ = [
     "EKF", "MHE", "UKF", "Comparison", "EnKF", "EstimationWarning", "Estimator",
     "FitResult",
-    "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
+    "FullInformation", "IMM", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
     "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
     "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth", "tuning",
@@ -47,7 +48,8 @@ __all__ = [
 #: ``import estim`` does not need, so that it stays fast.
 _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
          "FitResult": "estim.estimators.fie",
-         "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "FullInformation": "estim.estimators.fie", "IMM": "estim.estimators.imm",
+         "MHE": "estim.estimators.mhe",
          "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
          "codegen": "estim.codegen", "observability": "estim.observability",

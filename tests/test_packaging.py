@@ -65,7 +65,7 @@ def test_lazy_names_are_public_names():
     assert estim.__all__ == [
         "EKF", "MHE", "UKF", "Comparison", "EnKF", "EstimationWarning", "Estimator",
         "FitResult",
-        "FullInformation", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
+        "FullInformation", "IMM", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
         "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
         "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",

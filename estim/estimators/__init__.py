@@ -15,6 +15,7 @@ if TYPE_CHECKING:
     from estim.estimators.ekf import EKF
     from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
+    from estim.estimators.imm import IMM
     from estim.estimators.mhe import MHE
     from estim.estimators.particle import ParticleFilter
     from estim.estimators.shooting import ShootingObserver
@@ -26,7 +27,8 @@ if TYPE_CHECKING:
 #: Where each lazily imported name is defined.
 _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
          "FitResult": "estim.estimators.fie",
-         "FullInformation": "estim.estimators.fie", "MHE": "estim.estimators.mhe",
+         "FullInformation": "estim.estimators.fie", "IMM": "estim.estimators.imm",
+         "MHE": "estim.estimators.mhe",
          "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf"}
 
@@ -34,7 +36,8 @@ _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
 _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",
                 "shooting": "ShootingObserver", "pf": "ParticleFilter", "enkf": "EnKF"}
 
-__all__ = ["EKF", "ESTIMATORS", "EnKF", "MHE", "Estimator", "FitResult", "FullInformation",
+__all__ = ["EKF", "ESTIMATORS", "EnKF", "IMM", "MHE", "Estimator", "FitResult",
+           "FullInformation",
            "ParticleFilter",
            "ShootingObserver", "StepInfo", "UKF"]
 
