@@ -137,7 +137,11 @@ def _name(fun: ca.Function) -> str:
 
 
 def _rows(rows: tuple, n: int) -> np.ndarray:
-    """Stack output rows (arrays of ``n`` points or scalars) into ``(len(rows), n)``."""
+    """Stack output rows (arrays of ``n`` points or scalars) into ``(len(rows), n)``; a
+    single row computed here (not a view of an input) is returned without a copy."""
+    if len(rows) == 1 and isinstance(rows[0], np.ndarray) and rows[0].base is None \
+            and rows[0].shape == (n,) and rows[0].dtype == np.float64:
+        return rows[0].reshape(1, n)
     out = np.empty((len(rows), n))
     for i, r in enumerate(rows):
         out[i] = r

@@ -313,6 +313,7 @@ class ParticleFilter(Estimator):
             over_points(f) for f in (weigh, advance, transit))
         self._start = None if start is None else over_points(start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
+        self._lean = False  # filter's steps: no innovation (not in its result)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -401,7 +402,8 @@ class ParticleFilter(Estimator):
         x_hat = (X * W).sum(axis=1)
         P = _spread(X - x_hat[:, None], W)
         ess = effective_sample_size(W)
-        e, nis = _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
+        e, nis = (np.zeros(m.ny), float("nan")) if self._lean else \
+            _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
         if status == "ok":
@@ -473,11 +475,15 @@ class ParticleFilter(Estimator):
         self.reset()
         X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
         ess, inc, status = np.empty(T), np.empty(T), []
-        for k in range(T):
-            X[k] = self.step(Y[k], steps_u[k])
-            info = self.info
-            P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
-            status.append(info.status)
+        self._lean = True
+        try:
+            for k in range(T):
+                X[k] = self.step(Y[k], steps_u[k])
+                info = self.info
+                P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
+                status.append(info.status)
+        finally:
+            self._lean = False
         return ParticleFilterResult(
             x=X, P=P, ess=ess, log_likelihood=float(inc.sum()),
             log_likelihood_increments=inc, status=tuple(status),

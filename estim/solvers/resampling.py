@@ -56,8 +56,12 @@ def resample(W: np.ndarray, scheme: str, rng: np.random.Generator,
     weights ``W`` ``(N,)`` by ``scheme`` (see the module), with the generator ``rng``."""
     N = len(W)
     n = N if n is None else n
-    if scheme == "systematic":
-        return _inverse(W, (rng.random() + np.arange(n)) / n)
+    if scheme == "systematic":  # the points (j + U) / n, counted per particle: O(N)
+        c = np.cumsum(W)
+        c[-1] = 1.0
+        edges = np.ceil(n * c - rng.random())
+        counts = np.diff(edges, prepend=0.0).astype(np.intp)
+        return np.repeat(np.arange(N), counts)
     if scheme == "stratified":
         return _inverse(W, (rng.random(n) + np.arange(n)) / n)
     if scheme == "multinomial":
