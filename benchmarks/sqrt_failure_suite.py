@@ -205,8 +205,11 @@ def markdown(rows: list[dict], head: str, seconds: float, args: argparse.Namespa
              "The cases, the columns and the NEES band are described in "
              "`benchmarks/sqrt_failure_suite.py`. Failed steps and samples without a "
              "positive definite covariance of the covariance form are what the suite "
-             "shows; \"filter us/step\" of a covariance form that fails includes its "
-             "step-by-step recoveries, \"scan us/step\" is the compiled step alone.", "",
+             "shows (its mean NEES is over the samples that have one). \"filter "
+             "us/step\" is the `filter` call's time over its samples (`step`'s for the "
+             "long record run by step), which for a covariance form that fails includes "
+             "its step-by-step recoveries; \"scan us/step\" is the compiled step alone, "
+             f"on {args.timing_steps} samples.", "",
              "| " + " | ".join(COLUMNS) + " |",
              "|" + "|".join("---" if i < 3 else "---:" for i in range(len(COLUMNS))) + "|"]
     lines += ["| " + " | ".join(cells(r)) + " |" for r in rows]
