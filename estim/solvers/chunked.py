@@ -52,6 +52,16 @@ def bind(buffer: ca.FunctionBuffer, args: Sequence[np.ndarray], res: Sequence[np
         buffer.set_res(i, r.data)  # type: ignore[call-arg]
 
 
+def split(lo: int, hi: int, chunk: int) -> list[tuple[int, int]]:
+    """The slots ``lo..hi-1`` as ``(start, stop)`` chunks of ``chunk`` slots, the rest
+    (fewer than ``chunk``) one slot each: functions of two lengths, one of them a single
+    slot, instead of a third for the rest (which would cost up to a whole chunk to build,
+    where a single-slot call costs a microsecond)."""
+    full = lo + (hi - lo) // chunk * chunk
+    return [(a, a + chunk) for a in range(lo, full, chunk)] + [(a, a + 1)
+                                                                for a in range(full, hi)]
+
+
 class Chunked:
     """The iteration, cost, covariance and rollout functions of a long record, evaluated
     as a loop over chunks of slots.
@@ -71,12 +81,11 @@ class Chunked:
         if gn.full and N > 2:
             # the first and last slots alone (the arrival term, the missing link): the
             # chunks between are alike, one function for all of them
-            self.chunks = [(0, 1)] + [(lo, min(lo + chunk, N - 1))
-                                      for lo in range(1, N - 1, chunk)] + [(N - 1, N)]
+            self.chunks = [(0, 1)] + split(1, N - 1, chunk) + [(N - 1, N)]
         else:
-            self.chunks = [(lo, min(lo + chunk, N)) for lo in range(0, N, chunk)]
+            self.chunks = split(0, N, chunk)
         # transitions 0..N-2 in chunks, for the backward pass and the rollout
-        self.tchunks = [(lo, min(lo + chunk, N - 1)) for lo in range(0, N - 1, chunk)]
+        self.tchunks = split(0, N - 1, chunk)
         self.jit = jit
         self._funs: dict[tuple, ca.Function] = {}
         self._bufs: dict[tuple, tuple] = {}
@@ -109,9 +118,10 @@ class Chunked:
         if key not in self._funs:
             t0 = time.perf_counter()
             fun = build()
-            ins = fun.sx_in()
-            dense = ca.Function(fun.name(), ins, [ca.densify(o) for o in fun.call(ins)])
-            self._funs[key] = jitted(dense) if self.jit else dense
+            if not all(fun.sparsity_out(i).is_dense() for i in range(fun.n_out())):
+                ins = fun.sx_in()
+                fun = ca.Function(fun.name(), ins, [ca.densify(o) for o in fun.call(ins)])
+            self._funs[key] = jitted(fun) if self.jit else fun
             self.gn.build_seconds += time.perf_counter() - t0
         return self._funs[key]
 
@@ -166,7 +176,8 @@ class Chunked:
                            shared[0], seq["link"][j], *shared[1:])
                 c, slots = res[:n_carry], slots + [res[n_carry:]]
             outs = list(c) + [ca.horzcat(*col) for col in zip(*slots, strict=True)]
-            return ca.Function(f"fwd_chunk_{L}", carry + inputs + shared, outs)
+            return ca.Function(f"fwd_chunk_{L}", carry + inputs + shared,
+                               [ca.densify(o) for o in outs])  # (dense: built once)
         return self._compiled(("fwd", id(step), L, complete, _key(const)), build)
 
     def _backward_chunk(self, L):

@@ -96,13 +96,18 @@ __all__ = ["StructuredGaussNewton", "full_record_constants"]
 #: for small models only (Lorenz: 1.3x the unrolled time at 4000 slots, 0.7x at 10 000;
 #: a 7-state model at 4000: 0.7x).
 AUTO_UNROLL_INSTRUCTIONS = 2_200_000
-#: ``mode="mapped"`` evaluates chunks of at least this many slots in a loop (with
-#: ``jit``: fewer, compiled in about two seconds instead of ten, and as fast), and at
-#: most :data:`MAX_CHUNKS` of them (longer chunks for longer records). The build time
-#: grows with the chunk, the loop's overhead (a few microseconds per call) with their
-#: number: on the Silverbox (7 states) at 40 000 samples, 625 chunks of 64 build in
-#: 0.12 s and solve as fast as 128 chunks of 313, which take 1.0 s to build.
+#: ``mode="mapped"`` evaluates chunks of :math:`\sqrt{N/5}` slots, at least
+#: :data:`MIN_CHUNK_SLOTS` and at most :data:`CHUNK_SLOTS` (with ``jit``: 16, compiled
+#: in about two seconds instead of ten, and as fast), in a loop of at most
+#: :data:`MAX_CHUNKS` calls (longer chunks for longer records). Building grows with the
+#: chunk (a function per task), binding the buffers of the loop (about 50 microseconds
+#: a chunk and task) and its overhead per call (a microsecond) with their number, so
+#: that their sum is least near :math:`\sqrt{N}`: on the Silverbox (7 states) at 2000
+#: samples, chunks of 16-24 slots build and bind in 0.06 s, chunks of 48 in 0.09 s,
+#: and all evaluate as fast; at 40 000 samples, 625 chunks of 64 build in 0.12 s and
+#: solve as fast as 128 chunks of 313, which take 1.0 s to build.
 CHUNK_SLOTS = 64
+MIN_CHUNK_SLOTS = 16
 JIT_CHUNK_SLOTS = 16
 MAX_CHUNKS = 1024
 #: The covariances of every slot (read once per fit) are one expanded graph up to this
@@ -268,8 +273,9 @@ class StructuredGaussNewton(Globalised):
     def _build_chunked(self, key: str, complete: bool):
         """The mapped mode's function ``key``: loops over chunks (see :class:`Chunked`)."""
         if self._chunked is None:
-            chunk = JIT_CHUNK_SLOTS if self.jit else \
-                max(CHUNK_SLOTS, -(-self.N // MAX_CHUNKS))
+            chunk = JIT_CHUNK_SLOTS if self.jit else max(
+                min(CHUNK_SLOTS, max(MIN_CHUNK_SLOTS, round((self.N / 5) ** 0.5))),
+                -(-self.N // MAX_CHUNKS))
             self._chunked = Chunked(self, chunk, self.jit)
         ch, nx = self._chunked, self.model.nx
         if key == "cost":

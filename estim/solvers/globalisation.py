@@ -7,7 +7,7 @@ rollout) over shared input buffers. From a point it takes
 
 - the projected Gauss-Newton direction, and Newton's (exact Hessian blocks) once the
   Gauss-Newton steps contract slowly (a step more than :data:`SWITCH_RATIO` of the
-  previous one at a large residual) or stop descending;
+  previous one, both at a large residual) or stop descending;
 - an Armijo backtracking line search along the projection arc
   :math:`X(\alpha) = \Pi[X + \alpha d]` (Bertsekas 1982), or along the same step taken
   through the dynamics (the nonlinear rollout of differential dynamic programming,
@@ -80,7 +80,8 @@ class Globalised:
 
         Gauss-Newton iterations first (cheap: no second derivatives). When
         they contract slowly (a step more than ``SWITCH_RATIO`` = 0.8 of the
-        previous one, as on large-residual problems) or stop descending, the iterations
+        previous one, both full steps that lowered the cost by less than half, as on
+        large-residual problems) or stop descending, the iterations
         switch to Newton steps with the exact Hessian blocks, falling back to
         the Gauss-Newton direction where the Newton one does not descend. If
         no direction decreases the cost, Levenberg-Marquardt damping
@@ -128,6 +129,7 @@ class Globalised:
         if reweight is not None:
             reweight(x)
         lam, newton, last_step, last_full, last_alpha = 0.0, self.newton, np.inf, np.inf, 0.0
+        last_little = False  # the last accepted step gained little (see below)
         self._prefer_roll = False
         # two output buffers: the current point's, and the one a trial point writes
         slot, pair = 0, self._iteration(newton, lam)
@@ -190,11 +192,14 @@ class Globalised:
             xn, alpha, evaluated, fn = new
             step = np.abs(xn - x).max()
             # Gauss-Newton's linear rate near a large-residual optimum: full steps that
-            # shrink slowly and gain little (not the steps far from it, which halve the
-            # cost or are damped)
-            switch = not newton and alpha == 1.0 == last_alpha and \
-                step > SWITCH_RATIO * last_step and fn > 0.5 * f
+            # shrink slowly and gain little, the previous one too (not the steps far from
+            # it, which halve the cost or are damped: the ratio of two steps is the local
+            # rate only when neither is one of them)
+            little = fn > 0.5 * f
+            switch = not newton and alpha == 1.0 == last_alpha and little and last_little \
+                and step > SWITCH_RATIO * last_step
             x, steps, last_step, xmax, last_alpha = xn, steps + 1, step, xmax + step, alpha
+            last_little = little
             last_full = step if alpha == 1.0 and not lam else np.inf  # for the rate rho
             if alpha == 1.0 and lam:
                 lam = lam / 10.0 if lam > 1e-8 else 0.0

@@ -15,6 +15,8 @@ saves about a tenth of the instructions of an iteration on a full record.
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import casadi as ca
 import numpy as np
 
@@ -120,19 +122,30 @@ class StageFunctions:
         dn, Vj, vj = ca.SX.sym("d_next", nx), ca.SX.sym("Vs", nx, nx), ca.SX.sym("vs", nx)
         Lj = ca.SX.sym("L", nx, nx)
         self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [lower_transposed_solve(Lj, vj - Vj @ dn)])
-        inv = sym_solve(Dj, ca.SX.eye(nx))
-        self.inverse = ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
-        # one step of the covariance recursion (the diagonal blocks of H^{-1}): with
-        # S_j = L D L^T and Vs = D^{-1} L^{-1} E_j from the elimination,
-        # Sigma_j = S_j^{-1} + G Sigma_{j+1} G^T, G = S_j^{-1} E_j = L^{-T} Vs, is
-        # L^{-T} (D^{-1} + Vs Sigma_{j+1} Vs^T) L^{-1}
+        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
+        self._fused: dict[tuple, ca.Function] = {}
+
+    @cached_property
+    def inverse(self) -> ca.Function:
+        """A symmetric block's inverse (built on first use: for covariances only)."""
+        Dj = ca.SX.sym("D", self.nx, self.nx)
+        inv = sym_solve(Dj, ca.SX.eye(self.nx))
+        return ca.Function("inverse", [Dj], [0.5 * (inv + inv.T)])
+
+    @cached_property
+    def cov_bwd(self) -> ca.Function:
+        r"""One step of the covariance recursion (the diagonal blocks of :math:`H^{-1}`;
+        built on first use): with :math:`S_j = L D L^\top` and :math:`V_s = D^{-1}
+        L^{-1} E_j` from the elimination, :math:`\Sigma_j = S_j^{-1} + G \Sigma_{j+1}
+        G^\top`, :math:`G = S_j^{-1} E_j = L^{-\top} V_s`, is :math:`L^{-\top} (D^{-1} +
+        V_s \Sigma_{j+1} V_s^\top) L^{-1}`."""
+        nx = self.nx
+        Vj, Lj = ca.SX.sym("Vs", nx, nx), ca.SX.sym("L", nx, nx)
         Sn, iD = ca.SX.sym("Sigma_next", nx, nx), ca.SX.sym("inv_D", nx)
         K = ca.diag(iD) + Vj @ Sn @ Vj.T
         X = ca.horzcat(*[lower_transposed_solve(Lj, K[:, c]) for c in range(nx)])  # L^{-T} K
         Sig = ca.horzcat(*[lower_transposed_solve(Lj, X[c, :].T) for c in range(nx)])  # L^{-T} X^T
-        self.cov_bwd = ca.Function("cov_bwd", [Sn, Vj, Lj, iD], [0.5 * (Sig + Sig.T)])
-        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
-        self._fused: dict[tuple, ca.Function] = {}
+        return ca.Function("cov_bwd", [Sn, Vj, Lj, iD], [0.5 * (Sig + Sig.T)])
 
     def fused(self, newton: bool, damped: bool, bounds=None,
               covariance: bool = False) -> ca.Function:
