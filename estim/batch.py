@@ -56,6 +56,7 @@ import numpy as np
 
 from estim._scan import blocked_scan
 from estim._validate import as_covariance, as_vector
+from estim.metrics import nees_values
 from estim.scenarios import Scenario
 from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import CHUNK, seed_map, threads
@@ -346,7 +347,7 @@ class _Scores:
         rows = lo + keep
         finite_P = np.isfinite(P)
         self.has_p[rows] = finite_P.any(axis=(1, 2, 3))
-        ne = _nees(err[:, burn_in:], P[:, burn_in:], bool(finite_P[:, burn_in:].all()))
+        ne = nees_values(err[:, burn_in:], P[:, burn_in:])
         with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
             warnings.simplefilter("ignore", RuntimeWarning)
             self.nees[rows] = np.nanmean(ne, axis=1) / nx
@@ -406,16 +407,3 @@ class _Scores:
                 "kind": kind, "caveat": caveat,
             }
         return results
-
-
-def _nees(err: np.ndarray, P: np.ndarray, finite: bool) -> np.ndarray:
-    r""":func:`estim.metrics.nees_values` of errors ``(S, T, nx)`` and covariances
-    ``(S, T, nx, nx)``: when every covariance is ``finite``, one solve over all of them
-    without the copies that select the finite ones (the same solves and sums)."""
-    from estim.metrics import nees_values
-
-    if not finite:
-        return nees_values(err, P)
-    S, T, nx = err.shape
-    sol = np.linalg.solve(P, err[..., None])[..., 0]
-    return np.einsum("ki,ki->k", err.reshape(-1, nx), sol.reshape(-1, nx)).reshape(S, T)
