@@ -300,8 +300,18 @@ def nees_values(err: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 def _solved(e: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """:math:`e^\top C^{-1} e` per row by LU (``numpy.linalg.solve``)."""
-    sol = np.linalg.solve(C, e[..., None])[..., 0]
+    """:math:`e^\top C^{-1} e` per row by LU (``numpy.linalg.solve``); inf for a singular
+    ``C`` (a covariance that claims no uncertainty in some direction)."""
+    try:
+        sol = np.linalg.solve(C, e[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # some are singular: one by one
+        out = np.empty(len(e))
+        for k in range(len(e)):
+            try:
+                out[k] = e[k] @ np.linalg.solve(C[k], e[k])
+            except np.linalg.LinAlgError:
+                out[k] = np.inf
+        return out
     return np.einsum("ki,ki->k", e, sol)
 
 

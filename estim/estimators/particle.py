@@ -47,6 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
+from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ensembles import over_points, square_root
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
@@ -267,6 +268,11 @@ class ParticleFilter(Estimator):
         the transition density over the proposal's. Exact (the optimal proposal) for a
         linear output; far fewer particles are lost when the measurements are precise.
         Needs a positive definite ``Q``.
+    lower, upper : optional
+        The support of the state (default: the model's bounds): a particle outside gets
+        weight zero, as under a prior truncated to the bounds (concentrations that
+        cannot be negative, a tank that cannot overfill). The estimates, weighted means
+        of particles inside, stay inside.
     seed : int
         Seed of the filter's random numbers (``numpy.random.default_rng``); every
         :meth:`reset` starts the same stream again, so a run is reproducible
@@ -289,8 +295,12 @@ class ParticleFilter(Estimator):
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
                  ess_threshold: float = 0.5, loglik: Callable | None = None,
-                 proposal: str = "bootstrap", seed: int = 0):
+                 proposal: str = "bootstrap", lower: ArrayLike | None = None,
+                 upper: ArrayLike | None = None, seed: int = 0):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.lower, self.upper = self._bounds(lower, upper)
+        bounded = np.isfinite(self.lower).any() or np.isfinite(self.upper).any()
+        self._support = (self.lower[:, None], self.upper[:, None]) if bounded else None
         self.n_particles = as_int(n_particles, "n_particles", minimum=2,
                                   expected="an integer >= 2")
         self.resampling = as_choice(resampling, RESAMPLING, "resampling")
@@ -313,7 +323,6 @@ class ParticleFilter(Estimator):
             over_points(f) for f in (weigh, advance, transit))
         self._start = None if start is None else over_points(start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
-        self._lean = False  # filter's steps: no innovation (not in its result)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -402,10 +411,11 @@ class ParticleFilter(Estimator):
         x_hat = (X * W).sum(axis=1)
         P = _spread(X - x_hat[:, None], W)
         ess = effective_sample_size(W)
-        e, nis = (np.zeros(m.ny), float("nan")) if self._lean else \
-            _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
+        e, nis = _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
+        elif success and nis == nis:  # the measurement against the particles' prediction
+            status = consistency_status(nis, int(observed.sum()))
         if status == "ok":
             self._trusted = (x_hat, P)
         if self._trace is not None:
@@ -426,6 +436,9 @@ class ParticleFilter(Estimator):
         if not observed.any():
             ell = np.zeros(N)
         a = ell if W_prev is None else ell + np.log(W_prev)
+        if self._support is not None:  # outside the support: weight zero
+            inside = ((X >= self._support[0]) & (X <= self._support[1])).all(axis=0)
+            a = np.where(inside, a, -np.inf)
         top = a.max()  # NaN if any is NaN
         finite = bool(np.isfinite(X).all())
         if not (np.isfinite(top) and finite):  # the slow path: some particles are lost
@@ -475,15 +488,11 @@ class ParticleFilter(Estimator):
         self.reset()
         X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
         ess, inc, status = np.empty(T), np.empty(T), []
-        self._lean = True
-        try:
-            for k in range(T):
-                X[k] = self.step(Y[k], steps_u[k])
-                info = self.info
-                P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
-                status.append(info.status)
-        finally:
-            self._lean = False
+        for k in range(T):
+            X[k] = self.step(Y[k], steps_u[k])
+            info = self.info
+            P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
+            status.append(info.status)
         return ParticleFilterResult(
             x=X, P=P, ess=ess, log_likelihood=float(inc.sum()),
             log_likelihood_increments=inc, status=tuple(status),
