@@ -99,10 +99,10 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
+from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ensembles import over_points, square_root
+from estim.estimators.ensembles import over_points, run_record, square_root
 from estim.model import Model
 
 __all__ = ["VARIANTS", "EnKF", "EnKFResult"]
@@ -372,18 +372,8 @@ class EnKF(Estimator):
         -------
         EnKFResult
         """
-        m = self.model
-        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
-        T = Y.shape[0]
-        U = as_inputs(U, T, m)
-        steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        self.reset()
-        X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
-        E, nis, status = np.empty((T, m.ny)), np.empty(T), []
-        for k in range(T):
-            X[k] = self.step(Y[k], steps_u[k])
-            info = self.info
-            P[k], E[k], nis[k] = info.P, info.innovation, info.nis
-            status.append(info.status)
-        return EnKFResult(x=X, P=P, innovation=E, nis=nis, status=tuple(status),
+        X, P, infos = run_record(self, Y, U)
+        status = tuple(info.status for info in infos)
+        return EnKFResult(x=X, P=P, innovation=np.array([info.innovation for info in infos]),
+                          nis=np.array([info.nis for info in infos]), status=status,
                           success=not any(s.startswith("failed") for s in status))

@@ -15,9 +15,10 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from estim._validate import as_inputs, as_record
 from estim._vectorised import vectorised
 
-__all__ = ["over_points", "square_root"]
+__all__ = ["over_points", "run_record", "square_root"]
 
 
 def square_root(M: np.ndarray) -> np.ndarray:
@@ -45,3 +46,23 @@ def over_points(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
                 for i, o in enumerate(out)]
 
     return mapped
+
+
+def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
+    """``est.step`` over a whole record after a reset, what :func:`~estim.replay` does:
+    ``Y (T, ny)`` (NaN where missing) and ``U`` as for :meth:`EKF.filter
+    <estim.EKF.filter>` (``U[k]`` acts from sample k to k+1; ``(T, nu)`` for a held or
+    sampled input at each sample). Returns the estimates ``(T, nx)``, their
+    covariances ``(T, nx, nx)`` and every step's :class:`~estim.StepInfo`."""
+    m = est.model
+    Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+    T = Y.shape[0]
+    U = as_inputs(U, T, m)
+    steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
+    est.reset()
+    X, P, infos = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx)), []
+    for k in range(T):
+        X[k] = est.step(Y[k], steps_u[k])
+        infos.append(est.info)
+        P[k] = est.info.P
+    return X, P, infos

@@ -46,10 +46,10 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_choice, as_float, as_inputs, as_int, as_record, as_seed
+from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ensembles import over_points, square_root
+from estim.estimators.ensembles import over_points, run_record, square_root
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -480,22 +480,12 @@ class ParticleFilter(Estimator):
         -------
         ParticleFilterResult
         """
-        m = self.model
-        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
-        T = Y.shape[0]
-        U = as_inputs(U, T, m)
-        steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        self.reset()
-        X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
-        ess, inc, status = np.empty(T), np.empty(T), []
-        for k in range(T):
-            X[k] = self.step(Y[k], steps_u[k])
-            info = self.info
-            P[k], ess[k], inc[k] = info.P, info.extra["ess"], info.extra["log_likelihood"]
-            status.append(info.status)
+        X, P, infos = run_record(self, Y, U)
+        inc = np.array([info.extra["log_likelihood"] for info in infos])
+        status = tuple(info.status for info in infos)
         return ParticleFilterResult(
-            x=X, P=P, ess=ess, log_likelihood=float(inc.sum()),
-            log_likelihood_increments=inc, status=tuple(status),
+            x=X, P=P, ess=np.array([info.extra["ess"] for info in infos]),
+            log_likelihood=float(inc.sum()), log_likelihood_increments=inc, status=status,
             success=not any(s.startswith("failed") for s in status))
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
