@@ -92,7 +92,6 @@ filtering problem to produce ensemble assimilations and forecasts", Mon. Weather
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
@@ -103,40 +102,13 @@ from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ensembles import over_points, run_record, square_root
+from estim.estimators.filtering import FilterResult
 from estim.model import Model
 
-__all__ = ["VARIANTS", "EnKF", "EnKFResult"]
+__all__ = ["VARIANTS", "EnKF"]
 
 #: The analysis schemes of :class:`EnKF`.
 VARIANTS = ("stochastic", "etkf")
-
-
-@dataclass(frozen=True)
-class EnKFResult:
-    """A record filtered by :meth:`EnKF.filter`.
-
-    Attributes
-    ----------
-    x : (T, nx) array
-        Ensemble means after each analysis.
-    P : (T, nx, nx) array
-        Their ensemble covariances (``ddof=1``).
-    innovation : (T, ny) array
-        The measurements less the forecast members' mean output (0 where missing).
-    nis : (T,) array
-        Normalised innovations squared (NaN where nothing was measured).
-    status : tuple of str
-        The status of every sample.
-    success : bool
-        Every step succeeded.
-    """
-
-    x: np.ndarray
-    P: np.ndarray
-    innovation: np.ndarray
-    nis: np.ndarray
-    status: tuple[str, ...]
-    success: bool
 
 
 def _graphs(model: Model) -> tuple[ca.Function, ca.Function]:
@@ -357,7 +329,7 @@ class EnKF(Estimator):
         return Xa, e, nis
 
     # ------------------------------------------------------------ record
-    def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> EnKFResult:
+    def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> FilterResult:
         """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
 
         Parameters
@@ -370,10 +342,13 @@ class EnKF(Estimator):
 
         Returns
         -------
-        EnKFResult
+        FilterResult
+            Ensemble means after each analysis, their ensemble covariances
+            (``ddof=1``), innovations (the measurements less the forecast members' mean
+            output), NIS, statuses and ``success``.
         """
         X, P, infos = run_record(self, Y, U)
         status = tuple(info.status for info in infos)
-        return EnKFResult(x=X, P=P, innovation=np.array([info.innovation for info in infos]),
-                          nis=np.array([info.nis for info in infos]), status=status,
-                          success=not any(s.startswith("failed") for s in status))
+        return FilterResult(x=X, P=P, innovation=np.array([info.innovation for info in infos]),
+                            nis=np.array([info.nis for info in infos]), status=status,
+                            success=not any(s.startswith("failed") for s in status))

@@ -1,5 +1,5 @@
 """The result of a whole record filtered in one call (:meth:`EKF.filter <estim.EKF.filter>`,
-:meth:`UKF.filter <estim.UKF.filter>`)."""
+:meth:`UKF.filter <estim.UKF.filter>`, :meth:`EnKF.filter <estim.EnKF.filter>`)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,10 @@ import numpy as np
 
 @dataclass(frozen=True)
 class FilterResult:
-    """A record filtered by :meth:`EKF.filter <estim.EKF.filter>` or
-    :meth:`UKF.filter <estim.UKF.filter>`: what :func:`~estim.replay` (``step`` at
-    every sample) gives, sample by sample.
+    """A record filtered by :meth:`EKF.filter <estim.EKF.filter>`,
+    :meth:`UKF.filter <estim.UKF.filter>` or :meth:`EnKF.filter <estim.EnKF.filter>`:
+    what :func:`~estim.replay` (``step`` at every sample) gives, sample by sample (for
+    the EnKF: ensemble means and covariances).
 
     Attributes
     ----------

@@ -163,7 +163,8 @@ class IMM(Estimator):
             infos.append(est.info)
             prior = (est._update if first else est._predict_update).out[3]
             logl[j] = self._loglik[j](prior, est._u, est._y, est._tun)[0][0]
-        a = np.log(np.where(cbar > 0, cbar, 0.0)) + np.where(np.isnan(logl), -np.inf, logl)
+        with np.errstate(divide="ignore"):  # an unreachable mode: log 0 = -inf
+            a = np.log(cbar) + np.where(np.isnan(logl), -np.inf, logl)
         if np.isfinite(a.max()):
             mu = np.exp(a - a.max())
             self.mu = mu / mu.sum()
@@ -196,6 +197,6 @@ def _stochastic(value: ArrayLike, shape: tuple[int, ...], name: str) -> np.ndarr
         raise ValueError(f"{name} must hold finite, non-negative probabilities")
     if not np.allclose(arr.sum(axis=-1), 1.0, rtol=0, atol=1e-9):
         what = "each row of " + name if arr.ndim == 2 else name
-        raise ValueError(f"{what} must sum to 1 ({'row-stochastic' if arr.ndim == 2 else ''}"
-                         f"), got sums {np.round(arr.sum(axis=-1), 12)}")
+        raise ValueError(f"{what} must sum to 1" + (" (row-stochastic)" if arr.ndim == 2 else "")
+                         + f", got sums {np.round(arr.sum(axis=-1), 12)}")
     return arr

@@ -385,7 +385,7 @@ class ParticleFilter(Estimator):
         m, N, nx = self.model, self.n_particles, self.model.nx
         observed = ~np.isnan(y)
         y0, miss = np.where(observed, y, 0.0), (~observed).astype(float)
-        WR, const, _, tun = self._measured(observed)
+        WR, const, Ro, tun = self._measured(observed)
         w = self._transition(u) if m.nw else np.zeros(0)
         if (first or self._X is None) and self._start is not None:
             V = self._rng.standard_normal((nx, N))
@@ -411,7 +411,7 @@ class ParticleFilter(Estimator):
         x_hat = (X * W).sum(axis=1)
         P = _spread(X - x_hat[:, None], W)
         ess = effective_sample_size(W)
-        e, nis = _innovation(y, observed, Yh, self._W, self._measured(observed)[2])
+        e, nis = _innovation(y, observed, Yh, self._W, Ro)
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
         elif success and nis == nis:  # the measurement against the particles' prediction
