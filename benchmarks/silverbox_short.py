@@ -20,11 +20,11 @@ process, and the agreement of the optima, :math:`\max_i |\theta_i^{estim} /
 
 Measured (2-CPU x86_64 shared with other work, casadi 3.8.2, scipy 1.17; three
 processes each, the machine's load moving every wall time by up to 2x, the ratios
-less): at 2000 samples (FOH) estim's first fit takes 1.4x least_squares' wall time
-[1.39-1.49] (0.53 s against 0.37 s; building 0.22 s), its second fit 0.57x; at
-10 000 samples (ZOH) 2.0x [2.01-2.08] (3.07 s against 1.52 s; 10 iterations, the
-last six Newton steps at about 2.5 Gauss-Newton evaluations each), the second fit
-1.6x. The parameters agree with least_squares' to 1.6e-5 and 2.9e-6.
+less), estim with ``ftol = 1e-10``: at 2000 samples (FOH) estim's first fit takes 1.10x
+least_squares' wall time [1.02-1.10] (0.14 s against 0.13 s; building 0.03 s), its
+second fit 0.45x; at 10 000 samples (ZOH) 1.03x [0.81-1.03] (10 iterations; 12 and
+1.19x with estim's default ftol), the second fit 0.65x. The parameters agree with
+least_squares' to 1.6e-5 and 3.1e-6. least_squares stops on its own ``ftol = 1e-8``.
 
 Run from the repository root::
 
@@ -59,16 +59,21 @@ from silverbox_model import fit_estim, fit_least_squares  # noqa: E402 - the two
 #: the estim fit's process noise, relative (q for the states, q_θ for the parameters)
 Q, Q_PARAM = 1e-8, 1e-14
 DEFAULT_CASES = ["2000:foh", "10000:zoh"]
+#: estim's relative-decrease tolerance (``solver_options={"ftol": ...}``): least_squares
+#: stops on its ``ftol = 1e-8`` (the reductions of the last step), estim here at a
+#: hundredth of it (``--ftol default`` runs estim's own default, 1e-13)
+FTOL = 1e-10
 
 
-def run(samples: int, hold: str) -> dict:
+def run(samples: int, hold: str, ftol: float | None = FTOL) -> dict:
     """One run in this process: least_squares, then estim's first and second fits."""
     data = load()
     u, y = data.u_train[:samples], data.y_train[:samples]
     t0 = time.perf_counter()
     ls = fit_least_squares(u, y, hold, method="trf")
     ls_s = time.perf_counter() - t0
-    fit = fit_estim(u, y, hold, "gauss-newton", Q, Q_PARAM, None, "measured", foh="native")
+    options = None if ftol is None else {"ftol": ftol}
+    fit = fit_estim(u, y, hold, "gauss-newton", Q, Q_PARAM, options, "measured", foh="native")
     return {"samples": samples, "hold": hold, "ls_s": ls_s, "ls_build_s": ls.build_seconds,
             "ls_nfev": ls.nfev, "first_s": fit.first_seconds, "build_s": fit.build_seconds,
             "second_s": fit.second_seconds, "solve_s": fit.solve_seconds,
@@ -77,9 +82,10 @@ def run(samples: int, hold: str) -> dict:
             "theta": fit.theta.tolist(), "theta_ls": ls.theta.tolist()}
 
 
-def run_isolated(samples: int, hold: str) -> dict:
+def run_isolated(samples: int, hold: str, ftol: float | None) -> dict:
     """:func:`run` in a fresh process."""
-    proc = subprocess.run([sys.executable, __file__, "--run", f"{samples}:{hold}"], cwd=ROOT,
+    proc = subprocess.run([sys.executable, __file__, "--run", f"{samples}:{hold}", "--ftol",
+                           "default" if ftol is None else repr(ftol)], cwd=ROOT,
                           capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(proc.stderr.strip().splitlines()[-1])
@@ -105,19 +111,22 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--cases", type=case, nargs="+", default=[case(c) for c in DEFAULT_CASES])
+    parser.add_argument("--ftol", type=lambda v: None if v == "default" else float(v),
+                        default=FTOL, help="estim's ftol, or 'default' (default 1e-10)")
     parser.add_argument("--run", type=case, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.run:
-        print(json.dumps(run(*args.run)))
+        print(json.dumps(run(*args.run, ftol=args.ftol)))
         return {}
     print(f"estim {estim.__version__}, casadi {ca.__version__}, scipy {scipy.__version__}, "
           f"numpy {np.__version__}, Python {platform.python_version()}, "
           f"{platform.machine()}, {os.cpu_count()} CPUs; estim from {Path(estim.__file__).parent}")
     rows = {}
     for n, hold in args.cases:
-        rows[n, hold] = [run_isolated(n, hold) for _ in range(args.runs)]
-    print(f"\nSilverbox, q = {Q:g}, q_θ = {Q_PARAM:g}, 'measured' start; median [range] of "
-          f"{args.runs} processes, seconds\n")
+        rows[n, hold] = [run_isolated(n, hold, args.ftol) for _ in range(args.runs)]
+    ftol = "default (1e-13)" if args.ftol is None else f"{args.ftol:g}"
+    print(f"\nSilverbox, q = {Q:g}, q_θ = {Q_PARAM:g}, 'measured' start, estim's ftol "
+          f"{ftol} (least_squares' 1e-8); median [range] of {args.runs} processes, seconds\n")
     head = (f"{'case':<10} {'estim 1st fit':>20} {'estim 2nd fit':>20} {'least_squares':>20} "
             f"{'1st / lsq':>17} {'2nd / lsq':>17} {'agreement':>9}  iterations")
     print(head)

@@ -99,3 +99,23 @@ def test_example_has_docstring_and_main():
     assert example.__doc__ and len(example.__doc__) > 200
     assert callable(example.main)
     assert set(example.METHODS) == {"least_squares", "estim"}
+
+
+def test_ftol_stops_the_linear_tail_of_a_large_residual_fit():
+    """Zero-order hold, 1000 samples: Gauss-Newton converges linearly (rate about 0.06
+    in the predicted decrease) to a large-residual optimum. ``ftol = 1e-10`` stops when
+    the next step promises less than that fraction of the cost: two iterations fewer
+    than the default (the step tolerance), a cost within ``ftol`` of it, and the same
+    parameters as ``least_squares`` (which stops on its own ``ftol = 1e-8``)."""
+    sb = _load("silverbox_model", ROOT / "examples" / "silverbox_model.py")
+    data = example.load()
+    u, y = data.u_train[:1000], data.y_train[:1000]
+    ls = sb.fit_least_squares(u, y, "zoh", method="trf")
+    fits = [sb.fit_estim(u, y, "zoh", "gauss-newton", 1e-8, 1e-14, options, "measured",
+                         refit=False) for options in (None, {"ftol": 1e-10})]
+    tight, loose = fits
+    assert tight.success and loose.success
+    assert loose.iterations <= tight.iterations - 2
+    assert 0.0 <= loose.cost - tight.cost <= 1e-10 * tight.cost
+    np.testing.assert_allclose(loose.theta, tight.theta, rtol=1e-6)
+    np.testing.assert_allclose(loose.theta, ls.theta, rtol=1e-4)

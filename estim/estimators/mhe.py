@@ -101,7 +101,8 @@ class MHE(RealTimeIteration):
     solver_options : dict, optional
         Passed to the solver (merged over the defaults), e.g.
         ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``. For
-        ``"gauss-newton"``: ``max_iter``, ``xtol``, ``newton`` (exact-Hessian
+        ``"gauss-newton"``: ``max_iter``, ``xtol``, ``ftol`` (relative predicted
+        decrease, default 1e-13), ``newton`` (exact-Hessian
         steps from the start), ``jit`` (compile to machine code; needs a C
         compiler) and ``mode`` (``"unrolled"``: one expanded graph,
         ``"mapped"``: expanded chunks of slots called in a loop, or

@@ -107,6 +107,15 @@ AUTO_UNROLL_INSTRUCTIONS = 2_200_000
 #: and all evaluate as fast; at 40 000 samples, 625 chunks of 64 build in 0.12 s and
 #: solve as fast as 128 chunks of 313, which take 1.0 s to build.
 CHUNK_SLOTS = 64
+#: Default relative tolerance of the predicted decrease (``ftol``): stop once the next
+#: Gauss-Newton step promises less than this fraction of the cost, rounding level, so
+#: that by default the step tolerance ``xtol`` decides (every variable converged to it,
+#: also in directions the data determine weakly). ``least_squares`` and MINPACK stop at
+#: 1e-8 of the reductions; on a cost weighted by the noise covariances a cost change of
+#: ``ftol * f`` is a move of at most ``sqrt(ftol * f)`` standard deviations (1e-3 at
+#: ``ftol = 1e-10`` and ten thousand residuals), a looser ``ftol`` saving the last
+#: iterations of large-residual problems, where Gauss-Newton converges linearly.
+FTOL = 1e-13
 MIN_CHUNK_SLOTS = 16
 JIT_CHUNK_SLOTS = 16
 MAX_CHUNKS = 1024
@@ -145,6 +154,9 @@ class StructuredGaussNewton(Globalised):
     xtol : float
         Step tolerance relative to ``1 + max|X|`` (see :meth:`solve`; the
         default is that of ``scipy.optimize.least_squares``).
+    ftol : float
+        Relative tolerance of the decrease the next Gauss-Newton step predicts
+        (see :meth:`solve`; default :data:`FTOL`, rounding level).
     newton : bool
         Start with Newton steps (exact Hessian blocks) instead of Gauss-Newton.
     jit : bool
@@ -171,6 +183,7 @@ class StructuredGaussNewton(Globalised):
 
     def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
                  slices: dict, n_params: int, max_iter: int = 50, xtol: float = 1e-8,
+                 ftol: float = FTOL,
                  newton: bool = False, jit: bool = False, mode: str = "auto",
                  diagonal_Q: bool = False, diagonal_R: bool = False, full: bool = False):
         if mode not in ("auto", "unrolled", "mapped"):
@@ -184,7 +197,7 @@ class StructuredGaussNewton(Globalised):
             raise ValueError("lower and upper must repeat the same state bounds in every slot")
         self._bounded = bounded
         self._project = (lambda z: np.clip(z, lower, upper)) if bounded else (lambda z: z)
-        self.max_iter, self.xtol = int(max_iter), float(xtol)
+        self.max_iter, self.xtol, self.ftol = int(max_iter), float(xtol), float(ftol)
         self.newton, self.jit = bool(newton), bool(jit)
         self.full = bool(full)
         self._stages = StageFunctions(model, diagonal_Q, diagonal_R)

@@ -46,7 +46,7 @@ class Globalised:
     """The iterations of a structured least-squares solver (a mixin).
 
     The solver provides the bounds' projection ``_project`` and ``_bounded``, the
-    tolerances ``max_iter`` and ``xtol``, ``newton`` (start with Newton steps), the
+    tolerances ``max_iter``, ``xtol`` and ``ftol``, ``newton`` (start with Newton steps), the
     number of slots ``N``, the input buffers ``_xbuf`` (the point), ``_pbuf`` (the
     parameters), ``_lbuf`` (the damping), ``_dbuf`` and ``_abuf`` (a rollout's
     direction and step length), and :meth:`_function`, its compiled functions by key
@@ -57,6 +57,7 @@ class Globalised:
     N: int
     max_iter: int
     xtol: float
+    ftol: float
     newton: bool
     build_seconds: float
     last_build: float
@@ -95,7 +96,12 @@ class Globalised:
         \|d_{k-1}\|_\infty < 1` after a full step, and the geometric bound on
         the rest, :math:`\rho/(1-\rho)\,\|d_k\|_\infty`, is below
         :math:`\epsilon` (Deuflhard's contraction estimate), or the decrease
-        it predicts is at rounding level (1e-13 of the cost).
+        it predicts, :math:`-g^\top d_k` (the Gauss-Newton model's, exact for
+        the step that minimises it), is at most ``ftol`` times the cost (MINPACK's
+        relative-reduction test; large-residual problems, where Gauss-Newton
+        converges linearly, stop there instead of creeping on to the step
+        tolerance; what is left after that step is about
+        :math:`\rho^2` ``ftol`` of the cost).
         That last step is taken when the cost, evaluated alone without
         derivatives, confirms it (MINPACK likewise returns the last accepted
         step without a new Jacobian). On the Lorenz FIE of seed 000 this stops
@@ -163,7 +169,7 @@ class Globalised:
             # (reweighted: a small decrease of this iteration's weighted cost is no
             # proof, IRLS converges linearly in directions the weights flatten)
             if rest <= xtol * (1.0 + xmax) or (
-                    0.0 <= decrease <= 1e-13 * abs(f) and reweight is None):
+                    0.0 <= decrease <= self.ftol * abs(f) and reweight is None):
                 status = "ok"
                 xn = x + move
                 self._xbuf[:] = xn

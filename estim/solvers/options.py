@@ -51,6 +51,7 @@ _FATROP_DEFAULTS = {
 _GN_OPTIONS: dict[str, Callable[[Any, str], Any]] = {
     "max_iter": lambda v, n: as_int(v, n, minimum=1),
     "xtol": lambda v, n: as_float(v, n, positive=True),
+    "ftol": lambda v, n: as_float(v, n, positive=True),
     "newton": as_bool,
     "jit": as_bool,
     "mode": lambda v, n: as_choice(v, ("auto", "unrolled", "mapped"), n),
@@ -134,7 +135,7 @@ def check_solver_options(solver: str, options) -> dict:
             raise ValueError(unknown_keywords_message(
                 "solver_options for solver 'gauss-newton'", unknown, list(_GN_OPTIONS)))
         return {k: _GN_OPTIONS[k](v, f"solver_options[{k!r}]") for k, v in options.items()}
-    only_gn = sorted(set(options) & {"xtol", "newton", "mode"})
+    only_gn = sorted(set(options) & {"xtol", "ftol", "newton", "mode"})
     if only_gn:
         raise ValueError(f"solver_options {only_gn} apply to solver='gauss-newton' only "
                          f"(solver is {solver!r})")

@@ -70,8 +70,9 @@ class StageFunctions:
         margs = [x, y, wy, up, a, xbar, w0, a0]
         gy = A0a @ (x - xbar) + Jy.T @ ry
         self.meas = ca.Function("meas", margs, [A0a + gram(Jy), gy, c])
-        self.meas_newton = ca.Function("meas_newton", margs, [
-            A0a + gram(Jy), A0a + ca.hessian(0.5 * ca.sumsqr(ry), x)[0], gy, c])
+        # the exact Hessian blocks are built on first use (Newton steps, hard problems)
+        self._newton_parts = {"margs": margs, "A0a": A0a, "Jy": Jy, "ry": ry, "gy": gy,
+                              "c": c, "x": x}
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots, weighted by W_Q (a parameter: tuning is data; a
         # diagonal weight is a row scaling)
@@ -85,13 +86,11 @@ class StageFunctions:
             M = om * ca.reshape(wq, nx, nx) + (1 - om) * eye
             rw = M @ (xb - G)
             Ja, Jb = -M @ A, M
-        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(x, xb))[0]
         targs = [x, xb, u, om, wq]
         gn_blocks = [gram(Ja), gram(Jb), Ja.T @ Jb]
         rest = [Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)]
         self.trans = ca.Function("trans", targs, gn_blocks + rest)
-        self.trans_newton = ca.Function("trans_newton", targs, gn_blocks + [
-            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + rest)
+        self._newton_parts.update(targs=targs, gn_blocks=gn_blocks, rest=rest, rw=rw, xb=xb)
         self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
         # a step taken through the dynamics: from the moved state xp of slot k, the next
         # slot is G(xp) plus the defect the linearised step predicts,
@@ -124,6 +123,24 @@ class StageFunctions:
         self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [lower_transposed_solve(Lj, vj - Vj @ dn)])
         self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
         self._fused: dict[tuple, ca.Function] = {}
+
+    @cached_property
+    def meas_newton(self) -> ca.Function:
+        """:attr:`meas` with the exact Hessian of the measurement term as well (built on
+        first use)."""
+        q = self._newton_parts
+        H = ca.hessian(0.5 * ca.sumsqr(q["ry"]), q["x"])[0]
+        return ca.Function("meas_newton", q["margs"], [
+            q["A0a"] + gram(q["Jy"]), q["A0a"] + H, q["gy"], q["c"]])
+
+    @cached_property
+    def trans_newton(self) -> ca.Function:
+        """:attr:`trans` with the exact Hessian blocks of the process term as well (built
+        on first use)."""
+        q, nx = self._newton_parts, self.nx
+        Hw = ca.hessian(0.5 * ca.sumsqr(q["rw"]), ca.vertcat(q["x"], q["xb"]))[0]
+        return ca.Function("trans_newton", q["targs"], q["gn_blocks"] + [
+            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + q["rest"])
 
     @cached_property
     def inverse(self) -> ca.Function:
