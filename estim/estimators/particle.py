@@ -57,8 +57,9 @@ from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
 __all__ = ["ParticleFilter", "ParticleFilterResult"]
 
 #: the proposals: the transition (bootstrap), or the transition updated by the
-#: measurement linearised at the predicted particle
-PROPOSALS = ("bootstrap", "ekf")
+#: measurement, linearised at the predicted particle ("ekf") or through the
+#: unscented transform of its transition density ("ukf")
+PROPOSALS = ("bootstrap", "ekf", "ukf")
 #: an effective sample size below this fraction of the particles (and below 2) is a
 #: collapse of the weights, reported as ``"suspect: ..."``
 COLLAPSE = 0.01
@@ -98,7 +99,8 @@ class ParticleFilterResult:
 def _definite(Q: np.ndarray) -> None:
     """Refuse a singular ``Q`` for the linearised proposal (its density ratio needs one)."""
     if np.linalg.eigvalsh(Q).min() <= 0.0:
-        raise ValueError("Q must be positive definite with proposal='ekf' (the weights hold "
+        raise ValueError("Q must be positive definite with proposal='ekf' or 'ukf' (the "
+                         "weights hold "
                          "the transition density); use the bootstrap proposal for a "
                          "singular Q")
 
@@ -183,32 +185,54 @@ def _graphs(model: Model, loglik: Callable | None, proposal: str
         advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
                               [xn, *measure(xn)])
         start = None
-    else:  # "ekf", tun: Q, L_Q^-1, R (identity rows where missing)
-        tun = ca.SX.sym("tun", 2 * nx * nx + ny * ny)
-        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
-                              list(_linearised(model, measure, xb, v, w, tun, y0, miss)))
+    else:  # "ekf", "ukf", tun: Q, L_Q^-1, R (identity rows where missing), L_Q
+        tun = ca.SX.sym("tun", 3 * nx * nx + ny * ny)
+        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss], list(
+            _linearised(model, measure, xb, v, w, tun, y0, miss, proposal)))
         # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
-        start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss],
-                            list(_linearised(model, measure, x, v, w, tun, y0, miss)))
+        start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss], list(
+            _linearised(model, measure, x, v, w, tun, y0, miss, proposal)))
     transit = ca.Function("pf_transit", [x, w], [xb])
     return weigh, advance, start, transit
 
 
 def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, tun: ca.SX,
-                y0: ca.SX, miss: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
-    r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement with the
-    output linearised at :math:`\bar x` (see :class:`ParticleFilter`'s ``proposal``):
-    the particle, its predicted output and its log-weight factor (measurement density
+                y0: ca.SX, miss: ca.SX, kind: str = "ekf") -> tuple[ca.SX, ca.SX, ca.SX]:
+    r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement
+    (see :class:`ParticleFilter`'s ``proposal``): with the output linearised at
+    :math:`\bar x` (``kind="ekf"``), or through the unscented transform of
+    :math:`N(\bar x, Q)` by the spherical-cubature rule (``"ukf"``: the :math:`2n`
+    points :math:`\bar x \pm \sqrt{n}\, L_Q e_j` of weight :math:`1/(2n)`, whose
+    joint covariance of state and output is positive semi-definite, so that the
+    updated covariance :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
+    particle, its predicted output and its log-weight factor (measurement density
     times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel)."""
     nx, ny, p = model.nx, model.ny, ca.DM(model.p)
-    Qm, LQi = ca.reshape(tun[:nx * nx], nx, nx), ca.reshape(tun[nx * nx:2 * nx * nx], nx, nx)
-    Rm = ca.reshape(tun[2 * nx * nx:], ny, ny)
+    n2 = nx * nx
+    Qm, LQi = ca.reshape(tun[:n2], nx, nx), ca.reshape(tun[n2:2 * n2], nx, nx)
+    Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
     uy = model.measurement_input(w)
-    Cm = ca.diag(1 - miss) @ model.H_x(xb, uy, p)
-    e = (1 - miss) * (y0 - model.H(xb, uy, p))
-    K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
-    IKC = ca.DM.eye(nx) - K @ Cm
-    Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
+    if kind == "ekf":
+        Cm = ca.diag(1 - miss) @ model.H_x(xb, uy, p)
+        e = (1 - miss) * (y0 - model.H(xb, uy, p))
+        K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
+        IKC = ca.DM.eye(nx) - K @ Cm
+        Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
+    else:
+        LQ = ca.reshape(tun[2 * n2 + ny * ny:], nx, nx)
+        offsets = [np.sqrt(nx) * LQ[:, j] for j in range(nx)]
+        offsets += [-d for d in offsets]
+        wt = 0.5 / nx
+        Ys = [(1 - miss) * model.H(xb + d, uy, p) for d in offsets]  # missing rows: 0
+        yb = wt * sum(Ys[1:], Ys[0])
+        Pyy, Pxy = Rm, ca.SX.zeros(nx, ny)
+        for d, Yj in zip(offsets, Ys, strict=True):
+            dy = Yj - yb
+            Pyy = Pyy + wt * (dy @ dy.T)
+            Pxy = Pxy + wt * (d @ dy.T)
+        e = (1 - miss) * y0 - yb
+        K = ca.solve(Pyy, Pxy.T).T  # P_xy P_yy^-1 (Pyy symmetric)
+        Sig = Qm - K @ Pyy @ K.T
     LS = ca.chol(0.5 * (Sig + Sig.T)).T
     xn = xb + K @ e + LS @ v
     yhat, ell = measure(xn)
@@ -258,16 +282,22 @@ class ParticleFilter(Estimator):
         missing output enters as ``y_i = yhat_i``: exact for a log-density that is a
         sum over outputs whose terms vanish at a zero residual. Default: Gaussian with
         covariance ``R``.
-    proposal : {"bootstrap", "ekf"}
+    proposal : {"bootstrap", "ekf", "ukf"}
         Where new particles are drawn: from the transition,
         :math:`N(F(x^i_{k-1}), Q)` (``"bootstrap"``, the default), or from the
         transition updated by :math:`y_k` with the output linearised at
         :math:`\bar x^i = F(x^i_{k-1})` (``"ekf"``, Doucet, Godsill, Andrieu 2000):
         :math:`N(\bar x^i + K_i (y_k - h(\bar x^i)),\, (I - K_i C_i) Q)`,
         :math:`K_i = Q C_i^\top (C_i Q C_i^\top + R)^{-1}`, the weights multiplied by
-        the transition density over the proposal's. Exact (the optimal proposal) for a
-        linear output; far fewer particles are lost when the measurements are precise.
-        Needs a positive definite ``Q``.
+        the transition density over the proposal's; or with the output's moments
+        taken by the unscented transform of :math:`N(\bar x^i, Q)` (``"ukf"``, the
+        unscented particle filter of van der Merwe, Doucet, de Freitas, Wan 2000, with
+        the :math:`2 n_x` spherical-cubature points: :math:`K_i = P_{xy} P_{yy}^{-1}`,
+        covariance :math:`Q - K_i P_{yy} K_i^\top`), which follows a curved output
+        over the spread of :math:`Q` where the linearisation sees only its slope at
+        :math:`\bar x^i`. Both are exact (the optimal proposal) for a linear output,
+        and lose far fewer particles than the bootstrap when the measurements are
+        precise. They need a positive definite ``Q``.
     lower, upper : optional
         The support of the state (default: the model's bounds): a particle outside gets
         weight zero, as under a prior truncated to the bounds (concentrations that
@@ -336,11 +366,11 @@ class ParticleFilter(Estimator):
 
     # ------------------------------------------------------------ tuning
     def _check_tuning(self, new: dict) -> None:
-        if getattr(self, "proposal", "bootstrap") == "ekf" and "Q" in new:
+        if getattr(self, "proposal", "bootstrap") != "bootstrap" and "Q" in new:
             _definite(new["Q"])
 
     def _tuning_changed(self) -> None:
-        if self.proposal == "ekf":
+        if self.proposal != "bootstrap":
             _definite(self.Q)
         self._LQ = square_root(self.Q).ravel(order="F")
         self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray]] = {}
@@ -359,20 +389,21 @@ class ParticleFilter(Estimator):
                 WR[np.ix_(idx, idx)] = np.linalg.inv(L)
                 const = -0.5 * idx.size * np.log(2 * np.pi) - float(np.log(np.diag(L)).sum())
             tun = self._LQ
-            if self.proposal == "ekf":  # Q, L_Q^-1, R with identity rows where missing
+            if self.proposal != "bootstrap":  # Q, L_Q^-1, R (identity where missing), L_Q
                 Rm = np.eye(ny)
                 Rm[np.ix_(idx, idx)] = Ro
                 LQi = np.linalg.inv(self._LQ.reshape(self.model.nx, -1, order="F"))
                 tun = np.concatenate([self.Q.ravel(order="F"), LQi.ravel(order="F"),
-                                      Rm.ravel(order="F")])
+                                      Rm.ravel(order="F"), self._LQ])
             self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun)
         return self._whitening[key]
 
     def _prior_tuning(self, tun: np.ndarray) -> np.ndarray:
         """The linearised proposal's tuning ``tun`` with ``P0`` in place of ``Q``."""
         nx, P0 = self.model.nx, np.asarray(self.P0, dtype=float)  # required: never None
-        L0i = np.linalg.inv(np.linalg.cholesky(P0))
-        return np.concatenate([P0.ravel(order="F"), L0i.ravel(order="F"), tun[2 * nx * nx:]])
+        L0 = np.linalg.cholesky(P0)
+        return np.concatenate([P0.ravel(order="F"), np.linalg.inv(L0).ravel(order="F"),
+                               tun[2 * nx * nx:-nx * nx], L0.ravel(order="F")])
 
     def _reset(self) -> None:
         self._rng = np.random.default_rng(self.seed)
