@@ -21,8 +21,21 @@ def test_main_job_prints_table_and_writes_png(tmp_path, capsys):
 def test_list(capsys):
     assert cli.main(["list"]) == 0
     text = capsys.readouterr().out
-    for name in ("lorenz", "van_der_pol", "batch_reactor", "runaway", "satellite", "ekf"):
-        assert name in text
+    for name in ("lorenz", "van_der_pol", "batch_reactor", "runaway", "satellite", "ekf",
+                 "pf", "enkf", "imm"):
+        assert re.search(rf"^  {name} ", text, re.M), name
+
+
+def test_run_beyond_gaussian(capsys):
+    """The particle filter, the EnKF and the two-mode IMM from the command line."""
+    assert cli.main(["run", "van_der_pol", "--seeds", "1", "--steps", "60", "--plot", "",
+                     "-e", "pf:n_particles=200", "-e", "enkf:n_ensemble=20",
+                     "-e", "imm:kind=ukf,high=20"]) == 0
+    text = capsys.readouterr().out
+    rows = {line.split()[0]: line.split() for line in text.splitlines()
+            if line.startswith(("pf:", "enkf:", "imm:"))}
+    assert set(rows) == {"pf:n_particles=200", "enkf:n_ensemble=20", "imm:kind=ukf,high=20"}
+    assert all(float(r[1]) < 1.0 for r in rows.values()), rows  # RMSE
 
 
 def test_parse_estimator():

@@ -116,3 +116,22 @@ def test_bad_arguments_are_named():
             transition=PI)
     with pytest.raises(ValueError, match="distinct"):
         IMM({"a": ekf, "b": ekf}, transition=PI)
+
+
+def test_noise_levels_is_the_two_mode_imm():
+    """``IMM.noise_levels`` (what ``estim run -e imm`` builds) equals the IMM written out:
+    modes with Q and high * Q, switching with probability 1 - stay."""
+    m = target()
+    Y = record(30)
+    quick = IMM.noise_levels(m, Q=QS["quiet"], R=R, x0=X0, P0=P0, high=50.0, stay=0.9)
+    by_hand = IMM({"quiet": estim.EKF(m, Q=QS["quiet"], R=R, x0=X0, P0=P0),
+                   "agile": estim.EKF(m, Q=50.0 * QS["quiet"], R=R, x0=X0, P0=P0)},
+                  transition=[[0.9, 1 - 0.9], [1 - 0.9, 0.9]])
+    a, b = estim.replay(quick, Y), estim.replay(by_hand, Y)
+    np.testing.assert_array_equal(np.asarray(a.x_hat), np.asarray(b.x_hat))
+    assert isinstance(IMM.noise_levels(m, Q=QS["quiet"], R=R, x0=X0, P0=P0,
+                                       kind="ukf").estimators["agile"], estim.UKF)
+    for kwargs, match in (({"stay": 1.0}, "stay"), ({"stay": 0.0}, "stay"),
+                          ({"high": -1.0}, "high"), ({"kind": "pf"}, "kind")):
+        with pytest.raises(ValueError, match=match):
+            IMM.noise_levels(m, Q=QS["quiet"], R=R, x0=X0, P0=P0, **kwargs)

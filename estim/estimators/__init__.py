@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Any
 from estim.estimators.base import Estimator, StepInfo
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from estim.estimators.ekf import EKF
     from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
@@ -21,8 +23,9 @@ if TYPE_CHECKING:
     from estim.estimators.shooting import ShootingObserver
     from estim.estimators.ukf import UKF
 
-    #: Estimator classes by short name (command line, comparisons).
-    ESTIMATORS: dict[str, type[Estimator]]
+    #: Estimator classes (or, for ``imm``, a constructor on one model) by short name
+    #: (command line, comparisons): each is called as ``f(model, Q=, R=, x0=, P0=, ...)``.
+    ESTIMATORS: dict[str, Callable[..., Estimator]]
 
 #: Where each lazily imported name is defined.
 _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
@@ -34,7 +37,8 @@ _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
 
 #: The short names of :data:`ESTIMATORS` and their classes.
 _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",
-                "shooting": "ShootingObserver", "pf": "ParticleFilter", "enkf": "EnKF"}
+                "shooting": "ShootingObserver", "pf": "ParticleFilter", "enkf": "EnKF",
+                "imm": "IMM.noise_levels"}
 
 __all__ = ["EKF", "ESTIMATORS", "EnKF", "IMM", "MHE", "Estimator", "FitResult",
            "FullInformation",
@@ -45,7 +49,10 @@ __all__ = ["EKF", "ESTIMATORS", "EnKF", "IMM", "MHE", "Estimator", "FitResult",
 if not TYPE_CHECKING:  # type checkers see the imports above, and no catch-all
     def __getattr__(name: str) -> Any:
         if name == "ESTIMATORS":
-            value = {short: __getattr__(cls) for short, cls in _SHORT_NAMES.items()}
+            value = {}
+            for short, path in _SHORT_NAMES.items():
+                cls, _, method = path.partition(".")
+                value[short] = getattr(__getattr__(cls), method) if method else __getattr__(cls)
         elif name in _LAZY:
             value = getattr(importlib.import_module(_LAZY[name]), name)
         else:

@@ -47,6 +47,7 @@ from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.fused import FusedKalman
 from estim.estimators.square_root import P0_data, covariance
 from estim.estimators.ukf import UKF
+from estim.model import Model
 
 __all__ = ["IMM"]
 
@@ -138,6 +139,48 @@ class IMM(Estimator):
         self._modes = modes
         self._loglik = [FastFunction(_likelihood(est)) for est in modes]
         self._reset()
+
+    @classmethod
+    def noise_levels(cls, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                     P0: ArrayLike, high: float = 100.0, stay: float = 0.95,
+                     kind: str = "ekf") -> IMM:
+        r"""Two-mode IMM on one model: quiet and agile process noise.
+
+        The classic IMM of tracking (Bar-Shalom, Li, Kirubarajan 2001, sec. 11.7):
+        one filter with the nominal ``Q`` and one with ``high * Q`` (a target that
+        manoeuvres, a plant whose disturbance comes in bursts), switching with
+        probability ``1 - stay`` per step. The modes are named ``"quiet"`` and
+        ``"agile"``; what ``estim run`` builds for ``imm``.
+
+        Parameters
+        ----------
+        model : Model
+        Q, R, x0, P0 :
+            The nominal tuning, as for :class:`~estim.EKF`.
+        high : float
+            The agile mode's process noise, as a multiple of ``Q`` (> 0).
+        stay : float in (0, 1)
+            The probability of staying in a mode at each step.
+        kind : {"ekf", "ukf"}
+            The filter of both modes.
+
+        Returns
+        -------
+        IMM
+        """
+        from estim._validate import as_choice, as_float
+        from estim.estimators.ekf import EKF
+
+        high = as_float(high, "high", positive=True)
+        stay = as_float(stay, "stay", positive=True, maximum=1.0,
+                        expected="a probability in (0, 1)")
+        if stay >= 1.0:
+            raise ValueError(f"stay must be a probability in (0, 1), got {stay!r}")
+        make = {"ekf": EKF, "ukf": UKF}[as_choice(kind, ("ekf", "ukf"), "kind")]
+        quiet = make(model, Q=Q, R=R, x0=x0, P0=P0)
+        agile = make(model, Q=high * quiet.Q, R=R, x0=x0, P0=P0)
+        return cls({"quiet": quiet, "agile": agile},
+                   transition=[[stay, 1.0 - stay], [1.0 - stay, stay]])
 
     def _reset(self) -> None:
         for est in self._modes:

@@ -16,6 +16,7 @@ saves about a tenth of the instructions of an iteration on a full record.
 from __future__ import annotations
 
 from functools import cached_property
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -71,8 +72,8 @@ class StageFunctions:
         gy = A0a @ (x - xbar) + Jy.T @ ry
         self.meas = ca.Function("meas", margs, [A0a + gram(Jy), gy, c])
         # the exact Hessian blocks are built on first use (Newton steps, hard problems)
-        self._newton_parts = {"margs": margs, "A0a": A0a, "Jy": Jy, "ry": ry, "gy": gy,
-                              "c": c, "x": x}
+        self._newton_parts: dict[str, Any] = {"margs": margs, "A0a": A0a, "Jy": Jy,
+                                              "ry": ry, "gy": gy, "c": c, "x": x}
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots, weighted by W_Q (a parameter: tuning is data; a
         # diagonal weight is a row scaling)
