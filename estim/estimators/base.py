@@ -184,6 +184,11 @@ class Estimator:
         y = self._check_y(y)
         u = self._check_u(u)
         self._dt = None if dt is None else self._check_dt(dt)
+        return self._checked_step(y, u)
+
+    def _checked_step(self, y: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """:meth:`step` with ``y``, ``u`` (and ``_dt``) already checked: a whole record
+        checked at once (``filter``) steps through here."""
         t0 = time.perf_counter()
         x_hat, info = self._step(y, u, self._first)
         elapsed = time.perf_counter() - t0

@@ -60,9 +60,10 @@ def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     U = as_inputs(U, T, m)
     steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
     est.reset()
+    est._dt = None
     X, P, infos = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx)), []
-    for k in range(T):
-        X[k] = est.step(Y[k], steps_u[k])
+    for k in range(T):  # (the record is checked: rows go to the step unchecked)
+        X[k] = est._checked_step(Y[k], steps_u[k])
         infos.append(est.info)
         P[k] = est.info.P
     return X, P, infos

@@ -110,6 +110,8 @@ def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
     ``(n, N)``, entry by entry (long vectors: no threaded BLAS call per step)."""
     n = D.shape[0]
     DW = D * W
+    if n == 1:
+        return np.array([[float((DW[0] * D[0]).sum())]])
     P = np.empty((n, n))
     for i in range(n):
         for j in range(i + 1):
@@ -127,7 +129,7 @@ def _innovation(y: np.ndarray, observed: np.ndarray, Yh: np.ndarray, Wp: np.ndar
         return e, float("nan")
     if not observed.all():
         Yh = Yh[observed]
-    yb = Yh.mean(axis=1) if Wp is None else (Yh * Wp).sum(axis=1)
+    yb = Yh.sum(axis=1) / Yh.shape[1] if Wp is None else (Yh * Wp).sum(axis=1)
     if not np.isfinite(yb).all():  # lost particles: without them
         ok = np.isfinite(Yh).all(axis=0)
         Wp = (np.ones(Yh.shape[1]) if Wp is None else Wp) * ok
@@ -136,13 +138,16 @@ def _innovation(y: np.ndarray, observed: np.ndarray, Yh: np.ndarray, Wp: np.ndar
             return e, float("nan")
         Yh = np.where(ok, Yh, 0.0)
         yb = (Yh * Wp).sum(axis=1)
-    if Wp is None:
-        Wp = np.full(Yh.shape[1], 1.0 / Yh.shape[1])
     eo = y[observed] - yb
     e[observed] = eo
-    S = _spread(Yh - yb[:, None], Wp) + Ro
-    if len(eo) == 1:
-        return e, float(eo[0] ** 2 / S[0, 0])
+    D = Yh - yb[:, None]
+    if len(eo) == 1:  # one measured output: its variance directly
+        d = D[0]
+        var = float((d * d).sum()) / len(d) if Wp is None else float((d * d * Wp).sum())
+        return e, float(eo[0] ** 2 / (var + Ro[0, 0]))
+    if Wp is None:
+        Wp = np.full(Yh.shape[1], 1.0 / Yh.shape[1])
+    S = _spread(D, Wp) + Ro
     try:
         return e, float(eo @ np.linalg.solve(S, eo))
     except np.linalg.LinAlgError:
@@ -373,13 +378,14 @@ class ParticleFilter(Estimator):
         if self.proposal != "bootstrap":
             _definite(self.Q)
         self._LQ = square_root(self.Q).ravel(order="F")
-        self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray]] = {}
+        self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray,
+                                           np.ndarray]] = {}
 
     def _measured(self, observed: np.ndarray
-                  ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
         """``WR`` (flat), the Gaussian constant, the block of ``R`` of the measured
-        outputs ``observed`` and the proposal's tuning (see :func:`_graphs`), kept by
-        pattern."""
+        outputs ``observed``, the proposal's tuning (see :func:`_graphs`) and the
+        missing outputs' indicator ``miss``, kept by pattern."""
         key = observed.tobytes()
         if key not in self._whitening:
             ny, idx = self.model.ny, np.flatnonzero(observed)
@@ -395,7 +401,8 @@ class ParticleFilter(Estimator):
                 LQi = np.linalg.inv(self._LQ.reshape(self.model.nx, -1, order="F"))
                 tun = np.concatenate([self.Q.ravel(order="F"), LQi.ravel(order="F"),
                                       Rm.ravel(order="F"), self._LQ])
-            self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun)
+            self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun,
+                                    (~observed).astype(float))
         return self._whitening[key]
 
     def _prior_tuning(self, tun: np.ndarray) -> np.ndarray:
@@ -415,8 +422,8 @@ class ParticleFilter(Estimator):
     def _step(self, y, u, first):
         m, N, nx = self.model, self.n_particles, self.model.nx
         observed = ~np.isnan(y)
-        y0, miss = np.where(observed, y, 0.0), (~observed).astype(float)
-        WR, const, Ro, tun = self._measured(observed)
+        WR, const, Ro, tun, miss = self._measured(observed)
+        y0 = y if Ro.shape[0] == len(y) else np.where(observed, y, 0.0)
         w = self._transition(u) if m.nw else np.zeros(0)
         if (first or self._X is None) and self._start is not None:
             V = self._rng.standard_normal((nx, N))
@@ -471,7 +478,8 @@ class ParticleFilter(Estimator):
             inside = ((X >= self._support[0]) & (X <= self._support[1])).all(axis=0)
             a = np.where(inside, a, -np.inf)
         top = a.max()  # NaN if any is NaN
-        finite = bool(np.isfinite(X).all())
+        finite = bool(np.isfinite(X.sum()))  # (NaN and inf propagate; an overflow of
+        # the sum alone only takes the slow path below)
         if not (np.isfinite(top) and finite):  # the slow path: some particles are lost
             ok = np.isfinite(X).all(axis=0) & ~np.isnan(a)
             a = np.where(ok, a, -np.inf)

@@ -29,6 +29,8 @@ Sequential Monte Carlo*, Springer 2020, ch. 9.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 __all__ = ["RESAMPLING", "effective_sample_size", "resample"]
@@ -41,6 +43,14 @@ def effective_sample_size(W: np.ndarray) -> float:
     r"""Kish's effective sample size :math:`1 / \sum_i W_i^2` of normalised weights
     ``W`` ``(N,)``: :math:`N` for equal weights, 1 when one particle holds them all."""
     return float(1.0 / (W * W).sum())  # (not np.dot: no threaded BLAS call)
+
+
+@lru_cache(maxsize=8)
+def _indices(N: int) -> np.ndarray:
+    """``arange(N)``, kept (read-only) for the particle counts of every step."""
+    out = np.arange(N)
+    out.flags.writeable = False
+    return out
 
 
 def _inverse(W: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -58,10 +68,14 @@ def resample(W: np.ndarray, scheme: str, rng: np.random.Generator,
     n = N if n is None else n
     if scheme == "systematic":  # the points (j + U) / n, counted per particle: O(N)
         c = np.cumsum(W)
-        c[-1] = 1.0
-        edges = np.ceil(n * c - rng.random())
-        counts = np.diff(edges, prepend=0.0).astype(np.intp)
-        return np.repeat(np.arange(N), counts)
+        c *= n
+        c[-1] = n
+        c -= rng.random()
+        edges = np.ceil(c, out=c).astype(np.intp)  # points below each cumulative weight
+        counts = np.empty(N, dtype=np.intp)
+        counts[0] = edges[0]
+        np.subtract(edges[1:], edges[:-1], out=counts[1:])
+        return np.repeat(_indices(N), counts)
     if scheme == "stratified":
         return _inverse(W, (rng.random(n) + np.arange(n)) / n)
     if scheme == "multinomial":
