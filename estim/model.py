@@ -234,6 +234,8 @@ class Model(TransitionInputs):
         if np.any(self.lower > self.upper):
             raise ValueError("lower must not exceed upper")
         self.augmented: dict[str, float] = {}
+        #: disturbed inputs and outputs to their states' names (see with_disturbances)
+        self.disturbances: dict[str, Any] = {}
         self._ode, self._dynamics = ode, dynamics
         self.hold = as_holds(hold, self.input_names)
         if self.sampled and ode is None:
@@ -377,6 +379,46 @@ class Model(TransitionInputs):
         """
         return _augmented(self, names, lower, upper)
 
+    def with_disturbances(self, inputs: Sequence[str] | None = None,
+                          outputs: Sequence[str] | None = None, *,
+                          kind: str = "integrating", check: bool = True,
+                          at: tuple[ArrayLike, ArrayLike] | None = None) -> Model:
+        r"""Append integrating disturbances on inputs and outputs (offset-free estimation).
+
+        The new state is :math:`[x; d; p]`: :math:`d` adds to the named inputs wherever
+        the model sees them (dynamics and output), :math:`p` to the named outputs, both
+        constant in the model (:math:`d_{k+1} = d_k`, or :math:`\dot d = 0`); their
+        process noise, the entries of ``Q`` of the new states, sets how fast the
+        estimates follow a disturbance (see :mod:`estim._disturbances`).
+
+        Parameters
+        ----------
+        inputs, outputs : list of str, optional
+            The disturbed inputs and outputs (at least one in all). The new states are
+            named ``d_<name>`` (``d_u_<name>``, ``d_y_<name>`` where an input and an
+            output share a name).
+        kind : {"integrating"}
+            The disturbance model: random walks.
+        check : bool
+            Refuse (``ValueError``) an augmented model that is not detectable: more
+            disturbances than outputs, or the rank condition
+            :math:`\operatorname{rank}[[I - A, -B_d], [C, C_d]] = n_x + n_d`
+            (Pannocchia, Rawlings 2003) failing at ``at``, the error naming the
+            disturbances no output sees. ``False``: a warning instead.
+        at : (x, u), optional
+            The state and input (of this model) where the rank condition is checked
+            (default zeros).
+
+        Returns
+        -------
+        Model
+            A new model; ``model.disturbances`` maps each disturbed input and output to
+            its state's name.
+        """
+        from estim._disturbances import augment
+
+        return augment(self, inputs, outputs, kind, check, at)
+
     def __repr__(self) -> str:
         kind = f"ode, {self.integrator}" if self.continuous else "discrete"
         return (f"Model({self.name!r}: nx={self.nx} {self.state_names}, ny={self.ny} "
@@ -393,6 +435,7 @@ class Model(TransitionInputs):
         self.__dict__.update(state)
         self.__dict__.setdefault("variable_dt", False)  # models pickled before these
         self.__dict__.setdefault("time_unit", "")
+        self.__dict__.setdefault("disturbances", {})
         self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
         self._build()
 

@@ -73,6 +73,25 @@ def batch_reactor(n_steps: int = 400) -> Scenario:
                     remarks={kind: _REACTOR_KALMAN for kind in ("EKF", "UKF")})
 
 
+def reactor_feed(n_steps: int = 400, disturbance: float = 0.01) -> Scenario:
+    """The batch reactor fed with A (semi-batch, ``feed`` 0.005 per unit time as known
+    input) and an unknown constant extra feed ``disturbance``: the model with an
+    integrating disturbance on ``feed`` (:meth:`Model.with_disturbances`), whose state
+    ``d_feed`` is the disturbance (constant in the plant: no process noise). The
+    estimators start from ``d_feed = 0`` and concentrations off by 0.1.
+    """
+    m = models.batch_reactor(feed=True).with_disturbances(
+        inputs=["feed"], at=([0.5, 0.05, 0.0], [0.005]))
+    return Scenario(
+        "reactor_feed", m, x0=[0.5, 0.05, 0.0, disturbance], n_steps=n_steps,
+        Q=np.diag([0.002**2] * 3 + [0.0]), R=0.25**2, clip=True,
+        inputs=np.full((n_steps, 1), 0.005),
+        tuning={"Q": np.diag([0.002**2] * 3 + [1e-6]), "R": 0.25**2,
+                "x0": [0.6, 0.15, 0.1, 0.0], "P0": np.diag([0.1**2] * 3 + [0.01**2])},
+        description="semi-batch reactor with an unknown constant feed disturbance as "
+                    "an integrating state")
+
+
 def runaway(n_steps: int = 6000, gamma: float = 0.5, gamma1: float = 2.5) -> Scenario:
     """Runaway electrons with ``(gamma, gamma1)`` identified (seed 004, sec. 2.5).
 
@@ -166,6 +185,7 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
     "lorenz": lorenz,
     "van_der_pol": van_der_pol,
     "batch_reactor": batch_reactor,
+    "reactor_feed": reactor_feed,
     "runaway": runaway,
     "satellite": satellite,
 }
