@@ -14,6 +14,9 @@ estimator, the simulator and the observability analysis use the resulting
 CasADi Functions and their algorithmic-differentiation Jacobians.
 """
 
+# long class Model: a third of it is its docstring, the reference of every model option;
+# the derived models (augment, with_params, with_disturbances) delegate to functions.
+
 from __future__ import annotations
 
 import threading
@@ -383,38 +386,16 @@ class Model(TransitionInputs):
                           outputs: Sequence[str] | None = None, *,
                           kind: str = "integrating", check: bool = True,
                           at: tuple[ArrayLike, ArrayLike] | None = None) -> Model:
-        r"""Append integrating disturbances on inputs and outputs (offset-free estimation).
-
-        The new state is :math:`[x; d; p]`: :math:`d` adds to the named inputs wherever
-        the model sees them (dynamics and output), :math:`p` to the named outputs, both
-        constant in the model (:math:`d_{k+1} = d_k`, or :math:`\dot d = 0`); their
-        process noise, the entries of ``Q`` of the new states, sets how fast the
-        estimates follow a disturbance (see :mod:`estim._disturbances`).
-
-        Parameters
-        ----------
-        inputs, outputs : list of str, optional
-            The disturbed inputs and outputs (at least one in all). The new states are
-            named ``d_<name>`` (``d_u_<name>``, ``d_y_<name>`` where an input and an
-            output share a name).
-        kind : {"integrating"}
-            The disturbance model: random walks.
-        check : bool
-            Refuse (``ValueError``) an augmented model that is not detectable: more
-            disturbances than outputs, or the rank condition
-            :math:`\operatorname{rank}[[I - A, -B_d], [C, C_d]] = n_x + n_d`
-            (Pannocchia, Rawlings 2003) failing at ``at``, the error naming the
-            disturbances no output sees. ``False``: a warning instead.
-        at : (x, u), optional
-            The state and input (of this model) where the rank condition is checked
-            (default zeros).
-
-        Returns
-        -------
-        Model
-            A new model; ``model.disturbances`` maps each disturbed input and output to
-            its state's name.
-        """
+        r"""This model with integrating disturbances: states ``d_<name>`` added to the
+        named ``inputs`` (wherever the model sees them) and ``outputs``, constant in the
+        model (their process noise, in ``Q``, sets how fast they are followed). With
+        ``check``, an augmented model that is not detectable (more disturbances than
+        outputs, or :math:`\operatorname{rank}[[I - A, -B_d], [C, C_d]] < n_x + n_d`
+        at ``at = (x, u)``, default zeros) is refused with a ``ValueError`` naming the
+        disturbances no output sees; ``check=False`` warns instead. ``kind``:
+        ``"integrating"``. The new model's ``disturbances`` maps each disturbed input
+        and output to its state. See :mod:`estim._disturbances` (Pannocchia, Rawlings
+        2003)."""
         from estim._disturbances import augment
 
         return augment(self, inputs, outputs, kind, check, at)
