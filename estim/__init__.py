@@ -24,7 +24,7 @@ from estim.simulate import replay, simulate
 
 if TYPE_CHECKING:
     from estim import codegen as codegen  # not in __all__: imported on first use
-    from estim import observability, smooth, tuning
+    from estim import observability, records, smooth, tuning
     from estim.estimators.ekf import EKF
     from estim.estimators.enkf import EnKF
     from estim.estimators.fie import FitResult, FullInformation
@@ -41,7 +41,8 @@ __all__ = [
     "FullInformation", "IMM", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
     "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
-    "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth", "tuning",
+    "parameter_uncertainty", "records", "replay", "rmse", "scenarios", "simulate", "smooth",
+    "tuning",
 ]
 
 #: Names imported on first use (PEP 562): the estimators and the modules that
@@ -53,6 +54,7 @@ _LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
          "ParticleFilter": "estim.estimators.particle",
          "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
          "codegen": "estim.codegen", "observability": "estim.observability",
+         "records": "estim.records",
          "smooth": "estim.smooth", "tuning": "estim.tuning",
          "ParameterEstimates": "estim.uncertainty",
          "parameter_uncertainty": "estim.uncertainty"}
