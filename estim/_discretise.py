@@ -222,7 +222,10 @@ class TransitionInputs:
         else:
             w = u
         if self.variable_dt:
-            w = np.append(w, self.dt if dt is None else dt)
+            wd = np.empty(len(w) + 1)
+            wd[:-1] = w
+            wd[-1] = self.dt if dt is None else dt
+            return wd
         return w
 
     def transitions(self, U_prev: np.ndarray | None, U: np.ndarray,

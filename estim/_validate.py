@@ -424,6 +424,11 @@ def as_float(value, name: str, *, minimum: float | None = None, maximum: float |
     """
     if value is None and allow_none:
         return None
+    if type(value) is float or type(value) is np.float64:  # the common case: no ABC check
+        out = float(value)
+        if out == out and not (finite and abs(out) == np.inf) and not (positive and out <= 0) \
+                and (minimum is None or out >= minimum) and (maximum is None or out <= maximum):
+            return out
     phrase = expected or _float_phrase(minimum, maximum, positive, finite) + (
         " or None" if allow_none else "")
     if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":

@@ -192,3 +192,18 @@ def test_deploy_van_der_pol(tmp_path, capsys):
     assert res["rejected"] == 1 and res["samples"] == 300
     assert res["vdp_mhe"]["memory"] == 8632
     assert capsys.readouterr().out.count("largest |x_C - x_Python| = 0;") == 2
+
+
+def test_sensor_fusion(tmp_path, capsys):
+    out = tmp_path / "fusion.png"
+    res = load("sensor_fusion").main(["--out", str(out), "--seconds", "20", "--no-jit"])
+    assert out.stat().st_size > 20_000
+    h = {k: res[k]["rmse_h"] for k in ("gnss", "gnss+baro", "gnss+baro+imu")}
+    v = {k: res[k]["rmse_v"] for k in ("gnss", "gnss+baro", "gnss+baro+imu")}
+    # each sensor added helps: the barometer the height (sigma 0.5 m at 20 Hz against 2 m
+    # at 1 Hz), the IMU the climb rate (it sees the acceleration every 10 ms)
+    assert h["gnss+baro+imu"] < h["gnss+baro"] < 0.25 * h["gnss"]
+    assert v["gnss+baro+imu"] < 0.5 * v["gnss+baro"] < v["gnss"]
+    assert all(res[k]["all_ok"] for k in h)
+    assert res["gnss+baro+imu"]["samples"] == 2400 and res["gnss"]["samples"] == 20
+    assert "µs median at the IMU rate" in capsys.readouterr().out
