@@ -68,7 +68,7 @@ def test_lazy_names_are_public_names():
         "FullInformation", "IMM", "Log", "Model", "ParameterEstimates", "ParticleFilter", "RMSE",
         "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
-        "parameter_uncertainty", "replay", "rmse", "scenarios", "simulate", "smooth",
+        "parameter_uncertainty", "records", "replay", "rmse", "scenarios", "simulate", "smooth",
         "tuning"]
     assert set(estim.__all__) <= set(dir(estim))
     from estim import EKF, UKF, FitResult, FullInformation, observability, smooth
@@ -83,6 +83,9 @@ def test_lazy_names_are_public_names():
     from estim.uncertainty import ParameterEstimates as ParameterEstimates_
 
     assert ParameterEstimates is ParameterEstimates_ and callable(parameter_uncertainty)
+    from estim import records
+
+    assert records.__name__ == "estim.records" and callable(records.merge)
     # the submodule estim.compare does not hide the function estim.compare
     importlib.import_module("estim.compare")
     assert callable(estim.compare) and estim.compare.__module__ == "estim.compare"

@@ -16,7 +16,6 @@ saves about a tenth of the instructions of an iteration on a full record.
 from __future__ import annotations
 
 from functools import cached_property
-from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -71,9 +70,9 @@ class StageFunctions:
         margs = [x, y, wy, up, a, xbar, w0, a0]
         gy = A0a @ (x - xbar) + Jy.T @ ry
         self.meas = ca.Function("meas", margs, [A0a + gram(Jy), gy, c])
-        # the exact Hessian blocks are built on first use (Newton steps, hard problems)
-        self._newton_parts: dict[str, Any] = {"margs": margs, "A0a": A0a, "Jy": Jy,
-                                              "ry": ry, "gy": gy, "c": c, "x": x}
+        # the exact Hessian blocks are built on first use (Newton steps, hard problems),
+        # from these Functions (picklable, where expressions are not)
+        self._meas_parts = ca.Function("meas_parts", margs, [A0a + gram(Jy), A0a, gy, c, ry])
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots, weighted by W_Q (a parameter: tuning is data; a
         # diagonal weight is a row scaling)
@@ -91,7 +90,7 @@ class StageFunctions:
         gn_blocks = [gram(Ja), gram(Jb), Ja.T @ Jb]
         rest = [Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)]
         self.trans = ca.Function("trans", targs, gn_blocks + rest)
-        self._newton_parts.update(targs=targs, gn_blocks=gn_blocks, rest=rest, rw=rw, xb=xb)
+        self._trans_parts = ca.Function("trans_parts", targs, gn_blocks + rest + [rw])
         self.trans_cost = ca.Function("trans_cost", targs, [ca.sumsqr(rw)])
         # a step taken through the dynamics: from the moved state xp of slot k, the next
         # slot is G(xp) plus the defect the linearised step predicts,
@@ -129,19 +128,20 @@ class StageFunctions:
     def meas_newton(self) -> ca.Function:
         """:attr:`meas` with the exact Hessian of the measurement term as well (built on
         first use)."""
-        q = self._newton_parts
-        H = ca.hessian(0.5 * ca.sumsqr(q["ry"]), q["x"])[0]
-        return ca.Function("meas_newton", q["margs"], [
-            q["A0a"] + gram(q["Jy"]), q["A0a"] + H, q["gy"], q["c"]])
+        args = self._meas_parts.sx_in()
+        gn, A0a, gy, c, ry = self._meas_parts.call(args)
+        H = ca.hessian(0.5 * ca.sumsqr(ry), args[0])[0]
+        return ca.Function("meas_newton", args, [gn, A0a + H, gy, c])
 
     @cached_property
     def trans_newton(self) -> ca.Function:
         """:attr:`trans` with the exact Hessian blocks of the process term as well (built
         on first use)."""
-        q, nx = self._newton_parts, self.nx
-        Hw = ca.hessian(0.5 * ca.sumsqr(q["rw"]), ca.vertcat(q["x"], q["xb"]))[0]
-        return ca.Function("trans_newton", q["targs"], q["gn_blocks"] + [
-            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + q["rest"])
+        nx, args = self.nx, self._trans_parts.sx_in()
+        *blocks, rw = self._trans_parts.call(args)
+        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(args[0], args[1]))[0]
+        return ca.Function("trans_newton", args, blocks[:3] + [
+            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + blocks[3:])
 
     @cached_property
     def inverse(self) -> ca.Function:
