@@ -41,7 +41,7 @@ control", AIChE J. 49(2), 2003.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import casadi as ca
@@ -100,32 +100,43 @@ def _column(value: Any, n: int, what: str) -> ca.SX:
     return out
 
 
-def _equations(model: Any, E_u: np.ndarray, E_y: np.ndarray) -> dict[str, Callable]:
-    """The model's equations on the state ``[x; d; p]`` (see the module), by keyword."""
+def _equations(model: Any, E_u: np.ndarray, E_y: np.ndarray) -> dict[str, Any]:
+    """The model's equations on the state ``[x; d; p]`` (see the module), by keyword;
+    each takes ``(x, u, p)``, or ``(x, z, u, p)`` with algebraic states."""
     nx, n_in = model.nx, E_u.shape[1]
     nd = n_in + E_y.shape[1]
     base_ode, base_dyn, base_out = model._ode, model._dynamics, model._output
+    base_alg = getattr(model, "_alg", None)
     Eu, Ey = ca.DM(E_u), ca.DM(E_y)
 
     def split(x: ca.SX, u: ca.SX) -> tuple[ca.SX, ca.SX, ca.SX]:
         u_eff = u + Eu @ x[nx:nx + n_in] if n_in else u
         return x[:nx], u_eff, x[nx + n_in:]
 
-    def output(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> ca.SX:
+    def output(x: ca.SX, *rest: Any) -> ca.SX:
+        *z, u, p = rest
         xs, ue, py = split(x, u)
-        y = _column(base_out(xs, ue, p), model.ny, "output")
+        y = _column(base_out(xs, *z, ue, p), model.ny, "output")
         return y + Ey @ py if E_y.shape[1] else y
 
-    if base_ode is not None:
-        def ode(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> ca.SX:
+    out: dict[str, Any] = {"output": output}
+    if base_alg is not None:
+        def alg(x: ca.SX, *rest: Any) -> object:
+            *z, u, p = rest
             xs, ue, _ = split(x, u)
-            return ca.vertcat(_column(base_ode(xs, ue, p), nx, "ode"), ca.SX.zeros(nd))
-        return {"output": output, "ode": ode}
+            return base_alg(xs, *z, ue, p)
+        out.update(alg=alg, algebraic=model.algebraic_names, z0=model.z0)
+    if base_ode is not None:
+        def ode(x: ca.SX, *rest: Any) -> ca.SX:
+            *z, u, p = rest
+            xs, ue, _ = split(x, u)
+            return ca.vertcat(_column(base_ode(xs, *z, ue, p), nx, "ode"), ca.SX.zeros(nd))
+        return {**out, "ode": ode}
 
     def dynamics(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> ca.SX:
         xs, ue, _ = split(x, u)
         return ca.vertcat(_column(base_dyn(xs, ue, p), nx, "dynamics"), x[nx:])
-    return {"output": output, "dynamics": dynamics}
+    return {**out, "dynamics": dynamics}
 
 
 def augment(model: Any, inputs: Sequence[str] | None, outputs: Sequence[str] | None,

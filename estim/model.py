@@ -28,6 +28,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._dae import DAE_INTEGRATORS, dae_functions
 from estim._discretise import (
     HOLDS,
     INTEGRATORS,
@@ -53,7 +54,8 @@ __all__ = ["HOLDS", "INTEGRATORS", "Equation", "Model", "euler_step", "rk4_step"
 
 #: A user's equation ``f(x, u, p)``: ``x`` and ``u`` CasADi columns, ``p`` a dict of
 #: parameter symbols; it returns a column or a list of expressions.
-Equation = Callable[[ca.SX, ca.SX, Mapping[str, ca.SX]], object]
+#: a model equation: ``f(x, u, p)``, or ``f(x, z, u, p)`` with algebraic states
+Equation = Callable[..., object]
 
 
 def _as_column(expr, size: int, argname: str) -> ca.SX:
@@ -196,6 +198,7 @@ class Model(TransitionInputs):
     H: ca.Function
     H_x: ca.Function
     f_c: ca.Function | None
+    Z: ca.Function | None
 
     @check_keywords(owner="Model")
     def __init__(
@@ -217,14 +220,22 @@ class Model(TransitionInputs):
         hold: str | Mapping[str, str] = "zoh",
         variable_dt: bool = False,
         time_unit: str = "",
+        algebraic: Sequence[str] | int | None = None,
+        alg: Equation | None = None,
+        z0: ArrayLike | None = None,
     ):
         self.state_names = as_names(states, "states", "x")
+        self.algebraic_names = as_names(algebraic, "algebraic", "z")
         self.output_names = as_names(outputs, "outputs", "y")
         self.input_names = as_names(inputs, "inputs", "u")
         if not self.state_names:
             raise ValueError("states must name at least one state")
         self._output = _check_equations(ode, dynamics, output)
-        self.integrator = as_choice(integrator, INTEGRATORS, "integrator")
+        self._alg = _check_algebraic(self.algebraic_names, ode, alg, z0, integrator)
+        self.z0 = as_vector(0.0 if z0 is None and self.nz == 1 else
+                            [0.0] * self.nz if z0 is None else z0, self.nz, "z0")
+        self.integrator = as_choice(integrator, DAE_INTEGRATORS if self.nz else INTEGRATORS,
+                                    "integrator")
         self.substeps = as_int(substeps, "substeps", minimum=1)
         self.dt = _sample_time(dt, continuous=ode is not None)
         values = _parameters(params, self.state_names)
@@ -258,7 +269,12 @@ class Model(TransitionInputs):
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=r"\s*casadi: a numpy function",
                                     category=FutureWarning)
-            self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
+            if self.nz:
+                (self.f_c, self.F, self.F_x, self.H, self.H_x,
+                 self.Z) = dae_functions(self, _as_column)
+            else:
+                self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
+                self.Z = None
         self._local = threading.local()
 
     # ------------------------------------------------------------ properties
@@ -269,6 +285,11 @@ class Model(TransitionInputs):
     @property
     def ny(self) -> int:
         return len(self.output_names)
+
+    @property
+    def nz(self) -> int:
+        """Number of algebraic states (0 for an ODE or a discrete map)."""
+        return len(self.algebraic_names)
 
     @property
     def continuous(self) -> bool:
@@ -324,6 +345,21 @@ class Model(TransitionInputs):
         """
         x, u = self._xu(x, u)
         return self._fast("F")(x, self._w(u, u_next, dt), self.p)[0].copy()
+
+    def z(self, x: ArrayLike, u: ArrayLike | None = None) -> np.ndarray:
+        """The algebraic states ``Z(x, u; p)`` consistent with ``x`` (a Newton solve of
+        ``0 = g(x, z, u)`` from ``z0``), ``(nz,)``; a ``ValueError`` when it does not
+        converge."""
+        if self.Z is None:
+            raise ValueError(f"{self.name} has no algebraic states (algebraic=...)")
+        x, u = self._xu(x, u)
+        out = np.asarray(self.Z(x, u, self.p), dtype=float).ravel()
+        if not np.isfinite(out).all():
+            raise ValueError(f"no consistent algebraic state at x = {x.tolist()}: the Newton "
+                             f"solve of alg from z0 = {self.z0.tolist()} did not converge "
+                             f"(a better z0, or an x where the algebraic equations have a "
+                             f"solution)")
+        return out
 
     def h(self, x: ArrayLike, u: ArrayLike | None = None) -> np.ndarray:
         """Output ``h(x, u; p)`` as a (ny,) array (safe from several threads)."""
@@ -470,6 +506,27 @@ def _check_equations(ode: Equation | None, dynamics: Equation | None,
     return output
 
 
+def _check_algebraic(names: list[str], ode: Equation | None, alg: Equation | None,
+                     z0: ArrayLike | None, integrator: str) -> Equation | None:
+    """``alg=`` checked against ``algebraic=``: both or neither, with ``ode=``."""
+    if not names:
+        if alg is not None or z0 is not None:
+            raise ValueError("alg= and z0= need algebraic=[...] (the algebraic states' names)")
+        if integrator in ("collocation", "idas"):
+            raise ValueError(f"integrator={integrator!r} is for models with algebraic states "
+                             f"(algebraic=, alg=); an ODE takes 'rk4', 'euler' or 'cvodes'")
+        return None
+    if ode is None:
+        raise ValueError("algebraic= needs a continuous model (ode=f(x, z, u, p))")
+    if alg is None or not callable(alg):
+        raise TypeError("algebraic= needs alg=g(x, z, u, p), a callable returning the "
+                        "algebraic equations 0 = g (one per algebraic state)")
+    if integrator == "cvodes":
+        raise ValueError("integrator='cvodes' integrates ODEs only: a model with algebraic "
+                         "states takes 'idas', 'collocation', 'rk4' or 'euler'")
+    return alg
+
+
 def _sample_time(dt: float | None, continuous: bool) -> float:
     """The sample time: required for a continuous model, 1 by default for a discrete one."""
     if dt is None:
@@ -538,11 +595,14 @@ def _augmented(model: Model, names: tuple[str, ...], lower: ArrayLike | None,
     return augmented
 
 
-def _augmented_equations(model: Model, names: list[str]) -> dict[str, Equation]:
+def _augmented_equations(model: Model, names: list[str]) -> dict[str, Any]:
     """The equations of ``model`` on the state ``[x; theta]``, ``theta`` the parameters
-    ``names`` (constant): ``output`` and ``ode`` or ``dynamics``, by keyword."""
+    ``names`` (constant): ``output`` and ``ode`` or ``dynamics`` (and ``alg`` for a
+    model with algebraic states: every equation then takes ``(x, z, u, p)``), by
+    keyword."""
     nx0 = model.nx
-    base_ode, base_dyn, base_out = model._ode, model._dynamics, model._output
+    base_ode, base_dyn, base_out, base_alg = (model._ode, model._dynamics, model._output,
+                                              model._alg)
 
     def split(x: ca.SX, p: Mapping[str, ca.SX]) -> tuple[ca.SX, dict[str, ca.SX]]:
         q = dict(p)
@@ -550,19 +610,26 @@ def _augmented_equations(model: Model, names: list[str]) -> dict[str, Equation]:
             q[n] = x[nx0 + i]
         return x[:nx0], q
 
-    def output(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
-        xs, q = split(x, p)
-        return base_out(xs, u, q)
+    # (x, u, p), or (x, z, u, p) with algebraic states: p last, the rest passed on
+    def output(x: ca.SX, *rest: Any) -> object:
+        xs, q = split(x, rest[-1])
+        return base_out(xs, *rest[:-1], q)
 
+    out: dict[str, Any] = {"output": output}
+    if base_alg is not None:
+        def alg(x: ca.SX, *rest: Any) -> object:
+            xs, q = split(x, rest[-1])
+            return base_alg(xs, *rest[:-1], q)
+        out.update(alg=alg, algebraic=model.algebraic_names, z0=model.z0)
     if base_ode is not None:
-        def ode(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
-            xs, q = split(x, p)
-            return ca.vertcat(_as_column(base_ode(xs, u, q), nx0, "ode"),
+        def ode(x: ca.SX, *rest: Any) -> object:
+            xs, q = split(x, rest[-1])
+            return ca.vertcat(_as_column(base_ode(xs, *rest[:-1], q), nx0, "ode"),
                               ca.SX.zeros(len(names)))
-        return {"output": output, "ode": ode}
+        return {**out, "ode": ode}
     assert base_dyn is not None  # a model has exactly one of ode and dynamics
 
     def dynamics(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
         xs, q = split(x, p)
         return ca.vertcat(_as_column(base_dyn(xs, u, q), nx0, "dynamics"), x[nx0:])
-    return {"output": output, "dynamics": dynamics}
+    return {**out, "dynamics": dynamics}

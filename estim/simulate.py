@@ -143,6 +143,9 @@ class _Recorder:
                          ("success", self.success), ("nis", self.nis), ("cost", self.cost),
                          ("diagnostics", self.extra)):
             log.set(key, arr[:n])
+        if model.nz:  # the algebraic states of the truth and of the estimates
+            for key, X in (("z", x[:n]), ("z_hat", self.x_hat[:n])):
+                log.set(key, algebraic_states(model, X, u[:n]))
         return log
 
     @contextmanager
@@ -178,6 +181,24 @@ class _Recorder:
                           f"see log.status{hint}", EstimationWarning,
                           stacklevel=4)  # this method, simulate, its argument check, caller
         return log
+
+
+def algebraic_states(model: Model, X: np.ndarray, U: np.ndarray) -> np.ndarray:
+    """``Z(x_k, u)`` of a model with algebraic states at every row of ``X (T, nx)``, with
+    the input the output sees at sample ``k`` (``U[k-1]``, zero at the first; ``U[k]``
+    for a sampled-input model), ``(T, nz)``; NaN where ``x_k`` is not finite or the
+    Newton solve fails."""
+    T = len(X)
+    assert model.Z is not None  # a model with algebraic states
+    if T == 0:
+        return np.empty((0, model.nz))
+    Um = U if model.sampled else np.vstack([np.zeros((1, model.nu)), U[:-1]])
+    ok = np.isfinite(X).all(axis=1)
+    out = np.full((T, model.nz), np.nan)
+    if ok.any():
+        Z = model.Z.map(int(ok.sum()))(X[ok].T, Um[ok].T, model.p)
+        out[ok] = np.asarray(Z, dtype=float).reshape(model.nz, -1).T
+    return out
 
 
 def output_state_map(model: Model) -> dict[int, int]:
