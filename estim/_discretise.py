@@ -42,6 +42,27 @@ HOLDS = ("zoh", "foh")
 _CVODES_OPTIONS = {"abstol": 1e-10, "reltol": 1e-10}
 
 
+def as_column(expr, size: int, argname: str) -> ca.SX:
+    """Turn what a user equation returned into a ``(size, 1)`` expression."""
+    if isinstance(expr, list | tuple):
+        expr = ca.vertcat(*expr)
+    elif isinstance(expr, np.ndarray):
+        expr = ca.SX(expr) if expr.dtype != object else ca.vertcat(*expr.ravel().tolist())
+    elif isinstance(expr, int | float):
+        expr = ca.SX(expr)
+    if not isinstance(expr, ca.SX | ca.MX | ca.DM):
+        raise TypeError(
+            f"{argname} must return a CasADi expression or a list of them, "
+            f"got {type(expr).__name__}"
+        )
+    if expr.shape == (1, size) and size > 1:
+        expr = expr.T
+    if expr.shape != (size, 1):
+        raise ValueError(f"{argname} must return {size} entries (a ({size}, 1) column), "
+                         f"got shape {expr.shape}")
+    return ca.SX(expr) if isinstance(expr, ca.DM) else expr
+
+
 def input_at(u: Sym | Callable[[Sym], Sym], s: float | Sym) -> Sym:
     """The input at the fraction ``s`` of the sample: ``u(s)`` for an interpolated
     input (a callable), else ``u`` (held)."""

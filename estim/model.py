@@ -33,6 +33,7 @@ from estim._discretise import (
     HOLDS,
     INTEGRATORS,
     TransitionInputs,
+    as_column,
     as_holds,
     discretise,
     euler_step,
@@ -56,27 +57,6 @@ __all__ = ["HOLDS", "INTEGRATORS", "Equation", "Model", "euler_step", "rk4_step"
 #: parameter symbols; it returns a column or a list of expressions.
 #: a model equation: ``f(x, u, p)``, or ``f(x, z, u, p)`` with algebraic states
 Equation = Callable[..., object]
-
-
-def _as_column(expr, size: int, argname: str) -> ca.SX:
-    """Turn what a user equation returned into a ``(size, 1)`` expression."""
-    if isinstance(expr, list | tuple):
-        expr = ca.vertcat(*expr)
-    elif isinstance(expr, np.ndarray):
-        expr = ca.SX(expr) if expr.dtype != object else ca.vertcat(*expr.ravel().tolist())
-    elif isinstance(expr, int | float):
-        expr = ca.SX(expr)
-    if not isinstance(expr, ca.SX | ca.MX | ca.DM):
-        raise TypeError(
-            f"{argname} must return a CasADi expression or a list of them, "
-            f"got {type(expr).__name__}"
-        )
-    if expr.shape == (1, size) and size > 1:
-        expr = expr.T
-    if expr.shape != (size, 1):
-        raise ValueError(f"{argname} must return {size} entries (a ({size}, 1) column), "
-                         f"got shape {expr.shape}")
-    return ca.SX(expr) if isinstance(expr, ca.DM) else expr
 
 
 def _check_constants(expr, names: Sequence[str], argname: str) -> None:
@@ -126,9 +106,11 @@ class Model(TransitionInputs):
         Parameter names and nominal values. Inside the equations they are
         symbols, so :meth:`augment` can turn them into states and
         :meth:`with_params` can change them without rebuilding.
-    integrator : {"rk4", "euler", "cvodes"}
+    integrator : {"rk4", "euler", "cvodes", "collocation", "idas"}
         Discretisation of ``ode``: fixed-step RK4 (default), explicit Euler,
-        or CasADi's adaptive CVODES (SUNDIALS) with tolerances 1e-10.
+        or CasADi's adaptive CVODES (SUNDIALS) with tolerances 1e-10; with
+        algebraic states also Radau IIA collocation (``substeps`` finite elements
+        of degree 3) or IDAS (see :mod:`estim._dae`).
     substeps : int
         Fixed integrator steps per sample (rk4/euler).
     lower, upper : float, sequence or dict, optional
@@ -160,6 +142,18 @@ class Model(TransitionInputs):
     time_unit : str
         Unit of time, for the time axes of plots (``"s"``, ``"min"``,
         ``"dimensionless"``; empty when unknown).
+    algebraic : list of str or int, optional
+        Names of algebraic states :math:`z` (a semi-explicit index-1 DAE:
+        :math:`\dot x = f(x, z, u)`, :math:`0 = g(x, z, u)` with
+        :math:`\partial g / \partial z` nonsingular). ``ode``, ``alg`` and ``output``
+        then take ``(x, z, u, p)``; :math:`z` is solved from :math:`x` by Newton's
+        method from ``z0`` wherever it is needed (:meth:`z`), and every estimator sees
+        the model through ``F`` and ``H``. A structurally singular
+        :math:`\partial g / \partial z` (index 2 or higher) is refused.
+    alg : callable ``g(x, z, u, p)``, optional
+        The algebraic equations (one per algebraic state), with ``algebraic``.
+    z0 : sequence of float, optional
+        The starting guess of the Newton solve for :math:`z` (default zeros).
 
     Attributes
     ----------
@@ -271,7 +265,7 @@ class Model(TransitionInputs):
                                     category=FutureWarning)
             if self.nz:
                 (self.f_c, self.F, self.F_x, self.H, self.H_x,
-                 self.Z) = dae_functions(self, _as_column)
+                 self.Z) = dae_functions(self, as_column)
             else:
                 self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
                 self.Z = None
@@ -416,7 +410,9 @@ class Model(TransitionInputs):
             A new model; ``model.augmented`` maps each appended name to its
             nominal value (the truth for simulation).
         """
-        return _augmented(self, names, lower, upper)
+        from estim._augment import augmented
+
+        return augmented(self, names, lower, upper)
 
     def with_disturbances(self, inputs: Sequence[str] | None = None,
                           outputs: Sequence[str] | None = None, *,
@@ -471,12 +467,12 @@ def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Functi
     p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
     pdict = dict(zip(model.param_names, psym, strict=True))
 
-    y = _as_column(model._output(x, u, pdict), ny, "output")
+    y = as_column(model._output(x, u, pdict), ny, "output")
     _check_constants(y, model.output_names, "output")
     H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
     H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
     if model._ode is not None:
-        xdot = _as_column(model._ode(x, u, pdict), nx, "ode")
+        xdot = as_column(model._ode(x, u, pdict), nx, "ode")
         _check_constants(xdot, model.state_names, "ode")
         f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
         F, F_x = discretise(f_c, x, w, p, u_of, integrator=model.integrator,
@@ -484,7 +480,7 @@ def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Functi
                             variable_dt=model.variable_dt)
         return f_c, F, F_x, H, H_x
     assert model._dynamics is not None  # a model has exactly one of ode and dynamics
-    xn = _as_column(model._dynamics(x, u, pdict), nx, "dynamics")
+    xn = as_column(model._dynamics(x, u, pdict), nx, "dynamics")
     _check_constants(xn, model.state_names, "dynamics")
     F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
     F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)], ["x", "u", "p"], ["A"])
@@ -559,77 +555,3 @@ def _text(value: str, argname: str) -> str:
 
 
 # ------------------------------------------------------------ augmentation
-def _augmented(model: Model, names: tuple[str, ...], lower: ArrayLike | None,
-               upper: ArrayLike | None) -> Model:
-    """:meth:`Model.augment`: ``model`` with the parameters ``names`` appended to the
-    state, with constant dynamics."""
-    if not names:
-        raise ValueError("augment needs at least one parameter name")
-    for n in names:
-        if n not in model.param_names:
-            raise ValueError(f"cannot augment unknown parameter {n!r}; "
-                             f"parameters are {model.param_names}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"augment got duplicate names {names}")
-    appended = list(names)
-    values = model.params
-    new_lower = as_bounds(lower, appended, "lower", -np.inf)
-    new_upper = as_bounds(upper, appended, "upper", np.inf)
-    augmented = Model(
-        states=model.state_names + appended,
-        outputs=model.output_names,
-        dt=model.dt,
-        inputs=model.input_names,
-        params={k: v for k, v in values.items() if k not in appended},
-        integrator=model.integrator,
-        substeps=model.substeps,
-        lower=np.concatenate([model.lower, new_lower]),
-        upper=np.concatenate([model.upper, new_upper]),
-        name=model.name,
-        hold=model.hold,
-        variable_dt=model.variable_dt,
-        time_unit=model.time_unit,
-        **_augmented_equations(model, appended),
-    )
-    augmented.augmented = {**model.augmented, **{n: values[n] for n in appended}}
-    return augmented
-
-
-def _augmented_equations(model: Model, names: list[str]) -> dict[str, Any]:
-    """The equations of ``model`` on the state ``[x; theta]``, ``theta`` the parameters
-    ``names`` (constant): ``output`` and ``ode`` or ``dynamics`` (and ``alg`` for a
-    model with algebraic states: every equation then takes ``(x, z, u, p)``), by
-    keyword."""
-    nx0 = model.nx
-    base_ode, base_dyn, base_out, base_alg = (model._ode, model._dynamics, model._output,
-                                              model._alg)
-
-    def split(x: ca.SX, p: Mapping[str, ca.SX]) -> tuple[ca.SX, dict[str, ca.SX]]:
-        q = dict(p)
-        for i, n in enumerate(names):
-            q[n] = x[nx0 + i]
-        return x[:nx0], q
-
-    # (x, u, p), or (x, z, u, p) with algebraic states: p last, the rest passed on
-    def output(x: ca.SX, *rest: Any) -> object:
-        xs, q = split(x, rest[-1])
-        return base_out(xs, *rest[:-1], q)
-
-    out: dict[str, Any] = {"output": output}
-    if base_alg is not None:
-        def alg(x: ca.SX, *rest: Any) -> object:
-            xs, q = split(x, rest[-1])
-            return base_alg(xs, *rest[:-1], q)
-        out.update(alg=alg, algebraic=model.algebraic_names, z0=model.z0)
-    if base_ode is not None:
-        def ode(x: ca.SX, *rest: Any) -> object:
-            xs, q = split(x, rest[-1])
-            return ca.vertcat(_as_column(base_ode(xs, *rest[:-1], q), nx0, "ode"),
-                              ca.SX.zeros(len(names)))
-        return {**out, "ode": ode}
-    assert base_dyn is not None  # a model has exactly one of ode and dynamics
-
-    def dynamics(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> object:
-        xs, q = split(x, p)
-        return ca.vertcat(_as_column(base_dyn(xs, u, q), nx0, "dynamics"), x[nx0:])
-    return {**out, "dynamics": dynamics}
