@@ -170,3 +170,17 @@ def test_no_algebraic_solution_fails_a_step_not_the_loop():
     ekf = estim.EKF(m, Q=1e-4, R=1e-2, x0=[0.5], P0=0.01)
     ekf.step([1.0])
     assert not ekf.info.success and "failed" in ekf.info.status
+
+
+def test_pendulum_scenario():
+    """``estim.scenarios.get("pendulum")``: the plant (Radau IIA collocation) stays on its
+    circle, and the EKF from the wrong guess tracks the state and the rod's tension."""
+    sc = estim.scenarios.get("pendulum", n_steps=80)
+    assert sc.model.algebraic_names == ["tension"] and "pendulum" in estim.scenarios.SCENARIOS
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    assert np.abs(np.hypot(log.x[:, 0], log.x[:, 1]) - 1).max() < 1e-6
+    assert np.all(log.success)
+    late = slice(40, None)
+    assert np.abs(log.x_hat[late, :2] - log.x[late, :2]).max() < 0.05
+    # the tension (about g at the bottom) against the truth's
+    assert np.abs(log.z_hat[late, 0] - log.z[late, 0]).max() < 0.1 * np.abs(log.z).max()

@@ -13,6 +13,7 @@ from estim.models.localization import (
     quadrotor_ko2019,
 )
 from estim.models.lorenz import lorenz
+from estim.models.pendulum import pendulum
 from estim.models.runaway import runaway
 from estim.models.satellite import (
     PDAttitudeController,
@@ -24,5 +25,6 @@ from estim.models.satellite import (
 from estim.models.van_der_pol import van_der_pol
 
 __all__ = ["batch_reactor", "lorenz", "martinelli_simple", "odometry_circular",
-           "odometry_noncircular", "quadrotor_ko2019", "runaway", "satellite", "satellite_rates",
-           "van_der_pol", "PDAttitudeController", "nadir_in_body", "reference_attitude"]
+           "odometry_noncircular", "pendulum", "quadrotor_ko2019", "runaway", "satellite",
+           "satellite_rates", "van_der_pol", "PDAttitudeController", "nadir_in_body",
+           "reference_attitude"]
