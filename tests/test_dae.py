@@ -184,3 +184,10 @@ def test_pendulum_scenario():
     assert np.abs(log.x_hat[late, :2] - log.x[late, :2]).max() < 0.05
     # the tension (about g at the bottom) against the truth's
     assert np.abs(log.z_hat[late, 0] - log.z[late, 0]).max() < 0.1 * np.abs(log.z).max()
+
+
+def test_code_generation_refuses_algebraic_states(tmp_path):
+    m = estim.models.pendulum()
+    ekf = estim.EKF(m, Q=1e-6, R=1e-4, x0=[0.5, -0.866, 0.0, 0.0], P0=0.01)
+    with pytest.raises(ValueError, match=r"algebraic states \['tension'\]"):
+        estim.codegen.export(ekf, tmp_path)

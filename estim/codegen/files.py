@@ -55,8 +55,8 @@ def check_model(m: Model) -> None:
     Raises
     ------
     ValueError
-        ``variable_dt=True`` (the interval would be an argument of the C step) or
-        integration by CVODES (which needs the CasADi runtime).
+        ``variable_dt=True`` (the interval would be an argument of the C step),
+        integration by CVODES (which needs the CasADi runtime) or algebraic states.
     """
     if m.variable_dt:
         raise ValueError(f"{m.name} has variable_dt=True: the C step takes the model's "
@@ -64,6 +64,10 @@ def check_model(m: Model) -> None:
     if getattr(m, "integrator", None) == "cvodes":
         raise ValueError(f"{m.name} is integrated by CVODES, which needs the CasADi "
                          f"runtime: build the model with integrator='rk4' to export")
+    if getattr(m, "nz", 0):
+        raise ValueError(f"{m.name} has algebraic states {m.algebraic_names}: the C step "
+                         f"would need their Newton solve and CasADi's integrators, which "
+                         f"generate no plain C; export a model without algebraic states")
 
 
 def sections(text: str, switches: Mapping[str, bool]) -> str:
