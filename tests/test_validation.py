@@ -155,4 +155,4 @@ def test_simulate_argument_errors():
     with pytest.raises(ValueError, match="other dimensions"):
         estim.simulate(estim.scenarios.lorenz(), ekf)
     with pytest.raises(ValueError, match="unknown scenario"):
-        estim.scenarios.get("pendulum")
+        estim.scenarios.get("double_pendulum")
