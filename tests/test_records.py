@@ -7,7 +7,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 import pytest
-from filterpy.kalman import KalmanFilter
+from filterpy.kalman import KalmanFilter, rts_smoother
 from scipy.linalg import expm
 
 import estim
@@ -141,3 +141,21 @@ def test_bad_streams_are_named():
     both = merge({"gnss": (ts, ts, "h_gnss"), "gnss2": (ts + 0.5, ts, "h_gnss")}, OUTPUTS)
     with pytest.raises(ValueError, match="both measure 'h_gnss'"):
         both.R({"gnss": 1.0, "gnss2": 1.0})
+
+
+def test_filter_and_smooth_take_the_merged_record():
+    """``filter`` and ``smooth`` with the merged record's time stamps: the filter equals
+    the sequential updates, the smoother filterpy's RTS smoother over the stamps."""
+    data = streams(seconds=2.0)
+    rec = merge(data, outputs=OUTPUTS)
+    _, xs, Ps = sequential_kalman(data)
+    Fs = [expm(A * dt) for dt in np.diff(rec.t)] + [np.eye(3)]
+    xr, Pr, _, _ = rts_smoother(xs, Ps, np.array(Fs), np.array([Q] * len(Fs)))
+    m = vehicle()
+    tuning = dict(Q=Q, R=rec.R(VAR), x0=X0, P0=P0)
+    scale = np.abs(xs).max()
+    for cls in (estim.EKF, estim.UKF):
+        np.testing.assert_allclose(cls(m, **tuning).filter(rec.Y, t=rec.t).x, xs,
+                                   atol=1e-10 * scale)
+        sm = cls(m, **tuning).smooth(rec.Y, t=rec.t)
+        np.testing.assert_allclose(sm.x, xr, atol=1e-10 * scale, err_msg=cls.__name__)
