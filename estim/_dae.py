@@ -46,8 +46,11 @@ import casadi as ca
 
 from estim._discretise import euler_step, input_at, rk4_step
 
-__all__ = ["DAE_INTEGRATORS", "RESIDUAL_TOL", "dae_functions"]
+__all__ = ["DAE_INTEGRATORS", "LINEAR_SOLVE_MAX", "RESIDUAL_TOL", "dae_functions"]
 
+#: Algebraic equations linear in ``z`` with at most this many algebraic states are solved
+#: in the expression graph (see :func:`_linear`); others by a Newton solve.
+LINEAR_SOLVE_MAX = 12
 #: Integrators of a model with algebraic states.
 DAE_INTEGRATORS = ("rk4", "euler", "collocation", "idas")
 #: A Newton solve of the algebraic equations whose residual stays above this (infinity
@@ -87,6 +90,8 @@ def dae_functions(model: Any, column: Callable[[Any, int, str], ca.SX]
             "until they determine every algebraic state")
     ode = column(model._ode(x, z, u, pdict), nx, "ode")
     y = column(model._output(x, z, u, pdict), model.ny, "output")
+    if not ca.depends_on(gz, z) and nz <= LINEAR_SOLVE_MAX:
+        return _linear(model, x, z, u, p, g, gz, ode, y)
     G = ca.Function("g", [z, ca.vertcat(x, u, p)], [g])
     solve = ca.rootfinder("z_solve", "newton", G, _NEWTON)
     # Z(x, u, p): Newton from z0, NaN unless the residual is small
@@ -115,6 +120,40 @@ def dae_functions(model: Any, column: Callable[[Any, int, str], ca.SX]
     F = ca.Function("F", [xm, wm, pm], [xn], ["x", "u", "p"], ["x_next"], _CALLED)
     F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)], ["x", "u", "p"], ["A"],
                       _CALLED)
+    return f_c, F, F_x, H, H_x, Z
+
+
+def _linear(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, gz: ca.SX,
+            ode: ca.SX, y: ca.SX) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function,
+                                           ca.Function, ca.Function]:
+    """:func:`dae_functions` for algebraic equations linear in ``z``: ``g = g_z z + g(0)``
+    with ``g_z`` free of ``z``, so ``z = -g_z^{-1} g(0)`` exactly, written into the
+    expression graph (one symbolic solve): every Function is then an SX graph, evaluated
+    without a call per solve, and its derivative is the implicit function theorem's. A
+    ``g_z`` singular at some ``x`` gives non-finite values there, as a failed solve."""
+    zsol = -ca.solve(gz, ca.substitute(g, z, ca.DM.zeros(z.numel())))
+    args, names = [x, u, p], ["x", "u", "p"]
+    Z = ca.Function("Z", args, [zsol], names, ["z"])
+    xdot = ca.substitute(ode, z, zsol)
+    yh = ca.substitute(y, z, zsol)
+    f_c = ca.Function("f_c", args, [xdot], names, ["xdot"])
+    H = ca.Function("h", args, [yh], names, ["y"])
+    H_x = ca.Function("H_x", args, [ca.jacobian(yh, x)], names, ["C"])
+    nw = model.nw
+    if model.integrator in ("rk4", "euler"):
+        w = ca.SX.sym("w", nw)
+        u_of = model.input_path(w[:nw - 1] if model.variable_dt else w)
+        h = w[nw - 1] if model.variable_dt else model.dt
+        step = rk4_step if model.integrator == "rk4" else euler_step
+        xn = step(f_c, x, u_of, p, h, model.substeps)
+        return (f_c, ca.Function("F", [x, w, p], [xn], names, ["x_next"]),
+                ca.Function("F_x", [x, w, p], [ca.jacobian(xn, x)], names, ["A"]), H, H_x, Z)
+    xm, wm, pm = ca.MX.sym("x", x.numel()), ca.MX.sym("w", nw), ca.MX.sym("p", p.numel())
+    u_of = model.input_path(wm[:nw - 1] if model.variable_dt else wm)
+    h = wm[nw - 1] if model.variable_dt else model.dt
+    xn = _integrated(model, x, z, u, p, g, ode, Z, xm, wm, pm, u_of, h)
+    F = ca.Function("F", [xm, wm, pm], [xn], names, ["x_next"], _CALLED)
+    F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)], names, ["A"], _CALLED)
     return f_c, F, F_x, H, H_x, Z
 
 

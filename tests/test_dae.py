@@ -15,16 +15,21 @@ K, KR = 2.0, 0.3  # fast equilibrium B = K A, slow reaction B -> C
 G = 9.81
 
 
-def reactor(dae: bool = True, **kw) -> estim.Model:
+def reactor(dae: bool = True, squared: bool = False, **kw) -> estim.Model:
     """A <-> B at equilibrium (c_B = K c_A), B -> C at rate KR c_B, A fed by ``feed``;
     states the total n = c_A + c_B and c_C; measured c_B + 2 c_C. With ``dae`` c_A is an
-    algebraic state, else it is eliminated by hand (c_A = n / (1 + K))."""
+    algebraic state, else it is eliminated by hand (c_A = n / (1 + K)). The equilibrium
+    is linear in c_A (solved in the graph), or with ``squared`` written as
+    c_B^2 = K^2 c_A^2 (Newton's method from z0 = 0.2 finds the positive root)."""
     if dae:
+        def alg(x, z, u, p):
+            cB = x[0] - z[0]
+            return cB**2 - K**2 * z[0] ** 2 if squared else cB - K * z[0]
         return estim.Model(
             states=["n", "cC"], algebraic=["cA"], inputs=["feed"], outputs=["y"],
             ode=lambda x, z, u, p: ca.vertcat(-KR * (x[0] - z[0]) + u[0], KR * (x[0] - z[0])),
-            alg=lambda x, z, u, p: (x[0] - z[0]) - K * z[0],
-            output=lambda x, z, u, p: x[0] - z[0] + 2 * x[1], dt=0.1, **kw)
+            alg=alg, output=lambda x, z, u, p: x[0] - z[0] + 2 * x[1], dt=0.1,
+            z0=[0.2] if squared else None, **kw)
     b = K / (1 + K)
     return estim.Model(states=["n", "cC"], inputs=["feed"], outputs=["y"],
                        ode=lambda x, u, p: ca.vertcat(-KR * b * x[0] + u[0], KR * b * x[0]),
@@ -51,9 +56,12 @@ def pendulum(dae: bool = True, **kw) -> estim.Model:
                        **common)
 
 
-def test_model_and_consistent_algebraic_state():
-    m = reactor()
+@pytest.mark.parametrize("squared", [False, True])
+def test_model_and_consistent_algebraic_state(squared):
+    m = reactor(squared=squared)
     assert m.nz == 1 and m.algebraic_names == ["cA"] and m.Z is not None
+    # linear in z: all in the SX graph; squared: a Newton solve the graphs call
+    assert m.F.is_a("SXFunction") != squared
     np.testing.assert_allclose(m.z([0.9, 0.0]), [0.3], rtol=1e-14)
     red = reactor(dae=False)
     x, u = np.array([0.9, 0.2]), np.array([0.05])
@@ -76,13 +84,15 @@ def test_integrators_against_radau(integrator, substeps, tol):
     np.testing.assert_allclose(m.f(s0), ref, atol=tol)
 
 
-def test_estimators_equal_the_hand_reduced_model():
+@pytest.mark.parametrize("squared", [False, True])
+def test_estimators_equal_the_hand_reduced_model(squared):
     """simulate, EKF, UKF, MHE (Gauss-Newton and Ipopt), the EnKF, the particle filter and
     full information on the DAE equal the same on the reduced ODE to 1e-8; the log has
     the algebraic states of the truth and of the estimates."""
     U = 0.1 * (1 + np.sin(0.1 * np.arange(40)))[:, None]
     tuning = dict(Q=1e-4, R=1e-2, x0=[1.0, 0.0], P0=0.1)
-    sc = estim.Scenario("dae", reactor(), x0=[1.0, 0.0], n_steps=40, Q=1e-4, R=1e-2,
+    sc = estim.Scenario("dae", reactor(squared=squared), x0=[1.0, 0.0], n_steps=40, Q=1e-4,
+                        R=1e-2,
                         tuning=tuning, inputs=U)
     scr = sc.replace(model=reactor(dae=False))
     makers = [lambda m: estim.EKF(m, **tuning), lambda m: estim.UKF(m, **tuning),
@@ -96,10 +106,17 @@ def test_estimators_equal_the_hand_reduced_model():
         np.testing.assert_allclose(a.x, b.x, atol=1e-12)
         np.testing.assert_allclose(a.x_hat, b.x_hat, atol=1e-8, err_msg=a.estimator)
         assert np.all(a.success)
-    np.testing.assert_allclose(a.z[:, 0], a.x[:, 0] / (1 + K), rtol=1e-12)
-    np.testing.assert_allclose(a.z_hat[:, 0], a.x_hat[:, 0] / (1 + K), rtol=1e-12)
+    # exact when solved in the graph; to the Newton solve's tolerance (residual 1e-13)
+    tol = 1e-10 if squared else 1e-13
+    np.testing.assert_allclose(a.z[:, 0], a.x[:, 0] / (1 + K), rtol=tol)
+    np.testing.assert_allclose(a.z_hat[:, 0], a.x_hat[:, 0] / (1 + K), rtol=tol)
+    # the squared equilibrium has a second root, c_A = -n, which Newton's method finds
+    # from z0 where n < 0: from the zero trajectory the fit would cross into it, so it
+    # starts from the filter's estimates there (the linear form from zero)
+    guess = np.asarray(a.x_hat) if squared else None
     for solver in ("gauss-newton", "ipopt"):
-        fa = estim.FullInformation(sc.model, Q=1e-4, R=1e-2, solver=solver).fit(a.y, U)
+        fa = estim.FullInformation(sc.model, Q=1e-4, R=1e-2, solver=solver).fit(a.y, U,
+                                                                                guess=guess)
         fb = estim.FullInformation(scr.model, Q=1e-4, R=1e-2, solver=solver).fit(a.y, U)
         assert fa.success
         np.testing.assert_allclose(fa.x, fb.x, atol=1e-8)
