@@ -39,12 +39,11 @@ Problems in Differential-Algebraic Equations*, SIAM 1996; E. Hairer, G. Wanner,
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import casadi as ca
 
-from estim._discretise import euler_step, input_at, rk4_step
+from estim._discretise import as_column, euler_step, input_at, rk4_step
 
 __all__ = ["DAE_INTEGRATORS", "LINEAR_SOLVE_MAX", "RESIDUAL_TOL", "dae_functions"]
 
@@ -66,18 +65,15 @@ _COLLOCATION = {"interpolation_order": 3, "collocation_scheme": "radau",
                                                                "error_on_fail": False}}
 
 
-def dae_functions(model: Any, column: Callable[[Any, int, str], ca.SX]
-                  ) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function, ca.Function,
-                             ca.Function]:
-    """``(f_c, F, F_x, H, H_x, Z)`` of a model with algebraic states (see the module);
-    ``column(expr, n, what)`` turns a user's equation result into an ``(n, 1)``
-    expression with a clear error."""
-    nx, nz, nu, nw = model.nx, model.nz, model.nu, model.nw
+def dae_functions(model: Any) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function,
+                                       ca.Function, ca.Function]:
+    """``(f_c, F, F_x, H, H_x, Z)`` of a model with algebraic states (see the module)."""
+    nx, nz, nu = model.nx, model.nz, model.nu
     x, z, u = ca.SX.sym("x", nx), ca.SX.sym("z", nz), ca.SX.sym("u", nu)
     psym = [ca.SX.sym(n) for n in model.param_names]
     p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
     pdict = dict(zip(model.param_names, psym, strict=True))
-    g = column(model._alg(x, z, u, pdict), nz, "alg")
+    g = as_column(model._alg(x, z, u, pdict), nz, "alg")
     gz = ca.jacobian(g, z)
     if ca.sprank(gz.sparsity()) < nz:
         free = [model.algebraic_names[j] for j in range(nz) if not ca.depends_on(g, z[j])]
@@ -88,73 +84,76 @@ def dae_functions(model: Any, column: Callable[[Any, int, str], ca.SX]
             + "): the model is not index 1 (an index-2 or higher system, e.g. a pendulum "
             "whose constraint holds only the positions); differentiate the constraints "
             "until they determine every algebraic state")
-    ode = column(model._ode(x, z, u, pdict), nx, "ode")
-    y = column(model._output(x, z, u, pdict), model.ny, "output")
-    if not ca.depends_on(gz, z) and nz <= LINEAR_SOLVE_MAX:
-        return _linear(model, x, z, u, p, g, gz, ode, y)
+    ode = as_column(model._ode(x, z, u, pdict), nx, "ode")
+    y = as_column(model._output(x, z, u, pdict), model.ny, "output")
+    linear = not ca.depends_on(gz, z) and nz <= LINEAR_SOLVE_MAX
+    Z, f_c, H, H_x = (_solved(x, z, u, p, g, gz, ode, y) if linear else
+                      _newton(model, x, z, u, p, g, ode, y))
+    # the transition is an SX graph too when everything in it is (an explicit integrator
+    # of equations solved in the graph); else a function the estimators' graphs call
+    sx = linear and model.integrator in ("rk4", "euler")
+    F, F_x = _transition(model, f_c, Z, (x, z, u, p, g, ode), sx)
+    return f_c, F, F_x, H, H_x, Z
+
+
+def _solved(x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, gz: ca.SX, ode: ca.SX,
+            y: ca.SX) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function]:
+    """``(Z, f_c, H, H_x)`` for algebraic equations linear in ``z``: ``g = g_z z + g(0)``
+    with ``g_z`` free of ``z``, so ``z = -g_z^{-1} g(0)`` exactly, written into the
+    expression graph (one symbolic solve): SX graphs, evaluated without a call per solve,
+    whose derivative is the implicit function theorem's. A ``g_z`` singular at some ``x``
+    gives non-finite values there, as a failed solve."""
+    zsol = -ca.solve(gz, ca.substitute(g, z, ca.DM.zeros(z.numel())))
+    args, names = [x, u, p], ["x", "u", "p"]
+    yh = ca.substitute(y, z, zsol)
+    return (ca.Function("Z", args, [zsol], names, ["z"]),
+            ca.Function("f_c", args, [ca.substitute(ode, z, zsol)], names, ["xdot"]),
+            ca.Function("h", args, [yh], names, ["y"]),
+            ca.Function("H_x", args, [ca.jacobian(yh, x)], names, ["C"]))
+
+
+def _newton(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: ca.SX,
+            y: ca.SX) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function]:
+    """``(Z, f_c, H, H_x)`` with ``Z(x, u, p)`` a Newton solve from ``z0`` (NaN unless
+    its residual is small), functions the estimators' graphs call."""
     G = ca.Function("g", [z, ca.vertcat(x, u, p)], [g])
     solve = ca.rootfinder("z_solve", "newton", G, _NEWTON)
-    # Z(x, u, p): Newton from z0, NaN unless the residual is small
-    xm, um, pm = ca.MX.sym("x", nx), ca.MX.sym("u", nu), ca.MX.sym("p", p.numel())
+    xm, um, pm = ca.MX.sym("x", x.numel()), ca.MX.sym("u", u.numel()), ca.MX.sym("p", p.numel())
     zs = solve(ca.DM(model.z0), ca.vertcat(xm, um, pm))
     r = G(zs, ca.vertcat(xm, um, pm))
     scale = 1 + ca.mmax(ca.fabs(ca.vertcat(xm, zs)))
-    zs = ca.if_else(ca.mmax(ca.fabs(r)) <= RESIDUAL_TOL * scale, zs, ca.DM.nan(nz))
-    Z = ca.Function("Z", [xm, um, pm], [zs], ["x", "u", "p"], ["z"], _CALLED)
+    zs = ca.if_else(ca.mmax(ca.fabs(r)) <= RESIDUAL_TOL * scale, zs, ca.DM.nan(z.numel()))
+    args, names = [xm, um, pm], ["x", "u", "p"]
+    Z = ca.Function("Z", args, [zs], names, ["z"], _CALLED)
     f_xz = ca.Function("f_xz", [x, z, u, p], [ode])
     h_xz = ca.Function("h_xz", [x, z, u, p], [y])
-    f_c = ca.Function("f_c", [xm, um, pm], [f_xz(xm, Z(xm, um, pm), um, pm)],
-                      ["x", "u", "p"], ["xdot"], _CALLED)
     yh = h_xz(xm, Z(xm, um, pm), um, pm)
-    H = ca.Function("h", [xm, um, pm], [yh], ["x", "u", "p"], ["y"], _CALLED)
-    H_x = ca.Function("H_x", [xm, um, pm], [ca.jacobian(yh, xm)], ["x", "u", "p"], ["C"],
-                      _CALLED)
-    wm = ca.MX.sym("w", nw)
-    u_of = model.input_path(wm[:nw - 1] if model.variable_dt else wm)
-    h = wm[nw - 1] if model.variable_dt else model.dt
-    if model.integrator in ("rk4", "euler"):
-        step = rk4_step if model.integrator == "rk4" else euler_step
-        xn = step(f_c, xm, u_of, pm, h, model.substeps)
-    else:
-        xn = _integrated(model, x, z, u, p, g, ode, Z, xm, wm, pm, u_of, h)
-    F = ca.Function("F", [xm, wm, pm], [xn], ["x", "u", "p"], ["x_next"], _CALLED)
-    F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)], ["x", "u", "p"], ["A"],
-                      _CALLED)
-    return f_c, F, F_x, H, H_x, Z
+    return (Z, ca.Function("f_c", args, [f_xz(xm, Z(xm, um, pm), um, pm)], names, ["xdot"],
+                           _CALLED),
+            ca.Function("h", args, [yh], names, ["y"], _CALLED),
+            ca.Function("H_x", args, [ca.jacobian(yh, xm)], names, ["C"], _CALLED))
 
 
-def _linear(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, gz: ca.SX,
-            ode: ca.SX, y: ca.SX) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function,
-                                           ca.Function, ca.Function]:
-    """:func:`dae_functions` for algebraic equations linear in ``z``: ``g = g_z z + g(0)``
-    with ``g_z`` free of ``z``, so ``z = -g_z^{-1} g(0)`` exactly, written into the
-    expression graph (one symbolic solve): every Function is then an SX graph, evaluated
-    without a call per solve, and its derivative is the implicit function theorem's. A
-    ``g_z`` singular at some ``x`` gives non-finite values there, as a failed solve."""
-    zsol = -ca.solve(gz, ca.substitute(g, z, ca.DM.zeros(z.numel())))
-    args, names = [x, u, p], ["x", "u", "p"]
-    Z = ca.Function("Z", args, [zsol], names, ["z"])
-    xdot = ca.substitute(ode, z, zsol)
-    yh = ca.substitute(y, z, zsol)
-    f_c = ca.Function("f_c", args, [xdot], names, ["xdot"])
-    H = ca.Function("h", args, [yh], names, ["y"])
-    H_x = ca.Function("H_x", args, [ca.jacobian(yh, x)], names, ["C"])
+def _transition(model: Any, f_c: ca.Function, Z: ca.Function,
+                parts: tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX, ca.SX], sx: bool
+                ) -> tuple[ca.Function, ca.Function]:
+    """``(F, F_x)`` over one sample: the explicit integrator on ``f_c``, or CasADi's
+    collocation or IDAS integrator on the DAE ``parts = (x, z, u, p, g, ode)``; an SX
+    graph (``sx``) or a function the estimators' graphs call."""
+    sym: Any = ca.SX if sx else ca.MX
+    opts = {} if sx else _CALLED
     nw = model.nw
+    xs, ws, ps = sym.sym("x", model.nx), sym.sym("w", nw), sym.sym("p", parts[3].numel())
+    u_of = model.input_path(ws[:nw - 1] if model.variable_dt else ws)
+    h = ws[nw - 1] if model.variable_dt else model.dt
     if model.integrator in ("rk4", "euler"):
-        w = ca.SX.sym("w", nw)
-        u_of = model.input_path(w[:nw - 1] if model.variable_dt else w)
-        h = w[nw - 1] if model.variable_dt else model.dt
         step = rk4_step if model.integrator == "rk4" else euler_step
-        xn = step(f_c, x, u_of, p, h, model.substeps)
-        return (f_c, ca.Function("F", [x, w, p], [xn], names, ["x_next"]),
-                ca.Function("F_x", [x, w, p], [ca.jacobian(xn, x)], names, ["A"]), H, H_x, Z)
-    xm, wm, pm = ca.MX.sym("x", x.numel()), ca.MX.sym("w", nw), ca.MX.sym("p", p.numel())
-    u_of = model.input_path(wm[:nw - 1] if model.variable_dt else wm)
-    h = wm[nw - 1] if model.variable_dt else model.dt
-    xn = _integrated(model, x, z, u, p, g, ode, Z, xm, wm, pm, u_of, h)
-    F = ca.Function("F", [xm, wm, pm], [xn], names, ["x_next"], _CALLED)
-    F_x = ca.Function("F_x", [xm, wm, pm], [ca.jacobian(xn, xm)], names, ["A"], _CALLED)
-    return f_c, F, F_x, H, H_x, Z
+        xn = step(f_c, xs, u_of, ps, h, model.substeps)
+    else:
+        xn = _integrated(model, *parts, Z, xs, ws, ps, u_of, h)
+    names = ["x", "u", "p"]
+    return (ca.Function("F", [xs, ws, ps], [xn], names, ["x_next"], opts),
+            ca.Function("F_x", [xs, ws, ps], [ca.jacobian(xn, xs)], names, ["A"], opts))
 
 
 def _integrated(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: ca.SX,

@@ -48,6 +48,9 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._discretise import as_column
+from estim._validate import as_bool, as_choice, as_vector
+
 __all__ = ["KINDS", "augment", "detectability"]
 
 #: The kinds of disturbance model.
@@ -91,15 +94,6 @@ def _state_names(model: Any, inputs: list[str], outputs: list[str]) -> list[str]
     return names
 
 
-def _column(value: Any, n: int, what: str) -> ca.SX:
-    """A user's equation result as an ``(n, 1)`` SX column."""
-    out = ca.vertcat(*value) if isinstance(value, list | tuple) else ca.SX(value)
-    out = ca.reshape(out, out.numel(), 1)
-    if out.numel() != n:
-        raise ValueError(f"{what} must return {n} expressions, got {out.numel()}")
-    return out
-
-
 def _equations(model: Any, E_u: np.ndarray, E_y: np.ndarray) -> dict[str, Any]:
     """The model's equations on the state ``[x; d; p]`` (see the module), by keyword;
     each takes ``(x, u, p)``, or ``(x, z, u, p)`` with algebraic states."""
@@ -116,7 +110,7 @@ def _equations(model: Any, E_u: np.ndarray, E_y: np.ndarray) -> dict[str, Any]:
     def output(x: ca.SX, *rest: Any) -> ca.SX:
         *z, u, p = rest
         xs, ue, py = split(x, u)
-        y = _column(base_out(xs, *z, ue, p), model.ny, "output")
+        y = as_column(base_out(xs, *z, ue, p), model.ny, "output")
         return y + Ey @ py if E_y.shape[1] else y
 
     out: dict[str, Any] = {"output": output}
@@ -130,20 +124,18 @@ def _equations(model: Any, E_u: np.ndarray, E_y: np.ndarray) -> dict[str, Any]:
         def ode(x: ca.SX, *rest: Any) -> ca.SX:
             *z, u, p = rest
             xs, ue, _ = split(x, u)
-            return ca.vertcat(_column(base_ode(xs, *z, ue, p), nx, "ode"), ca.SX.zeros(nd))
+            return ca.vertcat(as_column(base_ode(xs, *z, ue, p), nx, "ode"), ca.SX.zeros(nd))
         return {**out, "ode": ode}
 
     def dynamics(x: ca.SX, u: ca.SX, p: Mapping[str, ca.SX]) -> ca.SX:
         xs, ue, _ = split(x, u)
-        return ca.vertcat(_column(base_dyn(xs, ue, p), nx, "dynamics"), x[nx:])
+        return ca.vertcat(as_column(base_dyn(xs, ue, p), nx, "dynamics"), x[nx:])
     return {**out, "dynamics": dynamics}
 
 
 def augment(model: Any, inputs: Sequence[str] | None, outputs: Sequence[str] | None,
             kind: str, check: bool, at: tuple[ArrayLike, ArrayLike] | None) -> Any:
     """:meth:`Model.with_disturbances` (see there and the module)."""
-    from estim._validate import as_bool, as_choice, as_vector
-
     kind = as_choice(kind, KINDS, "kind")
     check = as_bool(check, "check")
     ins = _names(inputs, model.input_names, "input", "inputs")

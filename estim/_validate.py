@@ -424,22 +424,21 @@ def as_float(value, name: str, *, minimum: float | None = None, maximum: float |
     """
     if value is None and allow_none:
         return None
-    if type(value) is float or type(value) is np.float64:  # the common case: no ABC check
-        out = float(value)
-        if out == out and not (finite and abs(out) == np.inf) and not (positive and out <= 0) \
-                and (minimum is None or out >= minimum) and (maximum is None or out <= maximum):
-            return out
-    phrase = expected or _float_phrase(minimum, maximum, positive, finite) + (
-        " or None" if allow_none else "")
-    if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
-        value = value[()]
-    if isinstance(value, bool | np.bool_) or not isinstance(value, Real):
-        raise TypeError(f"{name} must be {phrase}, got {_show(value)}")
+    def message() -> str:  # (built only for an error: the checks run on every step)
+        phrase = expected or _float_phrase(minimum, maximum, positive, finite) + (
+            " or None" if allow_none else "")
+        return f"{name} must be {phrase}, got {_show(value)}"
+
+    if not (type(value) is float or type(value) is np.float64):  # (those: no ABC look-up)
+        if isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf":
+            value = value[()]
+        if isinstance(value, bool | np.bool_) or not isinstance(value, Real):
+            raise TypeError(message())
     out = float(value)
-    if np.isnan(out) or (finite and np.isinf(out)) or (positive and out <= 0) \
+    if out != out or (finite and abs(out) == np.inf) or (positive and out <= 0) \
             or (minimum is not None and out < minimum) \
             or (maximum is not None and out > maximum):
-        raise ValueError(f"{name} must be {phrase}, got {_show(value)}")
+        raise ValueError(message())
     return out
 
 

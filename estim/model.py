@@ -265,7 +265,7 @@ class Model(TransitionInputs):
                                     category=FutureWarning)
             if self.nz:
                 (self.f_c, self.F, self.F_x, self.H, self.H_x,
-                 self.Z) = dae_functions(self, as_column)
+                 self.Z) = dae_functions(self)
             else:
                 self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
                 self.Z = None

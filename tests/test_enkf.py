@@ -8,52 +8,10 @@ import pickle
 import casadi as ca
 import numpy as np
 import pytest
-from filterpy.kalman import KalmanFilter
+from linear_gaussian import P0, X0, A, Q, R, kalman, linear_model, record
 
 import estim
 from estim.estimators.enkf import VARIANTS, EnKF
-
-A = np.array([[1.0, 0.1], [0.0, 1.0]])
-C = np.array([[1.0, 0.0]])
-Q = np.diag([1e-3, 1e-2])
-R = np.array([[0.1]])
-X0, P0 = np.zeros(2), np.eye(2)
-
-
-def _dynamics(x, u, p):
-    return A @ x
-
-
-def _output(x, u, p):
-    return C @ x
-
-
-def linear_model() -> estim.Model:
-    return estim.Model(states=["p", "v"], outputs=["y"], dynamics=_dynamics, output=_output)
-
-
-def record(T: int, seed: int = 1) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    x, Y = rng.multivariate_normal(X0, P0), []
-    for k in range(T):
-        if k:
-            x = A @ x + rng.multivariate_normal(np.zeros(2), Q)
-        Y.append(C @ x + rng.normal(0.0, np.sqrt(R[0, 0]), 1))
-    return np.array(Y)
-
-
-def kalman(Y: np.ndarray, x0=X0, P0=P0, Q=Q) -> tuple[np.ndarray, np.ndarray]:
-    """filterpy's KF started with an update from (x0, P0): means and covariances."""
-    kf = KalmanFilter(2, 1)
-    kf.F, kf.H, kf.Q, kf.R, kf.x, kf.P = A, C, Q, R, np.array(x0, float), np.array(P0, float)
-    xs, Ps = [], []
-    for k, y in enumerate(Y):
-        if k:
-            kf.predict()
-        kf.update(y)
-        xs.append(kf.x.copy())
-        Ps.append(kf.P.copy())
-    return np.array(xs), np.array(Ps)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -64,7 +22,7 @@ def test_mean_converges_to_the_kalman_filter_as_one_over_root_n(variant):
     of 10 seeds, with a standard deviation of 0.05 between groups; the band is 4 of
     them."""
     Y = record(40)
-    x_kf, _ = kalman(Y)
+    x_kf, _, _ = kalman(Y)
     m, sizes = linear_model(), (50, 200, 800)
     rms = [np.mean([np.sqrt(((EnKF(m, Q=Q, R=R, x0=X0, P0=P0, n_ensemble=N, variant=variant,
                                    seed=s).filter(Y).x - x_kf) ** 2).mean())
@@ -79,7 +37,7 @@ def test_large_ensemble_matches_the_kalman_filter(variant):
     the exact ones and the covariances within 6 % (correlation scale) at every sample
     (over 20 seeds the largest were 0.035 and 0.033)."""
     Y = record(40)
-    x_kf, P_kf = kalman(Y)
+    x_kf, P_kf, _ = kalman(Y)
     r = EnKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, n_ensemble=20000, variant=variant,
              seed=0).filter(Y)
     d = np.sqrt(np.diagonal(P_kf, axis1=1, axis2=2))
@@ -100,7 +58,7 @@ def test_analysis_is_the_kalman_update_of_the_forecast_ensemble():
         x1 = f.step(y[0])
         P1 = f.info.P
         x2 = f.step(y[1])
-        x_kf, P_kf = kalman(y[1:], x0=A @ x1, P0=A @ P1 @ A.T, Q=Q0)
+        x_kf, P_kf, _ = kalman(y[1:], x0=A @ x1, P0=A @ P1 @ A.T, Q=Q0)
         assert np.allclose(x2, x_kf[0], rtol=0, atol=1e-12)
         if variant == "etkf":
             assert np.allclose(f.info.P, P_kf[0], rtol=0, atol=1e-12)

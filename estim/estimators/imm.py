@@ -43,7 +43,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
+from estim._validate import as_choice, as_float
 from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.ekf import EKF
 from estim.estimators.fused import FusedKalman
 from estim.estimators.square_root import P0_data, covariance
 from estim.estimators.ukf import UKF
@@ -168,9 +170,6 @@ class IMM(Estimator):
         -------
         IMM
         """
-        from estim._validate import as_choice, as_float
-        from estim.estimators.ekf import EKF
-
         high = as_float(high, "high", positive=True)
         stay = as_float(stay, "stay", positive=True, maximum=1.0,
                         expected="a probability in (0, 1)")
