@@ -27,7 +27,10 @@ Both then solve the same discretised problem on a full window:
 
 * The discretisations are identical: both are Radau IIA collocation of degree 3 with two
   finite elements per sample from the consistent ``c_A`` (do-mpc writes the collocation
-  equations into its NLP, estim solves them inside the transition map).
+  equations into its NLP as constraints; estim writes them into the transition's
+  expression graph and, the model being linear, solves them there exactly: the MHE's
+  graph has no inner solve; a nonlinear model's are solved by Newton's method inside the
+  transition, see ``docs/dae.md``).
 * do-mpc's window has one state more, ``x_0``, carrying the arrival cost and no
   measurement; with its arrival weight ``P_x = 0`` that state is free, and its process
   noise ``w_0`` is zero at the optimum, so the window is estim's zero-prior window

@@ -19,9 +19,11 @@ Integrators of a transition:
     the reduced ODE :math:`\dot x = f(x, Z(x, u), u)`, the algebraic equations solved
     at every stage;
 ``"collocation"``
-    CasADi's collocation integrator on the DAE (Radau IIA points, order
-    ``2 * 3 - 1 = 5`` at the default ``substeps`` finite elements of degree 3),
-    started from the consistent :math:`z`;
+    Radau IIA collocation of the DAE (:func:`radau_tableau`, 3 stages, order 5) on
+    ``substeps`` finite elements: the collocation equations are written into the
+    expression graph, solved there exactly when they are linear in the stages, else by
+    one Newton solve per sample (:func:`_collocation`); the same discretisation as
+    CasADi's ``collocation`` integrator and do-mpc's Radau collocation;
 ``"idas"``
     SUNDIALS' IDAS (variable order BDF, tolerances 1e-10), started from the
     consistent :math:`z`.
@@ -42,10 +44,13 @@ from __future__ import annotations
 from typing import Any
 
 import casadi as ca
+import numpy as np
+from numpy.polynomial import Polynomial
 
 from estim._discretise import as_column, euler_step, input_at, rk4_step
 
-__all__ = ["DAE_INTEGRATORS", "LINEAR_SOLVE_MAX", "RESIDUAL_TOL", "dae_functions"]
+__all__ = ["DAE_INTEGRATORS", "LINEAR_SOLVE_MAX", "RADAU_DEGREE", "RESIDUAL_TOL", "dae_functions",
+           "radau_tableau"]
 
 #: Algebraic equations linear in ``z`` with at most this many algebraic states are solved
 #: in the expression graph (see :func:`_linear`); others by a Newton solve.
@@ -60,9 +65,8 @@ _NEWTON = {"abstol": 1e-13, "max_iter": 50, "error_on_fail": False}
 #: Newton solve and its derivatives have no SX form)
 _CALLED = {"never_inline": True}
 _IDAS = {"abstol": 1e-10, "reltol": 1e-10, "calc_ic": True}
-_COLLOCATION = {"interpolation_order": 3, "collocation_scheme": "radau",
-                "rootfinder": "newton", "rootfinder_options": {"abstol": 1e-13,
-                                                               "error_on_fail": False}}
+#: Stages of the Radau IIA collocation (order ``2 * RADAU_DEGREE - 1``).
+RADAU_DEGREE = 3
 
 
 def dae_functions(model: Any) -> tuple[ca.Function, ca.Function, ca.Function, ca.Function,
@@ -89,10 +93,7 @@ def dae_functions(model: Any) -> tuple[ca.Function, ca.Function, ca.Function, ca
     linear = not ca.depends_on(gz, z) and nz <= LINEAR_SOLVE_MAX
     Z, f_c, H, H_x = (_solved(x, z, u, p, g, gz, ode, y) if linear else
                       _newton(model, x, z, u, p, g, ode, y))
-    # the transition is an SX graph too when everything in it is (an explicit integrator
-    # of equations solved in the graph); else a function the estimators' graphs call
-    sx = linear and model.integrator in ("rk4", "euler")
-    F, F_x = _transition(model, f_c, Z, (x, z, u, p, g, ode), sx)
+    F, F_x = _transition(model, f_c, Z, (x, z, u, p, g, ode), linear)
     return f_c, F, F_x, H, H_x, Z
 
 
@@ -135,44 +136,141 @@ def _newton(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: c
 
 
 def _transition(model: Any, f_c: ca.Function, Z: ca.Function,
-                parts: tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX, ca.SX], sx: bool
+                parts: tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX, ca.SX], linear: bool
                 ) -> tuple[ca.Function, ca.Function]:
-    """``(F, F_x)`` over one sample: the explicit integrator on ``f_c``, or CasADi's
-    collocation or IDAS integrator on the DAE ``parts = (x, z, u, p, g, ode)``; an SX
-    graph (``sx``) or a function the estimators' graphs call."""
-    sym: Any = ca.SX if sx else ca.MX
-    opts = {} if sx else _CALLED
-    nw = model.nw
-    xs, ws, ps = sym.sym("x", model.nx), sym.sym("w", nw), sym.sym("p", parts[3].numel())
-    u_of = model.input_path(ws[:nw - 1] if model.variable_dt else ws)
-    h = ws[nw - 1] if model.variable_dt else model.dt
-    if model.integrator in ("rk4", "euler"):
-        step = rk4_step if model.integrator == "rk4" else euler_step
-        xn = step(f_c, xs, u_of, ps, h, model.substeps)
+    """``(F, F_x)`` over one sample: the explicit integrator on ``f_c``, Radau IIA
+    collocation (:func:`_collocation`) or IDAS on the DAE ``parts = (x, z, u, p, g, ode)``;
+    an SX graph where everything in it is one (``linear`` algebraic equations), else a
+    function the estimators' graphs call."""
+    if model.integrator == "collocation":
+        xn, xs, ws, ps, sx = _collocation(model, f_c, Z, parts, linear)
     else:
-        xn = _integrated(model, *parts, Z, xs, ws, ps, u_of, h)
-    names = ["x", "u", "p"]
+        sx = linear and model.integrator in ("rk4", "euler")
+        sym: Any = ca.SX if sx else ca.MX
+        xs, ws, ps = sym.sym("x", model.nx), sym.sym("w", model.nw), sym.sym("p", parts[3].numel())
+        u_of, h = _input_and_interval(model, ws)
+        if model.integrator == "idas":
+            xn = _idas(model, *parts, Z, xs, ws, ps, u_of)
+        else:
+            step = rk4_step if model.integrator == "rk4" else euler_step
+            xn = step(f_c, xs, u_of, ps, h, model.substeps)
+    names, opts = ["x", "u", "p"], {} if sx else _CALLED
     return (ca.Function("F", [xs, ws, ps], [xn], names, ["x_next"], opts),
             ca.Function("F_x", [xs, ws, ps], [ca.jacobian(xn, xs)], names, ["A"], opts))
 
 
-def _integrated(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: ca.SX,
-                Z: ca.Function, xm: ca.MX, wm: ca.MX, pm: ca.MX, u_of: Any, h: Any) -> ca.MX:
-    """The state after one sample by CasADi's ``"collocation"`` or ``"idas"`` integrator
-    on the DAE, in the fraction ``s`` of the sample (``dx/ds = h f``, ``0 = g``), from
-    the consistent algebraic state."""
+def _input_and_interval(model: Any, w: Any) -> tuple[Any, Any]:
+    """The input over the sample (held or a path in the fraction ``s``) and the sample's
+    length (``model.dt``, or the last entry of ``w`` for a ``variable_dt`` model)."""
+    nw = w.numel()
+    if model.variable_dt:
+        return model.input_path(w[:nw - 1]), w[nw - 1]
+    return model.input_path(w), model.dt
+
+
+def radau_tableau(degree: int = RADAU_DEGREE) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""The Butcher tableau ``(A, b, c)`` of the ``degree``-stage Radau IIA method:
+    collocation at the Radau points :math:`c_i` (:math:`c_s = 1`) with
+    :math:`A_{ij} = \int_0^{c_i} \ell_j(\tau)\,d\tau`, :math:`\ell_j` the Lagrange
+    polynomials on the :math:`c_i`, and :math:`b = A_{s,:}` (stiffly accurate); order
+    :math:`2s - 1`."""
+    c = np.array(ca.collocation_points(degree, "radau"))
+    A = np.empty((degree, degree))
+    for j in range(degree):
+        ell = Polynomial.fromroots(np.delete(c, j))
+        ell = ell / ell(c[j])
+        A[:, j] = ell.integ()(c)
+    return A, A[-1].copy(), c
+
+
+def _collocation(model: Any, f_c: ca.Function, Z: ca.Function,
+                 parts: tuple[ca.SX, ca.SX, ca.SX, ca.SX, ca.SX, ca.SX], linear: bool
+                 ) -> tuple[Any, Any, Any, Any, bool]:
+    r"""One sample of Radau IIA collocation: ``substeps`` elements of length
+    :math:`h_e`, each with stage derivatives :math:`K_i` (and, unless the algebraic
+    equations are solved in the graph, stage algebraic states :math:`z_i`) solving
+
+    .. math::
+        K_i = f(x_i, z_i, u(t_i)), \quad 0 = g(x_i, z_i, u(t_i)), \quad
+        x_i = x_e + h_e \textstyle\sum_j A_{ij} K_j, \qquad
+        x_{e+1} = x_e + h_e \textstyle\sum_j b_j K_j
+
+    (the same discretisation as CasADi's ``collocation`` integrator and do-mpc's
+    orthogonal collocation with Radau points). Equations affine in the stages (a linear
+    model) are solved in the expression graph, element by element; otherwise by one Newton
+    solve over all elements (:func:`_newton_stages`). Returns ``(x_next, x, w, p,
+    is_sx)``."""
+    x, z, u, p, g, ode = parts
+    nx, nz, n_el = model.nx, model.nz, model.substeps
+    A, b, c = radau_tableau()
+    ns = len(c)
+    nv = ns * (nx if linear else nx + nz)  # unknowns per element
+    # one element from x_e at the fraction s_e of the sample: residual and x_{e+1}
+    ve, xe, se = ca.SX.sym("V", nv), ca.SX.sym("x_e", nx), ca.SX.sym("s_e")
+    ws, ps = ca.SX.sym("w", model.nw), ca.SX.sym("p", p.numel())
+    u_of, h = _input_and_interval(model, ws)
+    he, K = h / n_el, ca.reshape(ve[:ns * nx], nx, ns)
+    dae = ca.Function("dae_at", [x, z, u, p], [ode, g])
+    r = []
+    for i in range(ns):
+        xi, ui = xe + he * ca.mtimes(K, ca.DM(A[i])), input_at(u_of, se + c[i] / n_el)
+        if linear:
+            r.append(K[:, i] - f_c(xi, ui, ps))
+        else:
+            fi, gi = dae(xi, ve[ns * nx + i * nz:ns * nx + (i + 1) * nz], ui, ps)
+            r += [K[:, i] - fi, gi]
+    re, x_next = ca.vertcat(*r), xe + he * ca.mtimes(K, ca.DM(b))
+    jac = ca.jacobian(re, ve)
+    xs = ca.SX.sym("x", nx)
+    if not ca.depends_on(jac, ve):  # affine in the stages: solved in the graph
+        sol = -ca.solve(jac, ca.substitute(re, ve, ca.DM.zeros(nv)))
+        element = ca.Function("radau_element", [xe, se, ws, ps],
+                              [ca.substitute(x_next, ve, sol)])
+        xn = xs
+        for e in range(n_el):
+            xn = element(xn, e / n_el, ws, ps)
+        return xn, xs, ws, ps, True
+    element = ca.Function("radau_element", [ve, xe, se, ws, ps], [re, x_next])
+    V = ca.SX.sym("V", nv * n_el)
+    res, xn = [], xs
+    for e in range(n_el):
+        re_e, xn = element(V[e * nv:(e + 1) * nv], xn, e / n_el, ws, ps)
+        res.append(re_e)
+    return (*_newton_stages(model, f_c, Z, ca.vertcat(*res), V, xn, (xs, ws, ps), nv), False)
+
+
+def _newton_stages(model: Any, f_c: ca.Function, Z: ca.Function, r: ca.SX, V: ca.SX,
+                   xn: ca.SX, args: tuple[ca.SX, ca.SX, ca.SX], nv: int
+                   ) -> tuple[ca.MX, ca.MX, ca.MX, ca.MX]:
+    """The collocation equations ``r(V; x, w, p) = 0`` solved by Newton's method (a
+    CasADi ``rootfinder``, derivatives by the implicit function theorem) and the state
+    ``xn(V, x, w, p)`` at their solution; ``(x_next, x, w, p)`` as MX."""
+    xs, ws, ps = args
+    R = ca.Function("radau_r", [V, ca.vertcat(*args)], [r])
+    solve = ca.rootfinder("radau_stages", "newton", R, _NEWTON)
+    xm, wm, pm = (ca.MX.sym(n, s.numel()) for n, s in zip("xwp", args, strict=True))
+    u_of, _ = _input_and_interval(model, wm)
+    u0 = input_at(u_of, 0.0)
+    k0 = ca.repmat(f_c(xm, u0, pm), len(radau_tableau()[2]), 1)
+    guess = k0 if nv == k0.numel() else ca.vertcat(k0, ca.repmat(Z(xm, u0, pm),
+                                                                 (nv - k0.numel()) // model.nz, 1))
+    par = ca.vertcat(xm, wm, pm)
+    Vs = solve(ca.repmat(guess, V.numel() // nv, 1), par)
+    scale = 1 + ca.mmax(ca.fabs(ca.vertcat(xm, Vs)))
+    ok = ca.mmax(ca.fabs(R(Vs, par))) <= RESIDUAL_TOL * scale
+    xn_of = ca.Function("radau_x", [V, xs, ws, ps], [xn])
+    return ca.if_else(ok, xn_of(Vs, xm, wm, pm), ca.DM.nan(model.nx)), xm, wm, pm
+
+
+def _idas(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: ca.SX,
+          Z: ca.Function, xm: ca.MX, wm: ca.MX, pm: ca.MX, u_of: Any) -> ca.MX:
+    """The state after one sample by SUNDIALS' IDAS on the DAE, in the fraction ``s`` of
+    the sample (``dx/ds = h f``, ``0 = g``), from the consistent algebraic state."""
     s = ca.SX.sym("s")
     w = ca.SX.sym("w", wm.numel())
-    path = model.input_path(w[:w.numel() - 1] if model.variable_dt else w)
-    us = input_at(path, s)
-    hs = w[w.numel() - 1] if model.variable_dt else model.dt
-    sub = ca.Function("dae_at", [x, z, u, p], [ode, g])
-    f_s, g_s = sub(x, z, us, p)
+    path, hs = _input_and_interval(model, w)
+    f_s, g_s = ca.Function("dae_at", [x, z, u, p], [ode, g])(x, z, input_at(path, s), p)
     dae = {"x": x, "z": z, "t": s, "p": ca.vertcat(w, p), "ode": hs * f_s, "alg": g_s}
-    if model.integrator == "idas":
-        integ = ca.integrator("F_idas", "idas", dae, 0.0, 1.0, _IDAS)
-    else:
-        opts = dict(_COLLOCATION, number_of_finite_elements=model.substeps)
-        integ = ca.integrator("F_collocation", "collocation", dae, 0.0, 1.0, opts)
+    integ = ca.integrator("F_idas", "idas", dae, 0.0, 1.0, _IDAS)
     z0 = Z(xm, input_at(u_of, 0.0), pm)
     return integ(x0=xm, z0=z0, p=ca.vertcat(wm, pm))["xf"]

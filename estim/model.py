@@ -110,9 +110,9 @@ class Model(TransitionInputs):
         Discretisation of ``ode``: fixed-step RK4 (default), explicit Euler,
         or CasADi's adaptive CVODES (SUNDIALS) with tolerances 1e-10; with
         algebraic states also Radau IIA collocation (``substeps`` finite elements
-        of degree 3) or IDAS (see :mod:`estim._dae`).
+        of 3 stages, order 5) or IDAS (see :mod:`estim._dae`).
     substeps : int
-        Fixed integrator steps per sample (rk4/euler).
+        Fixed integrator steps per sample (rk4/euler), or finite elements (collocation).
     lower, upper : float, sequence or dict, optional
         State bounds (``-inf``/``inf`` where absent), used by MHE/FIE
         constraints, the clipped EKF and plant clipping.

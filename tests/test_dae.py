@@ -10,6 +10,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import estim
+import estim._dae
 
 K, KR = 2.0, 0.3  # fast equilibrium B = K A, slow reaction B -> C
 G = 9.81
@@ -82,6 +83,39 @@ def test_integrators_against_radau(integrator, substeps, tol):
     ref = solve_ivp(lambda t, s: np.asarray(red.f_c(s, [], [])).ravel(), (0, 0.05), s0,
                     method="Radau", rtol=1e-12, atol=1e-14).y[:, -1]
     np.testing.assert_allclose(m.f(s0), ref, atol=tol)
+
+
+@pytest.mark.parametrize("make, x, u", [
+    (lambda: reactor(integrator="collocation", substeps=2), [0.9, 0.2], [0.05]),
+    (lambda: reactor(squared=True, integrator="collocation", substeps=3), [0.9, 0.2], [0.05]),
+    (lambda: pendulum(integrator="collocation", substeps=2), [0.6, -0.8, 1.0, 0.75], []),
+])
+def test_collocation_equals_casadis_collocation_integrator(make, x, u):
+    """estim's Radau IIA collocation (stage equations solved in the graph for the linear
+    reactor, by Newton's method otherwise) is the discretisation of CasADi's
+    ``collocation`` integrator with Radau points: the same state, and the same
+    Jacobian, after one sample; the Butcher tableau is Radau IIA's (Hairer-Wanner)."""
+    m = make()
+    assert m.F.is_a("SXFunction") == (m.nx == 2 and m.substeps == 2)  # linear: in the graph
+    xs, zs, us = ca.SX.sym("x", m.nx), ca.SX.sym("z", m.nz), ca.SX.sym("u", m.nu)
+    dae = {"x": xs, "z": zs, "p": us, "ode": m._ode(xs, zs, us, {}),
+           "alg": m._alg(xs, zs, us, {})}
+    ref = ca.integrator("ref", "collocation", dae, 0.0, m.dt,
+                        {"number_of_finite_elements": m.substeps, "interpolation_order": 3,
+                         "collocation_scheme": "radau",
+                         "rootfinder_options": {"abstol": 1e-14}})
+    x0 = ca.MX.sym("x0", m.nx)
+    xf = ref(x0=x0, z0=m.z(x, u), p=u)["xf"]
+    ref_x = ca.Function("ref_x", [x0], [xf, ca.jacobian(xf, x0)])
+    x_ref, A_ref = (np.asarray(v) for v in ref_x(x))
+    np.testing.assert_allclose(m.f(x, u), x_ref.ravel(), atol=1e-13)
+    np.testing.assert_allclose(np.asarray(m.F_x(x, u, [])), A_ref, atol=1e-10)
+    A, b, c = estim._dae.radau_tableau()
+    s6 = np.sqrt(6)
+    np.testing.assert_allclose(c, [(4 - s6) / 10, (4 + s6) / 10, 1], rtol=1e-15)
+    np.testing.assert_allclose(A[0], [(88 - 7 * s6) / 360, (296 - 169 * s6) / 1800,
+                                      (-2 + 3 * s6) / 225], rtol=1e-13)
+    np.testing.assert_allclose(b, [(16 - s6) / 36, (16 + s6) / 36, 1 / 9], rtol=1e-14)
 
 
 @pytest.mark.parametrize("squared", [False, True])
