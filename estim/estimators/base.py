@@ -45,6 +45,7 @@ A returned estimate is always finite.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -379,7 +380,8 @@ class Estimator:
         if u is None:
             return self._u_zero
         if type(u) is np.ndarray and u.shape == (nu,) and u.dtype == np.float64:
-            if not np.isfinite(u).all():
+            # (a few inputs: Python's isfinite on a list is 5x faster than the ufunc)
+            if not (all(map(math.isfinite, u.tolist())) if nu <= 16 else np.isfinite(u).all()):
                 raise ValueError(f"u must be finite, got {u}")
             return u
         return as_vector(u, nu, "u")

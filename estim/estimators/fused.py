@@ -75,6 +75,13 @@ class FusedKalman(Estimator):
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._update, self._predict_update = step_calls(
             self, [self._s, self._u, self._y, self._tun])
+        # views of the buffers the hot path writes and reads: the covariance (or its
+        # factor) in the filter state, and the transition input's parts (see _step)
+        self._P_view = self._s[nx:].reshape(nx, nx, order="F")
+        nu = m.nu
+        self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
+        self._u_prev = self._u[:nu] if m.sampled else None
+        self._variable_dt, self._nx = m.variable_dt, nx
         self._tuning_changed()
         self._reset()
 
@@ -106,16 +113,24 @@ class FusedKalman(Estimator):
         self._trusted = True  # _s holds the anchor
 
     def _step(self, y, u, first):
-        self._y[:] = y
-        if self._u.size:
-            self._u[:] = self._transition(u)
+        np.copyto(self._y, y)
+        if self._u.size:  # the transition's input (Model.transition), in place
+            if self._plain:
+                np.copyto(self._u, u)
+            else:
+                np.copyto(self._u_now, u)
+                if self._sampled:
+                    np.copyto(self._u_prev, self._u_last)
+                if self._variable_dt:
+                    self._u[-1] = self.model.dt if self._dt is None else self._dt
         fun = self._update if first else self._predict_update
-        s_new, e, flags, s_prior = fun.evaluate()
+        s_new, e, flag_array, s_prior = fun.evaluate()
+        flags = flag_array.tolist()
         if flags[3]:
             raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
         if not flags[1]:
-            return self._recover(flags, s_prior)
-        nx = self.model.nx
+            return self._recover(flag_array, s_prior)
+        nx = self._nx
         suspect = flags[6] or flags[7]
         if suspect and self._trusted:
             self._s_trusted[:] = self._s
@@ -124,13 +139,13 @@ class FusedKalman(Estimator):
             self._s[:] = s_prior
             self._s[nx:] = with_P0(self._s[nx:], self._P0_data, self._sqrt)
         else:
-            self._s[:] = s_new
-        P = self._s[nx:].reshape(nx, nx, order="F")
+            np.copyto(self._s, s_new)
+        P = self._P_view
         info = StepInfo._fast(P=P @ P.T if self._sqrt else P.copy(),
                               innovation=e.copy(),
-                              nis=float(flags[0]) if flags[4] else float("nan"))  # no output
+                              nis=flags[0] if flags[4] else float("nan"))  # no output
         if suspect:
-            info.__dict__["status"] = self._consistency(float(flags[0]), int(flags[4]),
+            info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
                                                         bool(flags[7]))
         return self._s[:nx].copy(), info
 
