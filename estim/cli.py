@@ -19,8 +19,7 @@ from estim import scenarios
 from estim._validate import unknown_keywords_message
 from estim.compare import compare
 
-DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf",
-                      "mhe-25=mhe:horizon=25,arrival_cost=none,upper=10.0")
+DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf", "mhe-25=mhe:horizon=25,arrival_cost=none")
 
 
 _TRUE = ("true", "yes", "on", "1")
