@@ -56,6 +56,7 @@ import numpy as np
 
 from estim._scan import blocked_scan
 from estim._validate import as_covariance, as_vector
+from estim.experiment import silent_outputs
 from estim.metrics import nees_values
 from estim.scenarios import Scenario
 from estim.solvers.seed_threads import evaluate
@@ -151,6 +152,8 @@ class _Plant:
             P[k] = p
         self.P = P.ravel()
         self.scenario = scenario
+        # the outputs a sensor does not report at a sample (Scenario.sampling): NaN
+        self.silent = silent_outputs(scenario.sampling, m, T)
 
     def build(self, S: int, maps: bool = True) -> None:
         """The one-seed scan for ``S`` seeds (see :func:`~estim.solvers.seeds.seed_map`:
@@ -182,10 +185,12 @@ class _Plant:
                   V.reshape(n, -1)]
         if slot is not None:
             evaluate(self.fun, slot, inputs, [o.reshape(n, -1) for o in out])
-            return
-        x_end, X, Y = self.fun(inputs, n)
-        out[0][:], out[1][:], out[2][:] = x_end, X.reshape(n, self.T, -1), \
-            Y.reshape(n, self.T, -1)
+        else:
+            x_end, X, Y = self.fun(inputs, n)
+            out[0][:], out[1][:], out[2][:] = x_end, X.reshape(n, self.T, -1), \
+                Y.reshape(n, self.T, -1)
+        if self.silent is not None:
+            out[2][:, self.silent] = np.nan
 
 
 def _finite(x_end: np.ndarray, X: np.ndarray, Y: np.ndarray) -> np.ndarray:

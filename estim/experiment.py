@@ -24,6 +24,7 @@ from estim._validate import (
     as_input_table,
     as_int,
     as_vector,
+    did_you_mean,
 )
 from estim.model import Model
 
@@ -53,6 +54,41 @@ def check_plant_changes(changes, model: Model, name: str = "plant_changes") -> l
         values = {k: as_float(v, f"{name}[{i}][{k!r}]") for k, v in values.items()}
         out.append((t, values))
     return out
+
+
+def check_sampling(sampling, model: Model, name: str = "sampling") -> dict[str, tuple[int, int]]:
+    """``{output: every}`` or ``{output: (every, first)}`` checked against ``model``'s
+    outputs; returns ``{output: (every, first)}`` (``first`` 0 when not given)."""
+    if sampling is None:
+        return {}
+    if not isinstance(sampling, Mapping):
+        raise TypeError(f"{name} must be a dict {{output name: every}} or {{output name: "
+                        f"(every, first)}}, got {type(sampling).__name__}")
+    out = {}
+    for key, value in sampling.items():
+        if key not in model.output_names:
+            raise ValueError(f"{name} names {key!r}, not an output of {model.name}; its "
+                             f"outputs are {model.output_names}"
+                             f"{did_you_mean(str(key), model.output_names)}")
+        pair = isinstance(value, tuple | list) and len(value) == 2
+        every, first = value if pair else (value, 0)
+        out[key] = (as_int(every, f"{name}[{key!r}] every", minimum=1),
+                    as_int(first, f"{name}[{key!r}] first", minimum=0))
+    return out
+
+
+def silent_outputs(sampling: Mapping[str, tuple[int, int]], model: Model, T: int
+                   ) -> np.ndarray | None:
+    """``(T, ny)`` bool: True where an output of ``sampling`` (checked by
+    :func:`check_sampling`) is not reported (sample ``k`` reports when ``k >= first`` and
+    ``(k - first) % every == 0``); None without ``sampling``."""
+    if not sampling:
+        return None
+    mask = np.zeros((T, model.ny), dtype=bool)
+    k = np.arange(T)
+    for key, (every, first) in sampling.items():
+        mask[:, model.output_names.index(key)] = (k < first) | ((k - first) % every != 0)
+    return mask
 
 
 @dataclass(init=False)
@@ -91,6 +127,13 @@ class Scenario:
         What is known about an estimator class on this experiment, keyed by the
         class name (``"EKF"``, ``"MHE"``, ...): shown under a comparison's table
         when such an estimator is inconsistent or far behind the best.
+    sampling : dict, optional
+        Outputs reported at their own rates, ``{output: every}`` or ``{output: (every,
+        first)}``: sample ``k`` reports the output when ``k >= first`` and
+        ``(k - first) % every == 0``, else it is NaN (a sensor that was silent); the
+        outputs not named are reported at every sample. Asynchronous sensors on the
+        grid of the fastest one (see :func:`estim.records.merge` for streams with
+        time stamps of their own).
     """
 
     name: str
@@ -107,6 +150,7 @@ class Scenario:
     plant_changes: list[tuple[float, dict[str, float]]] = field(default_factory=list)
     description: str = ""
     remarks: dict[str, str] = field(default_factory=dict)
+    sampling: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def __init__(self, name: str, model: Model, x0: ArrayLike, n_steps: int,
                  Q: ArrayLike, R: ArrayLike, tuning: dict,
@@ -114,7 +158,8 @@ class Scenario:
                  controller: Callable[[float, np.ndarray], ArrayLike] | None = None,
                  feedback: str = "estimate", clip: bool = False,
                  plant_changes: Iterable[tuple[float, Mapping[str, float]]] | None = None,
-                 description: str = "", remarks: Mapping[str, str] | None = None) -> None:
+                 description: str = "", remarks: Mapping[str, str] | None = None,
+                 sampling: Mapping[str, int | tuple[int, int]] | None = None) -> None:
         # written out, not generated: x0, Q and R are taken in any array form (a list,
         # a scalar variance) and kept as arrays; the other fields are checked
         if not isinstance(name, str):
@@ -150,6 +195,7 @@ class Scenario:
                 isinstance(k, str) and isinstance(v, str) for k, v in remarks.items()):
             raise TypeError("remarks must be a dict {estimator class name: text}")
         self.remarks = dict(remarks)
+        self.sampling = check_sampling(sampling, m)
 
     def replace(self, **changes: Any) -> Scenario:
         """A copy with some fields changed (e.g. ``n_steps``)."""

@@ -46,7 +46,7 @@ from estim._validate import (
 )
 from estim.estimators.base import Estimator, StepInfo
 from estim.exceptions import EstimationWarning
-from estim.experiment import Scenario, check_plant_changes
+from estim.experiment import Scenario, check_plant_changes, check_sampling, silent_outputs
 from estim.log import Log
 from estim.model import Model
 
@@ -228,6 +228,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
              feedback: str | None = None, clip: bool | None = None,
              missing: float | ArrayLike | None = None,
              plant_changes: Sequence[tuple[float, Mapping[str, float]]] | None = None,
+             sampling: Mapping[str, int | tuple[int, int]] | None = None,
              warn: bool = True) -> Log:
     """Run ``estimator`` in closed loop on a scenario (or a bare model) and log everything.
 
@@ -263,6 +264,10 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
         Outputs not measured: a probability per output and sample, or a mask.
     plant_changes : list of (time, {param: value}), optional
         Plant parameter changes from the given time on.
+    sampling : dict, optional
+        Outputs reported at their own rates, ``{output: every}`` or ``{output:
+        (every, first)}`` (see :class:`~estim.Scenario`); NaN at the other samples,
+        on top of ``missing``.
     warn : bool
         Emit an :class:`EstimationWarning` when more than :data:`FAILED_FRACTION`
         (2 %) of the steps failed.
@@ -295,6 +300,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
         feedback = sc.feedback if feedback is None else feedback
         clip = sc.clip if clip is None else clip
         plant_changes = sc.plant_changes if plant_changes is None else plant_changes
+        sampling = sc.sampling if sampling is None else sampling
     elif isinstance(target, Model):
         model = target
         for name, val in (("x0", x0), ("n_steps", n_steps), ("Q", Q), ("R", R)):
@@ -325,6 +331,9 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     Lr = _sqrt_psd(as_covariance(R, ny, "R", definite=False))
     U = _input_table(inputs, T, model)
     miss = _missing(missing, T, ny, seed)
+    silent = silent_outputs(check_sampling(sampling, model), model, T)
+    if silent is not None:
+        miss = silent if miss is None else miss | silent
 
     V, W = (a[0] for a in draw_noise([seed], T, Lr, Lq))
     changes = sorted(plant_changes or [], key=lambda c: c[0])

@@ -4,7 +4,6 @@ merged record through EKF, UKF, MHE and full information equals a Kalman filter
 
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 import pytest
 from filterpy.kalman import KalmanFilter, rts_smoother
@@ -26,10 +25,9 @@ X0, P0 = np.array([100.0, 0.0, 0.0]), np.diag([25.0, 1.0, 0.1])
 
 def vehicle() -> estim.Model:
     # RK4 is exact for this nilpotent A (expm(A dt) = I + A dt + (A dt)^2 / 2)
-    return estim.Model(states=["h", "v", "a"], outputs=OUTPUTS,
-                       ode=lambda x, u, p: ca.vertcat(x[1], x[2], 0),
-                       output=lambda x, u, p: ca.vertcat(x[2], x[0], x[0]), dt=0.01,
-                       variable_dt=True, name="vertical")
+    m = estim.models.vertical_channel(variable_dt=True)
+    assert m.output_names == OUTPUTS
+    return m
 
 
 def streams(seconds: float = 3.0, seed: int = 0) -> dict:
@@ -159,3 +157,39 @@ def test_filter_and_smooth_take_the_merged_record():
                                    atol=1e-10 * scale)
         sm = cls(m, **tuning).smooth(rec.Y, t=rec.t)
         np.testing.assert_allclose(sm.x, xr, atol=1e-10 * scale, err_msg=cls.__name__)
+
+
+def test_sensor_fusion_scenario():
+    """``Scenario(sampling=...)``: each output reported at its own rate (NaN between), in
+    ``simulate`` and in the batched plant of ``compare`` alike; the EKF on it is filterpy's
+    Kalman filter updating with the sensors that reported; bad sampling is named."""
+    T = 300
+    sc = estim.scenarios.get("sensor_fusion", n_steps=T)
+    assert sc.sampling == {"h_gnss": (100, 0), "h_baro": (5, 0)}
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=3)
+    k = np.arange(T)
+    np.testing.assert_array_equal(np.isnan(log.y),
+                                  np.column_stack([k < 0, k % 100 != 0, k % 5 != 0]))
+    from estim.batch import simulate_plant
+
+    plant = simulate_plant(sc, [3])
+    np.testing.assert_array_equal(plant.y[0], log.y)  # NaN in the same places
+    np.testing.assert_allclose(plant.x[0], log.x, rtol=1e-12, atol=1e-12)
+    kf = KalmanFilter(dim_x=3, dim_z=1)
+    kf.x, kf.P = np.array(sc.tuning["x0"], dtype=float), np.array(sc.tuning["P0"], dtype=float)
+    kf.F, kf.Q = expm(A * 0.01), sc.tuning["Q"]
+    xs = []
+    for j in range(T):
+        if j:
+            kf.predict()
+        for i, name in enumerate(OUTPUTS):
+            if not np.isnan(log.y[j, i]):
+                kf.update(log.y[j, i], R=sc.R[i:i + 1, i:i + 1], H=np.array([H_ROWS[name]]))
+        xs.append(kf.x.copy())
+    np.testing.assert_allclose(log.x_hat, np.array(xs), atol=1e-9)
+    with pytest.raises(ValueError, match="'h_gps', not an output .* did you mean 'h_gnss'"):
+        sc.replace(sampling={"h_gps": 100})
+    with pytest.raises(ValueError, match=r"sampling\['h_baro'\] every"):
+        sc.replace(sampling={"h_baro": 0})
+    with pytest.raises(TypeError, match="sampling must be a dict"):
+        estim.simulate(sc.model, None, x0=sc.x0, n_steps=10, Q=sc.Q, R=sc.R, sampling=[5])
