@@ -162,11 +162,17 @@ def test_pendulum_filters_equal_the_reduced_model():
                         tuning=dict(Q=np.diag([1e-8, 1e-8, 1e-4, 1e-4]), R=1e-4,
                                     x0=[0.6, -0.8, 1.0, 0.75], P0=1e-3))
     scr = sc.replace(model=pendulum(dae=False))
-    for cls in (estim.EKF, estim.UKF):
-        a = estim.simulate(sc, cls(sc.model, **sc.tuning), seed=1)
-        b = estim.simulate(scr, cls(scr.model, **scr.tuning), seed=1)
+    makers = [estim.EKF, estim.UKF,
+              lambda m, **kw: estim.MHE(m, horizon=6, solver="gauss-newton", **kw)]
+    for make in makers:
+        a = estim.simulate(sc, make(sc.model, **sc.tuning), seed=1)
+        b = estim.simulate(scr, make(scr.model, **scr.tuning), seed=1)
         np.testing.assert_allclose(a.x_hat, b.x_hat, atol=1e-8)
-        assert np.all(np.isfinite(a.z_hat))
+        assert np.all(np.isfinite(a.z_hat)) and np.all(a.success)
+    fits = [estim.FullInformation(s.model, Q=s.tuning["Q"], R=1e-4, x0=s.tuning["x0"],
+                                  P0=1e-3).fit(a.y) for s in (sc, scr)]
+    assert fits[0].success and fits[1].success
+    np.testing.assert_allclose(fits[0].x, fits[1].x, atol=1e-8)
 
 
 def test_augment_and_disturbances_keep_the_algebraic_states():
