@@ -45,6 +45,7 @@ def augmented(model: Any, names: tuple[str, ...], lower: ArrayLike | None,
         hold=model.hold,
         variable_dt=model.variable_dt,
         time_unit=model.time_unit,
+        **model.manifold.declared,
         **_augmented_equations(model, appended),
     )
     augmented.augmented = {**model.augmented, **{n: values[n] for n in appended}}

@@ -157,7 +157,7 @@ def augment(model: Any, inputs: Sequence[str] | None, outputs: Sequence[str] | N
         substeps=model.substeps, lower=np.concatenate([model.lower, np.full(nd, -np.inf)]),
         upper=np.concatenate([model.upper, np.full(nd, np.inf)]), name=model.name,
         hold=model.hold, variable_dt=model.variable_dt, time_unit=model.time_unit,
-        **_equations(model, E_u, E_y))
+        **model.manifold.declared, **_equations(model, E_u, E_y))
     new.augmented = dict(model.augmented)
     new.disturbances = {"inputs": dict(zip(ins, names[:len(ins)], strict=True)),
                         "outputs": dict(zip(outs, names[len(ins):], strict=True)),

@@ -71,6 +71,8 @@ def unsupported(scenario: Scenario) -> str:
     if scenario.controller is not None:
         return ("its input comes from a controller, a feedback law evaluated sample by "
                 "sample")
+    if not scenario.model.manifold.euclidean_states:
+        return "its states include quaternions or angles (process noise on the manifold)"
     return ""
 
 

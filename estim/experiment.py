@@ -105,7 +105,8 @@ class Scenario:
     n_steps : int
         Number of samples.
     Q : (nx, nx) array
-        Plant process-noise covariance (may be zero).
+        Plant process-noise covariance (may be zero); ``(ndx, ndx)``, in the tangent
+        space, for a model with quaternions.
     R : (ny, ny) array
         Plant measurement-noise covariance.
     tuning : dict
@@ -168,7 +169,7 @@ class Scenario:
             raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
         self.name, self.model, m = name, model, model
         self.x0 = as_vector(x0, m.nx, "x0")
-        self.Q = as_covariance(Q, m.nx, "Q", definite=False)
+        self.Q = as_covariance(Q, m.ndx, "Q", definite=False)  # in the tangent space
         self.R = as_covariance(R, m.ny, "R", definite=True)
         self.feedback = as_choice(feedback, ("estimate", "truth"), "feedback")
         self.n_steps = as_int(n_steps, "n_steps", minimum=1)

@@ -35,6 +35,11 @@ class Log:
     ``nis (T,)``, ``cost (T,)`` and ``diagnostics (T,)``, each step's
     ``info.extra`` dict (see :meth:`diagnostic`).
 
+    On a model with quaternions or angles (``Model(quaternions=..., angles=...)``),
+    ``P`` is ``(T, ndx, ndx)``: the covariance of the error in the tangent space
+    (:attr:`manifold`; a quaternion's error is its 3-dof rotation vector), and the
+    metrics (:func:`~estim.rmse`, :func:`~estim.nees`) use that error.
+
     A status other than ``"ok"`` says what happened at that step (see
     :mod:`estim.estimators.base`): :attr:`failures` counts the steps that
     failed, :attr:`flagged` the ``"inexact"`` and ``"suspect"`` ones, and the
@@ -97,6 +102,9 @@ class Log:
         self.model_name = model_name
         self.time_unit = time_unit
         self.output_state = dict(output_state or {})
+        #: the states' manifold (estim._manifold.Manifold) when they have quaternions or
+        #: angles: errors and covariances are in its tangent space; None otherwise
+        self.manifold = None
         self._series: dict[str, list] = {}
         self._arrays: dict[str, np.ndarray] = {}
 

@@ -88,7 +88,10 @@ class _Series:
             self.P = estimate.P if "P" in estimate else None
             self.nis = estimate.nis if "nis" in estimate else None
             self.t = estimate.t if "t" in estimate else None
-            names = estimate.state_names
+            # states on a manifold (quaternions, angles): errors in its tangent space
+            self.manifold = getattr(estimate, "manifold", None)
+            names = estimate.state_names if self.manifold is None else \
+                self.manifold.tangent_names
             x = estimate.x if truth is None and "x" in estimate else truth
         else:
             # a FitResult, or a SmoothResult of EKF.smooth / UKF.smooth
@@ -102,7 +105,7 @@ class _Series:
                 raise TypeError(f"estimate must be an estim.Log, a FitResult or an array "
                                 f"of estimates (T, nx), got {type(estimate).__name__}")
             self.x_hat = _as_states(x_hat, "estimate")
-            self.nis, self.t = None, None
+            self.nis, self.t, self.manifold = None, None, None
             names = truth_log.state_names if truth_log is not None else []
             if "nis" in needs:
                 raise ValueError("nis needs a Log: the innovations are recorded by "
@@ -131,9 +134,20 @@ class _Series:
         if self.t is None:
             self.t = np.arange(n, dtype=float)
         width = self.x_hat.shape[1] if self.x_hat is not None else 0
+        if self.manifold is not None:
+            width = self.manifold.ndx
         self.names = list(names) if len(names) == width else \
             [f"x{i + 1}" for i in range(width)]
         self.n = n
+
+
+    def errors(self, burn_in: int) -> np.ndarray:
+        r"""The errors :math:`\hat x_k - x_k` from ``burn_in`` on, ``(T', nx)``; on a
+        manifold :math:`\hat x_k \ominus x_k`, ``(T', ndx)`` (a quaternion's as a
+        rotation vector, angles wrapped)."""
+        if self.manifold is not None:
+            return self.manifold.errors(self.x_hat[burn_in:], self.x[burn_in:])
+        return self.x_hat[burn_in:] - self.x[burn_in:]
 
 
 def _as_states(values, name: str) -> np.ndarray:
@@ -192,7 +206,7 @@ def errors(estimate: Log | FitResult | np.ndarray, burn_in: int = 0, *,
         The true states; required unless ``estimate`` is a Log that has them.
     """
     data, _ = _select(estimate, burn_in, None, truth=truth)
-    return data.x_hat[burn_in:] - data.x[burn_in:]
+    return data.errors(burn_in)
 
 
 def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
@@ -217,7 +231,7 @@ def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
         The true states; required unless ``estimate`` is a Log that has them.
     """
     data, idx = _select(estimate, burn_in, states, truth=truth)
-    err = (data.x_hat[burn_in:] - data.x[burn_in:])[:, idx]
+    err = data.errors(burn_in)[:, idx]
     per = {data.names[j]: float(np.sqrt(np.mean(err[:, i] ** 2))) for i, j in enumerate(idx)}
     return RMSE(float(np.sqrt(np.mean(err**2))), per)
 
@@ -241,8 +255,7 @@ def nees(estimate: Log | FitResult, burn_in: int = 0, *,
         The true states; required unless ``estimate`` is a Log that has them.
     """
     data, _ = _select(estimate, burn_in, None, ("x", "x_hat", "P"), truth=truth)
-    return nees_values(data.x_hat[burn_in:] - data.x[burn_in:],
-                       np.asarray(data.P, dtype=float)[burn_in:])
+    return nees_values(data.errors(burn_in), np.asarray(data.P, dtype=float)[burn_in:])
 
 
 #: up to this many states :func:`nees_values` factors all covariances at once, entry by
@@ -379,7 +392,7 @@ def convergence_time(estimate: Log | FitResult | np.ndarray, tol: float,
     data, idx = _select(estimate, 0, states, truth=truth)
     tol = as_float(tol, "tol", minimum=0.0)
     relative = as_bool(relative, "relative")
-    err = np.abs(data.x_hat[:, idx] - data.x[:, idx])
+    err = np.abs(data.errors(0)[:, idx])
     if relative:
         err = err / np.maximum(np.abs(data.x[:, idx]), 1e-300)
     bad = np.flatnonzero((err > tol).any(axis=1))

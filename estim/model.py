@@ -40,6 +40,7 @@ from estim._discretise import (
     rk4_step,
 )
 from estim._fast import FastFunction
+from estim._manifold import Manifold, on_manifold
 from estim._validate import (
     as_bool,
     as_bounds,
@@ -154,6 +155,14 @@ class Model(TransitionInputs):
         The algebraic equations (one per algebraic state), with ``algebraic``.
     z0 : sequence of float, optional
         The starting guess of the Newton solve for :math:`z` (default zeros).
+    quaternions : list of four state names each, optional
+        Unit quaternions (scalar first) among the states: ``F`` keeps them on the unit
+        sphere, and the estimators that know manifolds use a 3-dof error
+        :math:`q = \hat q \otimes \exp(\delta\theta / 2)` and an ``ndx x ndx``
+        covariance (:mod:`estim._manifold`, docs/attitude.md).
+    angles, output_angles : list of str, optional
+        States and outputs that are angles in radians: errors and innovations are
+        wrapped onto :math:`(-\pi, \pi]` (``F`` wraps the angle states too).
 
     Attributes
     ----------
@@ -217,6 +226,9 @@ class Model(TransitionInputs):
         algebraic: Sequence[str] | int | None = None,
         alg: Equation | None = None,
         z0: ArrayLike | None = None,
+        quaternions: Sequence[Sequence[str]] | None = None,
+        angles: Sequence[str] | None = None,
+        output_angles: Sequence[str] | None = None,
     ):
         self.state_names = as_names(states, "states", "x")
         self.algebraic_names = as_names(algebraic, "algebraic", "z")
@@ -253,6 +265,8 @@ class Model(TransitionInputs):
         if self.variable_dt and ode is None:
             raise ValueError("variable_dt=True needs a continuous model (ode=): a discrete "
                              "map (dynamics=) has no sample interval to vary")
+        self.manifold = Manifold(self.state_names, self.output_names, quaternions, angles,
+                                 output_angles)
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -269,12 +283,19 @@ class Model(TransitionInputs):
             else:
                 self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
                 self.Z = None
+            if not self.manifold.euclidean_states:  # quaternions kept unit, angles wrapped
+                self.F, self.F_x = on_manifold(self.manifold, self.F)
         self._local = threading.local()
 
     # ------------------------------------------------------------ properties
     @property
     def nx(self) -> int:
         return len(self.state_names)
+
+    @property
+    def ndx(self) -> int:
+        """Tangent directions of the state (``nx`` less 1 per quaternion)."""
+        return self.manifold.ndx
 
     @property
     def ny(self) -> int:
@@ -380,6 +401,13 @@ class Model(TransitionInputs):
         new.__dict__.update(changes)
         return new
 
+    def euclidean(self) -> Model:
+        """This model with its quaternions and angles as ordinary states and outputs
+        (additive errors, an ``nx x nx`` covariance), for an estimator that does not
+        handle manifolds; ``F`` still keeps the quaternions unit."""
+        return self._copy(manifold=Manifold(self.state_names, self.output_names),
+                          _local=threading.local())
+
     def with_params(self, **values: float) -> Model:
         """Return a copy with some parameter values changed (nothing is rebuilt)."""
         p = self.p.copy()
@@ -450,6 +478,7 @@ class Model(TransitionInputs):
         self.__dict__.setdefault("time_unit", "")
         self.__dict__.setdefault("disturbances", {})
         self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
+        self.__dict__.setdefault("manifold", Manifold(self.state_names, self.output_names))
         self._build()
 
 

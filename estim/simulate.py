@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
+from estim._manifold import NP, unit_quaternions
 from estim._validate import (
     _numeric_array,
     as_bool,
@@ -105,9 +106,10 @@ class _PlantOnly:
 class _Recorder:
     """What an estimator reports at every step, stored time-major, and the final Log."""
 
-    def __init__(self, T: int, nx: int):
+    def __init__(self, T: int, nx: int, nd: int | None = None):
         self.x_hat = np.empty((T, nx))
-        self.P = np.full((T, nx, nx), np.nan)
+        nd = nx if nd is None else nd  # covariances in the tangent space (ndx)
+        self.P = np.full((T, nd, nd), np.nan)
         self.solve_time = np.empty(T)
         self.iterations = np.zeros(T, dtype=int)
         self.success = np.ones(T, dtype=bool)
@@ -136,6 +138,8 @@ class _Recorder:
                   estimator=getattr(estimator, "name", type(estimator).__name__),
                   output_state=output_state_map(model), model_name=model.name,
                   time_unit=model.time_unit)
+        if not model.manifold.euclidean_states:
+            log.manifold = model.manifold
         for key, arr in (("t", t), ("x", x), ("y", y), ("u", u), ("x_hat", self.x_hat),
                          ("P", self.P), ("solve_time", self.solve_time),
                          ("status", self.status.astype(str).astype(object)),  # Python str
@@ -326,8 +330,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
         raise ValueError("estimator=None simulates the plant alone: its controller needs "
                          "feedback='truth'")
     nx, nu, ny, T = model.nx, model.nu, model.ny, int(n_steps)
-    x = as_vector(x0, nx, "x0")
-    Lq = _sqrt_psd(as_covariance(Q, nx, "Q", definite=False))
+    x = unit_quaternions(model.manifold, as_vector(x0, nx, "x0"), "x0")
+    Lq = _sqrt_psd(as_covariance(Q, model.ndx, "Q", definite=False))
     Lr = _sqrt_psd(as_covariance(R, ny, "R", definite=False))
     U = _input_table(inputs, T, model)
     miss = _missing(missing, T, ny, seed)
@@ -344,7 +348,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     X = np.empty((T, nx))
     Y = np.empty((T, ny))
     Uk = np.zeros((T, nu))
-    rec = _Recorder(T, nx)
+    rec = _Recorder(T, nx, model.ndx)
+    manifold = None if model.manifold.euclidean_states else model.manifold
 
     est.reset()
     u_prev = np.zeros(nu) if U is None else U[0].copy()
@@ -381,7 +386,9 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
             rec.done = k + 1
             w = model.transition(u, sampled[min(k + 1, T - 1)]) if sampled is not None \
                 else model.transition(None, u)
-            x = F(x, w, p)[0] + W[k]
+            # the noise in the tangent space: x+ = F(x) (+) w on a manifold
+            x = F(x, w, p)[0] + W[k] if manifold is None else \
+                manifold.retract(F(x, w, p)[0], W[k], NP)
             if clip:
                 x = np.minimum(np.maximum(x, model.lower), model.upper)
             if not np.isfinite(x).all():
@@ -438,7 +445,7 @@ def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
     X = np.full((T, model.nx), np.nan) if x is None else \
         np.asarray(by_name(x, model.state_names, "x", "states"), dtype=float)
     ts = np.arange(T) * model.dt if t is None else np.asarray(t, dtype=float)
-    rec = _Recorder(T, model.nx)
+    rec = _Recorder(T, model.nx, model.ndx)
     estimator.reset()
     with rec.running(model, estimator, ts, X, Y, U):
         for k in range(T):

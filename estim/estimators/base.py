@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._manifold import unit_quaternions
 from estim._smoothness import advice, nonsmooth_operations
 from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
 from estim.consistency import consistency_status
@@ -143,6 +144,9 @@ class Estimator:
     _requires_P0 = True
     #: Subclasses that detect inf in ``y`` inside their compiled step set this.
     _checks_inf_itself = False
+    #: Whether the estimator handles the model's quaternions and angles (its errors and
+    #: covariances in the tangent space, ``model.ndx``); others refuse such a model.
+    _manifold_aware = False
 
     def __init_subclass__(cls, **kwargs):
         """Every estimator's constructor checks its keyword names before it runs: an
@@ -155,13 +159,19 @@ class Estimator:
                  P0: ArrayLike | None = None):
         if not isinstance(model, Model):
             raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
+        if not (self._manifold_aware or model.manifold.trivial):
+            raise ValueError(
+                f"{type(self).__name__} does not handle the quaternions and angles "
+                f"declared in {model.name} yet (the EKF and the UKF do): give it "
+                f"model.euclidean(), which treats them as ordinary states")
         self.model = model
-        self.Q = as_covariance(Q, model.nx, "Q", definite=False)
+        nd = model.ndx  # covariances live in the tangent space
+        self.Q = as_covariance(Q, nd, "Q", definite=False)
         self.R = as_covariance(R, model.ny, "R", definite=True)
-        self.x0 = as_vector(x0, model.nx, "x0")
+        self.x0 = unit_quaternions(model.manifold, as_vector(x0, model.nx, "x0"), "x0")
         if P0 is None and self._requires_P0:
             raise ValueError(f"P0 is required by {type(self).__name__}")
-        self.P0 = None if P0 is None else as_covariance(P0, model.nx, "P0", definite=True)
+        self.P0 = None if P0 is None else as_covariance(P0, nd, "P0", definite=True)
         self._first = True
         self._k = 0
         self._info = StepInfo()
@@ -254,13 +264,13 @@ class Estimator:
         m = self.model
         new = {}
         if Q is not None:
-            new["Q"] = as_covariance(Q, m.nx, "Q", definite=False)
+            new["Q"] = as_covariance(Q, m.ndx, "Q", definite=False)
         if R is not None:
             new["R"] = as_covariance(R, m.ny, "R", definite=True)
         if P0 is not None:
-            new["P0"] = as_covariance(P0, m.nx, "P0", definite=True)
+            new["P0"] = as_covariance(P0, m.ndx, "P0", definite=True)
         if x0 is not None:
-            new["x0"] = as_vector(x0, m.nx, "x0")
+            new["x0"] = unit_quaternions(m.manifold, as_vector(x0, m.nx, "x0"), "x0")
         for name in ("Q", "R"):
             if name in new and self._diagonal.get(name) and \
                     not np.array_equal(new[name], np.diag(np.diag(new[name]))):

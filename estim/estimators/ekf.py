@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool
 from estim.estimators.fused import FusedKalman
+from estim.estimators.manifold_steps import check_manifold_options, mekf_step
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariances, ekf_step
 from estim.model import Model
@@ -91,6 +92,7 @@ class EKF(FusedKalman):
 
     name = "ekf"
     _checks_inf_itself = True
+    _manifold_aware = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
@@ -99,6 +101,7 @@ class EKF(FusedKalman):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.clip = as_bool(clip, "clip")
+        check_manifold_options(model, self.form, self.clip)
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
         self.jit = as_bool(jit, "jit")
@@ -107,6 +110,8 @@ class EKF(FusedKalman):
     def _build(self, predict: bool) -> ca.Function:
         if self._sqrt:
             return ekf_step(self, predict)
+        if not self.model.manifold.trivial:  # quaternions, angles: the multiplicative form
+            return mekf_step(self, predict)
         m = self.model
         nx = m.nx
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()

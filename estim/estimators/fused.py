@@ -67,17 +67,17 @@ class FusedKalman(Estimator):
         transition's input, ``y``, the tuning ``[vec(Q); vec(R)]``), the two steps
         (first: update only; later: predict and update), then tuning and reset."""
         m = self.model
-        nx = m.nx
-        self._s = np.zeros(nx + nx * nx)
+        nx, nd = m.nx, m.ndx  # stored states, tangent directions (P is nd x nd)
+        self._s = np.zeros(nx + nd * nd)
         self._u = np.zeros(m.nw)  # the transition's input (both ends if sampled)
         self._y = np.zeros(m.ny)
-        self._tun = np.zeros(nx * nx + m.ny ** 2)
+        self._tun = np.zeros(nd * nd + m.ny ** 2)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._update, self._predict_update = step_calls(
             self, [self._s, self._u, self._y, self._tun])
         # views of the buffers the hot path writes and reads: the covariance (or its
         # factor) in the filter state, and the transition input's parts (see _step)
-        self._P_view = self._s[nx:].reshape(nx, nx, order="F")
+        self._P_view = self._s[nx:].reshape(nd, nd, order="F")
         nu = m.nu
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
@@ -97,10 +97,10 @@ class FusedKalman(Estimator):
                               s_prior, gate=self.gate)
 
     def _tuning_changed(self) -> None:
-        nx = self.model.nx
+        nd = self.model.ndx
         Q, R = noise_factors(self.Q, self.R, self._diagonal) if self._sqrt else (self.Q, self.R)
-        self._tun[:nx * nx] = Q.ravel(order="F")
-        self._tun[nx * nx:] = R.ravel(order="F")
+        self._tun[:nd * nd] = Q.ravel(order="F")
+        self._tun[nd * nd:] = R.ravel(order="F")
         self._P0_data = P0_data(self.P0, self._sqrt)  # vec(P0), or vec(chol(P0)) if sqrt
 
     def _reset(self) -> None:
@@ -175,8 +175,9 @@ class FusedKalman(Estimator):
                 x = self._anchor(self._s_trusted[:nx])[0]
                 self._s[nx:] = with_P0(self._s_trusted[nx:], self._P0_data, True)
             else:
+                nd = self.model.ndx
                 x, P = self._anchor(self._s_trusted[:nx],
-                                    self._s_trusted[nx:].reshape(nx, nx, order="F"))
+                                    self._s_trusted[nx:].reshape(nd, nd, order="F"))
                 self._s[nx:] = P.ravel(order="F")
             self._s[:nx] = x
             s_new, _, flags, _ = self._update.evaluate()
@@ -187,7 +188,8 @@ class FusedKalman(Estimator):
         self._trusted = False
         nx = self.model.nx
         return self._s[:nx].copy(), StepInfo(status=status, success=False,
-                                             P=covariance(self._s[nx:], nx, self._sqrt))
+                                             P=covariance(self._s[nx:], self.model.ndx,
+                                                          self._sqrt))
 
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> FilterResult:
@@ -223,7 +225,7 @@ class FusedKalman(Estimator):
             (after a :meth:`reset` at its start), as by the step loop.
         """
         m = self.model
-        nx, ny = m.nx, m.ny
+        nx, ny, nd = m.nx, m.ny, m.ndx
         Y = as_record(Y, ny, "Y", names=m.output_names, what="outputs")
         T = Y.shape[0]
         U = as_inputs(U, T, m)
@@ -238,9 +240,9 @@ class FusedKalman(Estimator):
             self._s, Y.T, W.T, self._tun, self._P0_data))
         failed = np.flatnonzero(F[1] == 0)
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
-        X, P = np.empty((T, nx)), np.full((T, nx, nx), np.nan)
+        X, P = np.empty((T, nx)), np.full((T, nd, nd), np.nan)
         X[:n] = S[:nx, :n].T
-        P[:n] = S[nx:, :n].T.reshape(n, nx, nx).transpose(0, 2, 1)  # column-major
+        P[:n] = S[nx:, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major
         if self._sqrt:
             P[:n] = covariances(P[:n])
         innovation, nis = np.full((T, ny), np.nan), np.full(T, np.nan)

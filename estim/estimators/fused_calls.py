@@ -156,8 +156,8 @@ class SeedFilter:
         """``x``, ``P``, ``nis`` and ``status`` (see :meth:`FusedKalman._filter_seeds
         <estim.estimators.fused.FusedKalman._filter_seeds>`) of :meth:`run`'s output."""
         est = self.est
-        n, T, nx = len(Sx), self.T, est.model.nx
-        P = Sx[:, :, nx:].reshape(n, T, nx, nx).transpose(0, 1, 3, 2)  # column-major
+        n, T, nx, nd = len(Sx), self.T, est.model.nx, est.model.ndx
+        P = Sx[:, :, nx:].reshape(n, T, nd, nd).transpose(0, 1, 3, 2)  # column-major
         if est._sqrt:
             P = covariances(P)
         failed = (F[:, :, 1] == 0).any(axis=1)

@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
+from estim.estimators.manifold_steps import check_manifold_options, usque_step
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariance, ukf_step
 from estim.model import Model
@@ -99,6 +100,7 @@ class UKF(FusedKalman):
     """
 
     name = "ukf"
+    _manifold_aware = True
     _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
@@ -115,8 +117,9 @@ class UKF(FusedKalman):
         self.alpha = as_float(alpha, "alpha", positive=True)
         self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
         self.clip = as_bool(clip, "clip")
+        check_manifold_options(model, self.form, self.clip)
         self.lower, self.upper = model.lower, model.upper
-        nx = model.nx
+        nx = model.ndx  # the sigma points spread in the tangent space
         if points != "cubature" and nx + self.kappa <= 0:
             raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
                              f"got {self.kappa!r}")
@@ -137,6 +140,8 @@ class UKF(FusedKalman):
     def _build(self, predict: bool) -> ca.Function:
         if self._sqrt:
             return ukf_step(self, predict)
+        if not self.model.manifold.trivial:  # quaternions, angles: tangent sigma points
+            return usque_step(self, predict, _cholesky)
         m = self.model
         Wm, Wc = self._Wm, self._Wc
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()

@@ -53,14 +53,14 @@ def step_symbols(model: Model, diagonal: dict[str, bool]) -> tuple:
     ``p``, the mask of measured outputs (0 for NaN and for ±inf) and the count of ±inf in
     ``y``."""
     m = model
-    nx, ny = m.nx, m.ny
-    s = ca.SX.sym("s", nx + nx * nx)
-    x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
+    nx, ny, nd = m.nx, m.ny, m.ndx  # P, Q in the tangent space (nd = nx for vectors)
+    s = ca.SX.sym("s", nx + nd * nd)
+    x, P = s[:nx], ca.reshape(s[nx:], nd, nd)
     u = ca.SX.sym("u", m.nw)
     y = ca.SX.sym("y", ny)
-    tun = ca.SX.sym("tuning", nx * nx + ny * ny)  # the tuning is data (set_tuning)
-    Q, R = (matrix(tun[:nx * nx], nx, diagonal["Q"]),
-            matrix(tun[nx * nx:], ny, diagonal["R"]))
+    tun = ca.SX.sym("tuning", nd * nd + ny * ny)  # the tuning is data (set_tuning)
+    Q, R = (matrix(tun[:nd * nd], nd, diagonal["Q"]),
+            matrix(tun[nd * nd:], ny, diagonal["R"]))
     mask = ca.fabs(y) < ca.inf
     y_inf = ca.sum1(ca.fabs(y) == ca.inf) if ny else ca.SX(0)
     return s, x, P, u, y, tun, Q, R, ca.DM(m.p), mask, y_inf
@@ -101,12 +101,12 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
     to C). The Functions are named ``{prefix}_first``, ``{prefix}_step`` and
     ``{prefix}_{T}``."""
     m = model
-    nx, ny, nw = m.nx, m.ny, m.nw
+    nx, ny, nw, nd = m.nx, m.ny, m.nw, m.ndx
 
     def scanned(predict: bool) -> ca.Function:
-        s, w = ca.SX.sym("s", nx + nx * nx), ca.SX.sym("w", nw)
-        y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nx * nx + ny * ny)
-        P0 = ca.SX.sym("P0", nx * nx)
+        s, w = ca.SX.sym("s", nx + nd * nd), ca.SX.sym("w", nw)
+        y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nd * nd + ny * ny)
+        P0 = ca.SX.sym("P0", nd * nd)
         s_new, e, flags, s_prior = build(predict)(s, w, y, tun)
         if sqrt:
             factor = tria(ca.horzcat(ca.reshape(s_prior[nx:], nx, nx), ca.reshape(P0, nx, nx)))
@@ -119,9 +119,9 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
                            ["s", "w", "y", "tuning", "P0"],
                            ["s_next", "s_out", "innovation", "flags"])
 
-    s0 = ca.MX.sym("s0", nx + nx * nx)
+    s0 = ca.MX.sym("s0", nx + nd * nd)
     Y, W = ca.MX.sym("Y", ny, T), ca.MX.sym("W", nw, T)
-    tun, P0 = ca.MX.sym("tuning", nx * nx + ny * ny), ca.MX.sym("P0", nx * nx)
+    tun, P0 = ca.MX.sym("tuning", nd * nd + ny * ny), ca.MX.sym("P0", nd * nd)
     s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
     S, E, F = s1, e0, f0
     if T > 1:

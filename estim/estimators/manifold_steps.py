@@ -1,0 +1,170 @@
+r"""The EKF's and the UKF's steps on a state with quaternions and angles.
+
+The error of an estimate lives in the tangent space of the state's manifold
+(:mod:`estim._manifold`): :math:`x = \hat x \oplus \delta`, :math:`\delta \sim
+N(0, P)`, ``P`` of size ``ndx``. The multiplicative EKF (Markley's MEKF for a
+quaternion, :math:`q = \hat q \otimes \exp(\delta\theta/2)`) predicts
+
+.. math::
+    \bar x = F(\hat x, u), \qquad \bar P = A P A^\top + Q, \quad
+    A = \frac{\partial}{\partial \delta}\Big[F(\hat x \oplus \delta, u) \ominus \bar x
+    \Big]_{\delta = 0},
+
+and updates with :math:`C = \partial h(\bar x \oplus \delta) / \partial\delta` at 0 and
+the innovation :math:`e = y \ominus h(\bar x)` (output angles wrapped),
+
+.. math::
+    K = \bar P C^\top S^{-1}, \quad \hat\delta = K e, \quad
+    \hat x = \bar x \oplus \hat\delta, \quad
+    P = J \big[(I - KC)\bar P(I - KC)^\top + K R K^\top\big] J^\top,
+
+where the reset Jacobian :math:`J = \partial [(\bar x \oplus (\hat\delta + \epsilon))
+\ominus \hat x] / \partial \epsilon` at 0 carries the error covariance from the prior
+to the updated estimate (for a quaternion the right Jacobian of SO(3) at
+:math:`\hat\delta\theta`, :math:`I - \tfrac12[\hat\delta\theta\times] + \dots`;
+the identity on vector and angle states). Every Jacobian is CasADi's algorithmic
+derivative. The UKF (USQUE-style, Crassidis & Markley 2003) draws its sigma points in
+the tangent space, :math:`\mathcal X_i = \bar x \oplus \sigma_i`, takes means as
+tangent vectors about the propagated centre and covariances of those vectors, and
+resets its covariance as the EKF does.
+
+References
+----------
+F. L. Markley, J. L. Crassidis, *Fundamentals of Spacecraft Attitude Determination and
+Control*, Springer 2014, sec. 6.2; J. L. Crassidis, F. L. Markley, "Unscented
+filtering for spacecraft attitude estimation", J. Guid. Control Dyn. 26(4), 2003;
+M. Brossard, S. Bonnabel, A. Barrau, "Unscented Kalman filter on Lie groups", 2020.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import casadi as ca
+
+__all__ = ["check_manifold_options", "mekf_step", "tangent_jacobian", "usque_step"]
+
+
+def check_manifold_options(model: Any, form: str, clip: bool) -> None:
+    """Refuse what the filters do not do on a manifold yet: the square-root form and
+    clipping (a projection of a quaternion on bounds)."""
+    if model.manifold.trivial:
+        return
+    if form != "covariance":
+        raise ValueError(f"form={form!r}: the square-root form does not handle the "
+                         f"quaternions and angles of {model.name} yet; use "
+                         f"form='covariance'")
+    if clip:
+        raise ValueError(f"clip=True: clipping does not handle the quaternions and angles "
+                         f"of {model.name}; give bounds to an MHE instead")
+
+
+def tangent_jacobian(fun: Any, n: int) -> Any:
+    """``d fun(d) / d d`` at ``d = 0`` for an expression builder ``fun`` of a tangent
+    vector of size ``n``."""
+    d = ca.SX.sym("d", n)
+    return ca.substitute(ca.jacobian(fun(d), d), d, ca.DM.zeros(n))
+
+
+def mekf_step(est: Any, predict: bool) -> ca.Function:
+    """The multiplicative EKF's fused step (see the module), with the flags of
+    :func:`estim.solvers.kalman.fused_function`."""
+    m = est.model
+    M, nd = m.manifold, m.ndx
+    s, x, P, u, y, tun, Q, R, p, mask, y_inf = est._symbols()
+    if predict:
+        xb = m.F(x, u, p)
+        A = tangent_jacobian(lambda d: M.local(xb, m.F(M.retract(x, d), u, p)), nd)
+        Pb = A @ P @ A.T + Q
+    else:
+        xb, Pb = x, P
+    D = ca.diag(mask)
+    uy = m.measurement_input(u)  # the input at this measurement
+    C = D @ tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nd)
+    e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
+    Rm = D @ R @ D + ca.diag(1 - mask)
+    S = C @ Pb @ C.T + Rm
+    S = 0.5 * (S + S.T)
+    K = ca.solve(S, C @ Pb).T
+    delta = K @ e
+    xh = M.retract(xb, delta)
+    IKC = ca.DM.eye(nd) - K @ C
+    Ph = IKC @ Pb @ IKC.T + K @ Rm @ K.T
+    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), nd)
+    Ph = J @ Ph @ J.T
+    Ph = 0.5 * (Ph + Ph.T)
+    nis = ca.dot(e, ca.solve(S, e))
+    s_new = ca.vertcat(xh, ca.vec(Ph))
+    s_prior = ca.vertcat(xb, ca.vec(Pb))
+    ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
+    ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
+    ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
+    name = "mekf_predict_update" if predict else "mekf_update"
+    return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
+                               ok_mean, mask, s_prior)
+
+
+def usque_step(est: Any, predict: bool, cholesky: Any) -> ca.Function:
+    """The UKF's fused step on a manifold (see the module): sigma points
+    :math:`\\hat x \\oplus \\sigma_i` with the offsets :math:`\\sigma_i` the columns of
+    the lower Cholesky factor (``cholesky``) of :math:`cP`, means and covariances of
+    tangent vectors, output angles wrapped, the covariance reset as the EKF's."""
+    m = est.model
+    M, nd = m.manifold, m.ndx
+    Wm, Wc = [float(w) for w in est._Wm], [float(w) for w in est._Wc]
+    s, x, P, u, y, tun, Q, R, p, mask, y_inf = est._symbols()
+
+    def offsets(P):  # the tangent offsets of the sigma points, and whether P is definite
+        L, definite = cholesky(est._scale * P)
+        cols = [L[:, k] for k in range(nd)]
+        centre = [] if est.points == "cubature" else [ca.SX.zeros(nd)]
+        return centre + cols + [-c for c in cols], definite
+
+    def mean(vs):
+        return sum((w * v for w, v in zip(Wm, vs, strict=True)), ca.SX.zeros(vs[0].numel()))
+
+    def cov(a, b):
+        return sum((w * (da @ db.T) for w, da, db in zip(Wc, a, b, strict=True)),
+                   ca.SX.zeros(a[0].numel(), b[0].numel()))
+
+    if predict:
+        sig, definite = offsets(P)
+        ref = m.F(x, u, p)  # the propagated estimate: the centre of the tangent vectors
+        FX = [m.F(M.retract(x, d), u, p) for d in sig]
+        dF = [M.local(ref, v) for v in FX]
+        dbar = mean(dF)
+        xb = M.retract(ref, dbar)
+        dev = [v - dbar for v in dF]
+        Pb = cov(dev, dev) + Q
+        ok_mean = ca.logic_and(definite, ca.fabs(ca.sum1(ca.vertcat(*FX))) < ca.inf)
+    else:
+        xb, Pb = x, P
+        ok_mean = ca.SX(1)
+    sig, definite = offsets(Pb)  # the update draws the sigma points of the prediction
+    ok_prior = ca.logic_and(ca.logic_and(ok_mean, definite),
+                            ca.fabs(ca.sum1(ca.vertcat(xb, ca.vec(Pb)))) < ca.inf)
+    uy = m.measurement_input(u)
+    zr = m.H(xb, uy, p)  # the outputs' centre: deviations from it wrapped
+    dz = [ca.if_else(mask, M.output_difference(m.H(M.retract(xb, d), uy, p), zr), 0)
+          for d in sig]
+    dzbar = mean(dz)
+    dZ = [v - dzbar for v in dz]
+    D = ca.diag(mask)
+    S = cov(dZ, dZ) + D @ R @ D + ca.diag(1 - mask)
+    S = 0.5 * (S + S.T)
+    Pxz = cov(sig, dZ)
+    e = ca.if_else(mask, M.output_difference(y, zr + dzbar), 0)
+    K = ca.solve(S, Pxz.T).T
+    delta = K @ e
+    xh = M.retract(xb, delta)
+    Ph = Pb - K @ S @ K.T
+    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), nd)
+    Ph = J @ Ph @ J.T
+    Ph = 0.5 * (Ph + Ph.T)
+    nis = ca.dot(e, ca.solve(S, e))
+    s_new = ca.vertcat(xh, ca.vec(Ph))
+    s_prior = ca.vertcat(xb, ca.vec(Pb))
+    ok = ca.logic_and(ca.fabs(ca.sum1(ca.vertcat(s_new, nis))) < ca.inf, cholesky(Ph)[1])
+    name = "usque_predict_update" if predict else "usque_update"
+    return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
+                               ok_mean, mask, s_prior)
