@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from codegen_build import build
 from models import two_tanks
+from test_attitude import scenario as attitude_scenario
 
 import estim
 from estim import codegen
@@ -86,6 +87,11 @@ def _configuration(key: str):
         Y[80, 1] -= 20.0
         Y[100:103] += 8.0
         return F(vdp.model, **vdp.tuning, gate=1e-6), Y, U
+    if key.endswith("attitude"):  # a unit quaternion: the multiplicative forms
+        sc = attitude_scenario(T=80)
+        log = estim.simulate(sc, None, seed=0)
+        F = estim.EKF if key.startswith("ekf") else estim.UKF
+        return F(sc.model, **sc.tuning), log.y.copy(), sc.inputs
     if key.endswith("root"):
         m, Y, U = _root_record()
         F = estim.EKF if key.startswith("ekf") else estim.UKF
@@ -111,7 +117,7 @@ class CFilter:
     """The exported filter, stepped through ctypes."""
 
     def __init__(self, est, directory, name):
-        self.name, self.nx = name, est.model.nx
+        self.name, self.nx, self.nd = name, est.model.nx, est.model.ndx
         self.lib = _build(directory, name)
         size = int(getattr(self.lib, f"{name}_size")())
         self.memory = np.zeros(size // 8 + 1)  # 8-byte aligned
@@ -122,12 +128,12 @@ class CFilter:
         ptr = ctypes.POINTER(ctypes.c_double)
         y = np.ascontiguousarray(y, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
-        x, P = np.empty(self.nx), np.empty(self.nx * self.nx)
+        x, P = np.empty(self.nx), np.empty(self.nd * self.nd)
         status = getattr(self.lib, f"{self.name}_step")(
             ctypes.c_void_p(self.f), y.ctypes.data_as(ptr),
             u.ctypes.data_as(ptr) if u.size else None, x.ctypes.data_as(ptr),
             P.ctypes.data_as(ptr))
-        return status, x, P.reshape(self.nx, self.nx, order="F")
+        return status, x, P.reshape(self.nd, self.nd, order="F")
 
     def nis(self) -> float:
         return getattr(self.lib, f"{self.name}_nis")(ctypes.c_void_p(self.f))
@@ -155,7 +161,8 @@ def _close(a, b):
 
 CONFIGURATIONS = ["ekf_reactor", "ekfclip_reactor", "merwe_reactor", "cubature_reactor",
                   "ekf_vdp", "ukf_vdp", "ekf_gated_vdp", "ukf_gated_vdp", "ekf_tanks",
-                  "ukf_tanks", "ekf_gated_tanks", "ukf_foh_tanks", "ekf_root", "ukf_root"]
+                  "ukf_tanks", "ekf_gated_tanks", "ukf_foh_tanks", "ekf_root", "ukf_root",
+                  "ekf_attitude", "ukf_attitude"]
 #: Statuses each record must show (beyond "ok").
 SHOWN = {"gated": {2}, "tanks": {4}, "root": {1, 3, 4}, "ekfclip": {1}}
 

@@ -114,17 +114,17 @@ def dimensions(estimator: EKF | UKF, sizes: Mapping[str, int]) -> dict[str, int]
     ``BYTES``, the size of the struct ``<name>_t`` (8-byte doubles, pointers and
     ``casadi_int``, 4-byte ints)."""
     m = estimator.model
-    nx, ny, nu, nw = m.nx, m.ny, m.nu, m.nw
-    ns, nt = nx + nx * nx, nx * nx + ny * ny
-    d = {"NX": nx, "NY": ny, "NU": nu, "NW": nw, "NS": ns, "NT": nt,
+    nx, ny, nu, nw, nd = m.nx, m.ny, m.nu, m.nw, m.ndx  # P is nd x nd (tangent space)
+    ns, nt = nx + nd * nd, nd * nd + ny * ny
+    d = {"NX": nx, "NDX": nd, "NY": ny, "NU": nu, "NW": nw, "NS": ns, "NT": nt,
          "NY1": max(ny, 1), "NU1": max(nu, 1), "NW1": max(nw, 1),
          "SAMPLED": int(m.sampled),
          "SZ_ARG": sizes["arg"], "SZ_RES": sizes["res"], "SZ_IW": sizes["iw"],
          "SZ_W": sizes["w"]}
-    doubles = (nx * nx + ny * ny + nx + nx * nx  # Q, R, x0, P0
+    doubles = (nd * nd + ny * ny + nx + nd * nd  # Q, R, x0, P0
                + 2 * ns + d["NU1"] + 1 + d["NY1"]  # s, s_trusted, u_last, nis, innovation
                + d["NW1"] + nt + ns + d["NY1"] + 8 + ns  # w_in, tuning, results
-               + (nx * nx if estimator.form == "sqrt" else 0)  # L0, the factor of P0
+               + (nd * nd if estimator.form == "sqrt" else 0)  # L0, the factor of P0
                + sizes["w"])
     ints = 2  # first, trusted (int, 4 bytes each)
     d["BYTES"] = 8 * (doubles + sizes["arg"] + sizes["res"] + sizes["iw"]) + 4 * ints
