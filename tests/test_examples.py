@@ -208,3 +208,17 @@ def test_sensor_fusion(tmp_path, capsys):
     assert res["gnss+baro+imu"]["samples"] == 2400 and res["gnss"]["samples"] == 20
     assert res["filter_equal"] < 1e-12  # the whole-record scan is the step loop
     assert "µs per step (median, ekf.step at every stamp)" in capsys.readouterr().out
+
+
+def test_satellite_attitude(tmp_path):
+    """The multiplicative forms keep the quaternion unit where the additive ones drift,
+    and identify the inertia ratios as well."""
+    out = tmp_path / "satellite.png"
+    res = load("satellite_attitude").main(["--seeds", "1", "--out", str(out)])
+    assert out.stat().st_size > 20_000
+    for name in ("ekf", "ukf"):
+        add, mult = res[("additive", name)], res[("multiplicative", name)]
+        assert mult["norm"] < 1e-12 < add["norm"]
+        assert mult["failures"] == add["failures"] == 0
+        assert mult["ratio"] < 0.05 and abs(mult["ratio"] - add["ratio"]) < 0.1 * add["ratio"]
+        assert abs(mult["attitude_deg"] - add["attitude_deg"]) < 0.05 * add["attitude_deg"]

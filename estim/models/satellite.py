@@ -57,7 +57,7 @@ def _cross(a, b):
 
 def satellite(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
               mu: float = MU_EARTH, r: float = 7.0e6, dt: float = 1.0,
-              integrator: str = "rk4") -> Model:
+              integrator: str = "rk4", quaternion: bool = False) -> Model:
     r"""Attitude kinematics and Euler's equations with gravity gradient, gyro output.
 
     State :math:`x = (q_0, q_1, q_2, q_3, \omega_x, \omega_y, \omega_z, \theta)`,
@@ -75,6 +75,11 @@ def satellite(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
     :math:`n_B = R(q)^\top (-\cos\theta, -\sin\theta, 0)` the nadir direction
     in body axes. The orbit angle is carried as a state so the model stays
     autonomous; it is deterministic and not measured.
+
+    With ``quaternion=True`` the model declares :math:`q` a unit quaternion
+    (``quaternions=[("q0", "q1", "q2", "q3")]``): the transition keeps it unit, and the
+    EKF and UKF estimate it with a 3-dof attitude error (``model.ndx = 7``; their ``Q``
+    and ``P0`` are then 7 x 7, see docs/attitude.md).
 
     Facts worth knowing: with zero torque the gyro signal is unchanged by
     :math:`I \to cI` (gravity gradient included), so the inertia is only
@@ -105,6 +110,7 @@ def satellite(I1: float = 0.50, I2: float = 0.40, I3: float = 0.26,
         inputs=["tau_x", "tau_y", "tau_z"],
         ode=ode, output=lambda x, u, p: x[4:7], dt=dt, integrator=integrator,
         params={"I1": I1, "I2": I2, "I3": I3, "mu": mu, "r": r}, name="satellite", time_unit="s",
+        quaternions=[("q0", "q1", "q2", "q3")] if quaternion else None,
     )
 
 
