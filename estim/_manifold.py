@@ -262,7 +262,8 @@ def _groups(value: Any, names: list[str]) -> list[tuple[str, ...]]:
     if isinstance(value, str) or not isinstance(value, Sequence):
         raise TypeError(f"quaternions must be a list of 4-tuples of state names, e.g. "
                         f"[('q0', 'q1', 'q2', 'q3')], got {value!r}")
-    groups, seen = [], set()
+    groups: list[tuple[str, ...]] = []
+    seen: set[str] = set()
     for g in value:
         if isinstance(g, str) or not isinstance(g, Sequence) or len(g) != 4:
             raise ValueError(f"quaternions: each quaternion is four state names (scalar "

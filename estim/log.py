@@ -104,7 +104,7 @@ class Log:
         self.output_state = dict(output_state or {})
         #: the states' manifold (estim._manifold.Manifold) when they have quaternions or
         #: angles: errors and covariances are in its tangent space; None otherwise
-        self.manifold = None
+        self.manifold: Any = None
         self._series: dict[str, list] = {}
         self._arrays: dict[str, np.ndarray] = {}
 

@@ -145,6 +145,7 @@ class _Series:
         r"""The errors :math:`\hat x_k - x_k` from ``burn_in`` on, ``(T', nx)``; on a
         manifold :math:`\hat x_k \ominus x_k`, ``(T', ndx)`` (a quaternion's as a
         rotation vector, angles wrapped)."""
+        assert self.x is not None and self.x_hat is not None  # what _select asked for
         if self.manifold is not None:
             return self.manifold.errors(self.x_hat[burn_in:], self.x[burn_in:])
         return self.x_hat[burn_in:] - self.x[burn_in:]
@@ -392,6 +393,10 @@ def convergence_time(estimate: Log | FitResult | np.ndarray, tol: float,
     data, idx = _select(estimate, 0, states, truth=truth)
     tol = as_float(tol, "tol", minimum=0.0)
     relative = as_bool(relative, "relative")
+    if relative and data.manifold is not None:
+        raise ValueError("relative=True: the errors of states with quaternions or angles "
+                         "are tangent vectors, not relative to the states; give tol in "
+                         "radians and state units")
     err = np.abs(data.errors(0)[:, idx])
     if relative:
         err = err / np.maximum(np.abs(data.x[:, idx]), 1e-300)

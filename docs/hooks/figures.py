@@ -22,7 +22,7 @@ from pathlib import Path
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
-PAGES = ("plotting.md", "particle.md")
+PAGES = ("plotting.md", "particle.md", "attitude.md")
 FOLDER = "figures"
 
 _FENCE = re.compile(
