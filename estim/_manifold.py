@@ -231,6 +231,25 @@ class Manifold:
         zero = np.zeros(x.shape[:-1] + (self.ndx,)) if ops is NP else ca.DM.zeros(self.ndx)
         return self.retract(x, zero, ops)
 
+    def mean(self, X: np.ndarray, weights: np.ndarray | None = None,
+             iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+        r"""The weighted mean of points ``X`` ``(N, nx)`` on the manifold and their
+        deviations from it in its tangent space ``(N, ndx)``: the fixed point of
+        :math:`\bar x \leftarrow \bar x \oplus \sum_i w_i (x_i \ominus \bar x)`
+        from the heaviest point (one iteration on vector states; the Karcher mean of
+        the quaternions), ``weights`` default uniform."""
+        X = np.asarray(X, dtype=float)
+        w = np.full(len(X), 1.0 / len(X)) if weights is None else np.asarray(weights)
+        ref = X[int(np.argmax(w))]
+        for _ in range(1 if self.euclidean_states else iterations):
+            d = self.local(ref, X, NP)
+            step = w @ d
+            ref = self.retract(ref, step, NP)
+            if not np.all(np.abs(step) < 1e-13):
+                continue
+            break
+        return ref, self.local(ref, X, NP)
+
     def errors(self, x_hat: np.ndarray, x: np.ndarray) -> np.ndarray:
         r"""The estimation errors :math:`\hat x \ominus x` of two stacks ``(..., nx)``:
         ``(..., ndx)`` (a quaternion's as the rotation vector from the truth to the

@@ -273,3 +273,32 @@ def test_declarations_are_checked():
     assert mhe.model.ndx == 5
     with pytest.raises(ValueError, match="square-root form"):
         estim.EKF(m, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1, form="sqrt")
+
+
+@pytest.mark.parametrize("make", [
+    lambda m, t: estim.EnKF(m, n_ensemble=100, **t),
+    lambda m, t: estim.EnKF(m, n_ensemble=100, variant="etkf", inflation=1.02, **t),
+    lambda m, t: estim.ParticleFilter(m, n_particles=2000, **t)],
+    ids=["enkf", "etkf", "pf"])
+def test_ensembles_and_particles_on_the_manifold(make):
+    """The EnKF (members moved by retraction, anomalies in the tangent space) and the
+    bootstrap particle filter (noise in the tangent space, the weighted Karcher mean)
+    keep every estimate on the unit sphere and track the attitude about as well as the
+    EKF, with a 3 x 3 covariance; on the circling target they keep the heading wrapped
+    and track it."""
+    sc = scenario(T=100)
+    ekf = estim.rmse(estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=1), burn_in=20)
+    log = estim.simulate(sc, make(sc.model, sc.tuning), seed=1)
+    assert log.P.shape == (100, 3, 3) and np.all(log.success)
+    assert np.abs(np.linalg.norm(log.x_hat, axis=1) - 1).max() < 1e-12
+    assert estim.rmse(log, burn_in=20) < 1.3 * ekf
+    assert 0.5 < np.nanmean(estim.nees(log, burn_in=20)) / 3 < 2.5
+    m = bearing_model(True)
+    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
+    tuning = dict(Q=10 * Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
+                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))  # (10 Q: no impoverishment)
+    bs = estim.Scenario("circling", m, x0=[10.0, 0, np.pi / 2, 2.0, 0.2], n_steps=250, Q=Q,
+                        R=R, tuning=tuning)
+    lg = estim.simulate(bs, make(m, tuning), seed=0, warn=False)
+    assert np.abs(np.diff(lg.y[:, 0])).max() > 6 and np.all(lg.success)
+    assert np.all(np.abs(lg.x_hat[:, 2]) <= np.pi) and estim.rmse(lg, burn_in=50) < 0.1

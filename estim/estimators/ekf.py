@@ -190,6 +190,9 @@ class EKF(FusedKalman):
         S. Särkkä, *Bayesian Filtering and Smoothing*, 2013, sec. 9.1.
         """
         m, Q = self.model, self.Q
+        if not m.manifold.trivial:
+            raise ValueError(f"smooth does not handle the quaternions and angles of "
+                             f"{m.name} yet (the filter does)")
 
         def predict(X, P, W):
             A = transitions(m, X, W, jacobian=True)

@@ -98,6 +98,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._manifold import NP
 from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
@@ -113,59 +114,50 @@ VARIANTS = ("stochastic", "etkf")
 
 def _graphs(model: Model) -> tuple[ca.Function, ca.Function]:
     """``measure(x, w) -> h(x)`` and ``advance(x, v, w, LQ) -> F(x, w) + LQ v`` for one
-    member, ``LQ`` the flattened (column-major) square root of ``Q``."""
-    nx, nw = model.nx, model.nw
+    member, ``LQ`` the flattened (column-major) square root of ``Q`` (on a manifold
+    ``F(x, w) (+) LQ v``, ``v`` in the tangent space)."""
+    nx, nw, nd = model.nx, model.nw, model.ndx
     p = ca.DM(model.p)
-    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nx), ca.SX.sym("w", nw)
-    LQ = ca.SX.sym("LQ", nx * nx)
+    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nd), ca.SX.sym("w", nw)
+    LQ = ca.SX.sym("LQ", nd * nd)
     measure = ca.Function("enkf_measure", [x, w],
                           [model.H(x, model.measurement_input(w), p)])
-    advance = ca.Function("enkf_advance", [x, v, w, LQ],
-                          [model.F(x, w, p) + ca.reshape(LQ, nx, nx) @ v])
+    noise = ca.reshape(LQ, nd, nd) @ v
+    moved = model.F(x, w, p) + noise if model.manifold.euclidean_states else \
+        model.manifold.retract(model.F(x, w, p), noise)
+    advance = ca.Function("enkf_advance", [x, v, w, LQ], [moved])
     return measure, advance
 
 
-def _stochastic(X: np.ndarray, Yo: np.ndarray, y: np.ndarray, R: np.ndarray,
-                LR: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float]:
-    """Perturbed-observation analysis of members ``X`` (nx, N) whose measured outputs
-    are ``Yo`` (m, N): the new members, the innovation (m,) and its NIS."""
-    N = X.shape[1]
-    A = X - X.mean(axis=1, keepdims=True)
-    yb = Yo.mean(axis=1)
-    B = Yo - yb[:, None]
+def _stochastic(A: np.ndarray, B: np.ndarray, D: np.ndarray, e: np.ndarray, R: np.ndarray
+                ) -> tuple[np.ndarray, float]:
+    """Perturbed-observation analysis from the members' anomalies ``A`` (nx, N), their
+    measured outputs' anomalies ``B`` (m, N), the perturbed innovations ``D`` (m, N) and
+    the innovation ``e`` (m,): the members' increments and the NIS."""
+    N = A.shape[1]
     S = B @ B.T / (N - 1) + R
     S = 0.5 * (S + S.T)
-    E = LR @ rng.standard_normal(Yo.shape)
-    E -= E.mean(axis=1, keepdims=True)
-    e = y - yb
-    D = np.column_stack([y[:, None] + E - Yo, e])
-    W = np.linalg.solve(S, D)  # (P_yy + R)^-1 [D, e]
-    Xa = X + (A @ (B.T / (N - 1))) @ W[:, :N]
-    return Xa, e, float(e @ W[:, N])
+    W = np.linalg.solve(S, np.column_stack([D, e]))  # (P_yy + R)^-1 [D, e]
+    return (A @ (B.T / (N - 1))) @ W[:, :N], float(e @ W[:, N])
 
 
-def _etkf(X: np.ndarray, Yo: np.ndarray, y: np.ndarray, LR: np.ndarray
+def _etkf(A: np.ndarray, B: np.ndarray, e: np.ndarray, LR: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray, float]:
-    """Ensemble transform analysis (symmetric square root) of members ``X`` (nx, N)
-    whose measured outputs are ``Yo`` (m, N): the new members, the innovation and its
-    NIS."""
-    N = X.shape[1]
+    """Ensemble transform analysis (symmetric square root) from the members' anomalies
+    ``A`` (nx, N), their measured outputs' anomalies ``B`` and the innovation ``e``: the
+    mean's increment, the new anomalies and the NIS."""
+    N = A.shape[1]
     c = np.sqrt(N - 1.0)
-    xb = X.mean(axis=1)
-    A = X - xb[:, None]
-    yb = Yo.mean(axis=1)
-    e = y - yb
-    Sw = np.linalg.solve(LR, Yo - yb[:, None]) / c  # L_R^-1 S
+    Sw = np.linalg.solve(LR, B) / c  # L_R^-1 S
     ew = np.linalg.solve(LR, e)
     U, s, Vt = np.linalg.svd(Sw, full_matrices=False)
     s2 = s * s
     g = U.T @ ew
     w = Vt.T @ (s / (1.0 + s2) * g)  # T S~^T L_R^-1 e
-    xa = xb + A @ w / c
     Aa = A + ((A @ Vt.T) * (1.0 / np.sqrt(1.0 + s2) - 1.0)) @ Vt  # A T^(1/2)
     # e^T (S S^T + R)^-1 e = |ew|^2 - sum s^2 / (1 + s^2) (U^T ew)^2
     nis = float(ew @ ew - (s2 / (1.0 + s2) * g * g).sum())
-    return xa[:, None] + Aa, e, nis
+    return A @ w / c, Aa, nis
 
 
 def _moments(X: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -212,6 +204,7 @@ class EnKF(Estimator):
     """
 
     name = "enkf"
+    _manifold_aware = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_ensemble: int = 50, variant: str = "stochastic",
@@ -267,31 +260,54 @@ class EnKF(Estimator):
         return None if self._X is None else self._X.copy()
 
     # -------------------------------------------------------------- step
+    def _spread(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """``N`` members drawn about ``x`` with covariance ``P`` (in the tangent space
+        of a manifold), ``(nx, N)``."""
+        M, N = self.model.manifold, self.n_ensemble
+        d = square_root(P) @ self._rng.standard_normal((self.model.ndx, N))
+        return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
+
+    def _moments(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The members' mean and covariance (:func:`_moments`; on a manifold the mean
+        there and the covariance of the tangent deviations)."""
+        M = self.model.manifold
+        if M.euclidean_states:
+            return _moments(X)
+        with np.errstate(all="ignore"):
+            xb, dev = M.mean(X.T)
+        moments = _moments(dev.T)
+        return None if moments is None or not np.isfinite(xb).all() else (xb, moments[1])
+
     def _step(self, y, u, first):
-        m, N, nx = self.model, self.n_ensemble, self.model.nx
+        m, N, nd = self.model, self.n_ensemble, self.model.ndx
         observed = ~np.isnan(y)
         w = self._transition(u) if m.nw else np.zeros(0)
         status, success = "ok", True
         if first or self._X is None:
-            X = self.x0[:, None] + square_root(self.P0) @ self._rng.standard_normal((nx, N))
+            X = self._spread(self.x0, self.P0)
         else:
-            V = self._rng.standard_normal((nx, N))
+            V = self._rng.standard_normal((nd, N))
             X = self._advance(self._X, V, w, self._LQ, n=N)[0]
             if self.inflation != 1.0:
-                xb = X.mean(axis=1, keepdims=True)
-                with np.errstate(all="ignore"):
-                    X = xb + self.inflation * (X - xb)
+                if m.manifold.euclidean_states:
+                    xb = X.mean(axis=1, keepdims=True)
+                    with np.errstate(all="ignore"):
+                        X = xb + self.inflation * (X - xb)
+                else:
+                    xc, dev = m.manifold.mean(X.T)
+                    X = m.manifold.retract(xc, self.inflation * dev, NP).T
         Xa, e, nis = self._analyse(X, y, observed, w)
-        moments = None if Xa is None else _moments(Xa)
+        moments = None if Xa is None else self._moments(Xa)
         if moments is None:  # a forecast or analysis that is not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = x_t[:, None] + square_root(P_t) @ self._rng.standard_normal((nx, N))
+            X = self._spread(x_t, P_t)
             Xa, e, nis = self._analyse(X, y, observed, w)
-            moments = None if Xa is None else _moments(Xa)
+            moments = None if Xa is None else self._moments(Xa)
             status, success = ("failed: non-finite ensemble; re-anchored on the last "
                                "trusted estimate with P + P0"), False
             if moments is None:
-                Xa, e, nis, moments = X, np.zeros(m.ny), float("nan"), _moments(X) or (x_t, P_t)
+                Xa, e, nis, moments = (X, np.zeros(m.ny), float("nan"),
+                                       self._moments(X) or (x_t, P_t))
                 status += " (no update: the new ensemble's analysis is not finite either)"
         x_hat, P = moments
         if success and observed.any():
@@ -317,16 +333,52 @@ class EnKF(Estimator):
         Ro, LR = self._measured(observed)
         try:
             with np.errstate(all="ignore"):
-                if self.variant == "etkf":
-                    Xa, eo, nis = _etkf(X, Yo, y[observed], LR)
-                else:
-                    Xa, eo, nis = _stochastic(X, Yo, y[observed], Ro, LR, self._rng)
+                Xa, eo, nis = self._analysis(X, Yo, y[observed], observed, Ro, LR)
         except np.linalg.LinAlgError:
             return None, e, float("nan")
         if not (np.isfinite(Xa).all() and np.isfinite(nis)):
             return None, e, float("nan")
         e[observed] = eo
         return Xa, e, nis
+
+    def _analysis(self, X, Yo, yo, observed, Ro, LR):
+        """The analysis of members ``X`` (nx, N) with measured outputs ``Yo`` (m, N) and
+        measurement ``yo`` (m,): anomalies and increments in the tangent space of a
+        manifold (quaternions, angles; output angles wrapped), else plain differences."""
+        M, N = self.model.manifold, X.shape[1]
+        if M.trivial:
+            xb = X.mean(axis=1)
+            A = X - xb[:, None]
+            yb = Yo.mean(axis=1)
+            B, e = Yo - yb[:, None], yo - yb
+        else:
+            xb, dev = M.mean(X.T)
+            A = dev.T
+            out = np.zeros((N, self.model.ny))  # wrapped about the first member's output
+            out[:, observed] = Yo.T
+            dy = M.output_difference(out, out[0], NP)[:, observed].T
+            yb = Yo[:, 0] + dy.mean(axis=1)
+            B = dy - dy.mean(axis=1, keepdims=True)
+            full = np.zeros(self.model.ny)
+            full[observed] = yo - yb
+            e = M.output_difference(full, np.zeros(self.model.ny), NP)[observed]
+        if self.variant == "etkf":
+            shift, Aa, nis = _etkf(A, B, e, LR)
+            if M.trivial:
+                return (xb + shift)[:, None] + Aa, e, nis
+            return M.retract(xb, (shift[:, None] + Aa).T, NP).T, e, nis
+        E = LR @ self._rng.standard_normal(Yo.shape)
+        E -= E.mean(axis=1, keepdims=True)
+        if M.trivial:
+            D = yo[:, None] + E - Yo
+        else:
+            full = np.zeros((N, self.model.ny))
+            full[:, observed] = (yo[:, None] + E - Yo).T
+            D = M.output_difference(full, np.zeros(self.model.ny), NP)[:, observed].T
+        dX, nis = _stochastic(A, B, D, e, Ro)
+        if M.trivial:
+            return X + dX, e, nis
+        return M.retract(X.T, dX.T, NP).T, e, nis
 
     # ------------------------------------------------------------ record
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> FilterResult:

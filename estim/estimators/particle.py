@@ -46,6 +46,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._manifold import NP
 from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
@@ -166,16 +167,17 @@ def _graphs(model: Model, loglik: Callable | None, proposal: str
     ``proposal`` reads of the tuning (see :meth:`ParticleFilter._proposal_tuning`); with
     the linearised proposal ``l`` includes the ratio of the transition density to the
     proposal's."""
-    nx, ny, nw = model.nx, model.ny, model.nw
+    nx, ny, nw, nd = model.nx, model.ny, model.nw, model.ndx
+    M = model.manifold
     p = ca.DM(model.p)
-    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nx), ca.SX.sym("w", nw)
+    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nd), ca.SX.sym("w", nw)
     y0 = ca.SX.sym("y0", ny)
     WR, miss = ca.SX.sym("WR", ny * ny), ca.SX.sym("miss", ny)
 
     def measure(xk):
         yhat = model.H(xk, model.measurement_input(w), p)
-        if loglik is None:
-            e = (1 - miss) * (y0 - yhat)
+        if loglik is None:  # (output angles wrapped)
+            e = (1 - miss) * M.output_difference(y0, yhat)
             return yhat, -0.5 * ca.sumsqr(ca.reshape(WR, ny, ny) @ e)
         y = (1 - miss) * y0 + miss * yhat
         params = {n: ca.SX(val) for n, val in model.params.items()}
@@ -184,9 +186,10 @@ def _graphs(model: Model, loglik: Callable | None, proposal: str
     yhat, ell = measure(x)
     weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])
     xb = model.F(x, w, p)
-    if proposal == "bootstrap":  # tun: L_Q
-        tun = ca.SX.sym("tun", nx * nx)
-        xn = xb + ca.reshape(tun, nx, nx) @ v
+    if proposal == "bootstrap":  # tun: L_Q; on a manifold the noise in its tangent space
+        tun = ca.SX.sym("tun", nd * nd)
+        noise = ca.reshape(tun, nd, nd) @ v
+        xn = xb + noise if M.euclidean_states else M.retract(xb, noise)
         advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
                               [xn, *measure(xn)])
         start = None
@@ -326,6 +329,7 @@ class ParticleFilter(Estimator):
     """
 
     name = "pf"
+    _manifold_aware = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
@@ -345,6 +349,10 @@ class ParticleFilter(Estimator):
             raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
                             f"or None, got {type(loglik).__name__}")
         self.proposal = as_choice(proposal, PROPOSALS, "proposal")
+        if self.proposal != "bootstrap" and not model.manifold.trivial:
+            raise ValueError(f"proposal={proposal!r}: the linearised proposals do not handle "
+                             f"the quaternions and angles of {model.name} yet; use the "
+                             f"bootstrap proposal")
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
@@ -419,8 +427,24 @@ class ParticleFilter(Estimator):
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
 
     # -------------------------------------------------------------- step
+    def _spread(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        """``N`` particles drawn about ``x`` with covariance ``P`` (in the tangent
+        space of a manifold), ``(nx, N)``."""
+        M, N = self.model.manifold, self.n_particles
+        d = square_root(P) @ self._rng.standard_normal((self.model.ndx, N))
+        return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
+
+    def _moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The weighted mean (on a manifold: there) and covariance of the particles."""
+        M = self.model.manifold
+        if M.euclidean_states:
+            x_hat = (X * W).sum(axis=1)
+            return x_hat, _spread(X - x_hat[:, None], W)
+        x_hat, dev = M.mean(X.T, W)
+        return x_hat, _spread(dev.T, W)
+
     def _step(self, y, u, first):
-        m, N, nx = self.model, self.n_particles, self.model.nx
+        m, N, nx = self.model, self.n_particles, self.model.ndx
         observed = ~np.isnan(y)
         WR, const, Ro, tun, miss = self._measured(observed)
         y0 = y if Ro.shape[0] == len(y) else np.where(observed, y, 0.0)
@@ -429,7 +453,7 @@ class ParticleFilter(Estimator):
             V = self._rng.standard_normal((nx, N))
             X, Yh, ell = self._start(self.x0, V, w, self._prior_tuning(tun), y0, WR, miss, n=N)
         elif first or self._X is None:
-            X = self.x0[:, None] + square_root(self.P0) @ self._rng.standard_normal((nx, N))
+            X = self._spread(self.x0, self.P0)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
@@ -438,7 +462,7 @@ class ParticleFilter(Estimator):
         W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = x_t[:, None] + square_root(P_t) @ self._rng.standard_normal((nx, N))
+            X = self._spread(x_t, P_t)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
             W, inc, X = self._update(X, ell[0], observed, const, None)
             status, success = ("failed: every particle weight is zero or not finite; "
@@ -446,9 +470,10 @@ class ParticleFilter(Estimator):
             if W is None:
                 W, inc = np.full(N, 1.0 / N), float("nan")
                 status += " (no update: the new particles' weights are not finite either)"
-        x_hat = (X * W).sum(axis=1)
-        P = _spread(X - x_hat[:, None], W)
+        x_hat, P = self._moments(X, W)
         ess = effective_sample_size(W)
+        if m.manifold.output_angles:  # each predicted output angle moved next to y
+            Yh = y0[:, None] - m.manifold.output_difference(y0, Yh.T, NP).T
         e, nis = _innovation(y, observed, Yh, self._W, Ro)
         if success and ess < max(2.0, COLLAPSE * N):
             status = f"suspect: effective sample size {ess:.1f} of {N}"
@@ -546,6 +571,9 @@ class ParticleFilter(Estimator):
             ``P (T, nx, nx)``.
         """
         n_paths = as_int(n_paths, "n_paths", minimum=1)
+        if not self.model.manifold.trivial:
+            raise ValueError(f"smooth does not handle the quaternions and angles of "
+                             f"{self.model.name} yet (the filter does)")
         try:
             LQ = np.linalg.cholesky(self.Q)
         except np.linalg.LinAlgError:

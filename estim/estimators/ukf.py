@@ -6,6 +6,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
+from estim._manifold import NP
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
 from estim.estimators.manifold_steps import check_manifold_options, usque_step
@@ -206,6 +207,10 @@ class UKF(FusedKalman):
         off = np.swapaxes(L, -1, -2)  # rows of U = L^T
         xs = x[..., None, :]
         centre = [] if self.points == "cubature" else [xs]
+        M = self.model.manifold
+        if not M.euclidean_states:  # x (+) the offsets, in the tangent space
+            return np.concatenate(centre + [M.retract(xs, off, NP), M.retract(xs, -off, NP)],
+                                  axis=-2)
         return np.concatenate(centre + [xs + off, xs - off], axis=-2)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
@@ -259,6 +264,9 @@ class UKF(FusedKalman):
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
         m, Q = self.model, self.Q
+        if not m.manifold.trivial:
+            raise ValueError(f"smooth does not handle the quaternions and angles of "
+                             f"{m.name} yet (the filter does)")
 
         def predict(X, P, W):
             n, ns, nx = len(X), len(self._Wm), m.nx
