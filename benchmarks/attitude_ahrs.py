@@ -424,6 +424,12 @@ def main(argv: list[str] | None = None) -> None:
               f"{norm_dev[name]:.1e}")
     if cc:
         print(f"  (jit against interpreted, max |x_hat difference|: {jit_vs_plain:.1e})")
+    print("  (the additive rows are not normalised after the update; the others are unit)")
+    print("paired by seed, RMSE difference to estim's EKF: median [range]")
+    ref = np.array(rmse["estim EKF (multiplicative)"])
+    for name in ("ahrs EKF", "estim UKF (tangent sigma)", ADDITIVE, ISOTROPIC):
+        d = np.array(rmse[name]) - ref
+        print(f"  {name:46s} {np.median(d):+.1e} deg [{d.min():+.1e}, {d.max():+.1e}]")
     base = statistics.median(step_time["ahrs EKF"])
     print("\nper-step ratio ahrs EKF / estim (> 1: estim faster); construction (median)")
     for name in variants:

@@ -123,6 +123,9 @@ class Comparison:
     batched : str
         Which estimators ran all seeds in one batched call (``compare(batch=)``) and
         how long that took, printed under the table; empty when none did.
+    nees : dict of str -> (n_seeds,) array
+        The time-averaged NEES per state dimension of every run (after the burn-in), per
+        estimator, in seed order (NaN without a covariance or for a run that raised).
     """
 
     scenario: str
@@ -133,6 +136,7 @@ class Comparison:
     remarks: dict[str, str] = field(default_factory=dict)
     parallel: str = ""
     batched: str = ""
+    nees: dict[str, np.ndarray] = field(default_factory=dict)
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
@@ -379,17 +383,20 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
                       f"filter's time per sample")
     rows: list[ComparisonRow] = []
     all_rmse: dict[str, np.ndarray] = {}
+    all_nees: dict[str, np.ndarray] = {}
     logs: dict[str, list[Log | None]] = {}
-    names = scenario.model.state_names
+    m = scenario.model  # errors of quaternions and angles: in the tangent space
+    names = m.state_names if m.manifold.euclidean_states else m.manifold.tangent_names
     order = {s: i for i, s in enumerate(seed_list)}
     for name, runs in per_name.items():
         runs.sort(key=lambda r: order[r["seed"]])
         rows.append(ComparisonRow(name, **summary(runs, names)))
         all_rmse[name] = np.array([r.get("rmse", np.nan) for r in runs])
+        all_nees[name] = np.array([r.get("nees", np.nan) for r in runs])
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seed_list, rows, all_rmse, logs, remarks=scenario.remarks,
-                      parallel=note, batched=batch_note)
+                      parallel=note, batched=batch_note, nees=all_nees)
 
 
 class _NoBar:
