@@ -67,6 +67,7 @@ def _values(comparison: Comparison | Mapping[str, ArrayLike], label: str, metric
     if not isinstance(metric, str) or metric not in METRICS:
         raise ValueError(f"metric must be one of {', '.join(map(repr, METRICS))}, got "
                          f"{metric!r}{did_you_mean(str(metric), list(METRICS))}")
+    table: Mapping[str, ArrayLike]
     if isinstance(comparison, Comparison):
         table = comparison.rmse if metric == "rmse" else comparison.nees
     elif isinstance(comparison, Mapping):
