@@ -8,7 +8,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool
 from estim.estimators.fused import FusedKalman
-from estim.estimators.manifold_steps import check_manifold_options, mekf_step
+from estim.estimators.manifold_steps import check_manifold_options, mekf_step, refuse_manifold
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariances, ekf_step
 from estim.model import Model
@@ -190,9 +190,7 @@ class EKF(FusedKalman):
         S. Särkkä, *Bayesian Filtering and Smoothing*, 2013, sec. 9.1.
         """
         m, Q = self.model, self.Q
-        if not m.manifold.trivial:
-            raise ValueError(f"smooth does not handle the quaternions and angles of "
-                             f"{m.name} yet (the filter does)")
+        refuse_manifold(m, "smooth (the filter does)")
 
         def predict(X, P, W):
             A = transitions(m, X, W, jacobian=True)

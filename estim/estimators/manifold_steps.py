@@ -42,7 +42,8 @@ from typing import Any
 
 import casadi as ca
 
-__all__ = ["check_manifold_options", "mekf_step", "tangent_jacobian", "usque_step"]
+__all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
+           "usque_step"]
 
 
 def check_manifold_options(model: Any, form: str, clip: bool) -> None:
@@ -57,6 +58,14 @@ def check_manifold_options(model: Any, form: str, clip: bool) -> None:
     if clip:
         raise ValueError(f"clip=True: clipping does not handle the quaternions and angles "
                          f"of {model.name}; give bounds to an MHE instead")
+
+
+def refuse_manifold(model: Any, what: str) -> None:
+    """A ``ValueError`` when ``model`` declares quaternions or angles, which ``what``
+    does not handle yet."""
+    if not model.manifold.trivial:
+        raise ValueError(f"{what} does not handle the quaternions and angles of "
+                         f"{model.name} yet")
 
 
 def tangent_jacobian(fun: Any, n: int) -> Any:

@@ -51,6 +51,7 @@ from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ensembles import over_points, run_record, square_root
+from estim.estimators.manifold_steps import refuse_manifold
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -153,6 +154,33 @@ def _innovation(y: np.ndarray, observed: np.ndarray, Yh: np.ndarray, Wp: np.ndar
         return e, float(eo @ np.linalg.solve(S, eo))
     except np.linalg.LinAlgError:
         return e, float("nan")
+
+
+def _about(model: Model, rng: np.random.Generator, x: np.ndarray, P: np.ndarray, N: int
+           ) -> np.ndarray:
+    """``N`` particles drawn about ``x`` with covariance ``P`` (in the tangent space of
+    a manifold), ``(nx, N)``."""
+    M = model.manifold
+    d = square_root(P) @ rng.standard_normal((model.ndx, N))
+    return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
+
+
+def _moments(model: Model, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted mean (on a manifold: there, the weighted Karcher mean) and
+    covariance of the particles ``X`` ``(nx, N)``."""
+    M = model.manifold
+    if M.euclidean_states:
+        x_hat = (X * W).sum(axis=1)
+        return x_hat, _spread(X - x_hat[:, None], W)
+    x_hat, dev = M.mean(X.T, W)
+    return x_hat, _spread(dev.T, W)
+
+
+def _prior_tuning(P0: np.ndarray, tun: np.ndarray) -> np.ndarray:
+    """The linearised proposal's tuning ``tun`` with ``P0`` in place of ``Q``."""
+    nx, L0 = len(P0), np.linalg.cholesky(P0)
+    return np.concatenate([P0.ravel(order="F"), np.linalg.inv(L0).ravel(order="F"),
+                           tun[2 * nx * nx:-nx * nx], L0.ravel(order="F")])
 
 
 def _graphs(model: Model, loglik: Callable | None, proposal: str
@@ -349,10 +377,8 @@ class ParticleFilter(Estimator):
             raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
                             f"or None, got {type(loglik).__name__}")
         self.proposal = as_choice(proposal, PROPOSALS, "proposal")
-        if self.proposal != "bootstrap" and not model.manifold.trivial:
-            raise ValueError(f"proposal={proposal!r}: the linearised proposals do not handle "
-                             f"the quaternions and angles of {model.name} yet; use the "
-                             f"bootstrap proposal")
+        if self.proposal != "bootstrap":
+            refuse_manifold(model, f"proposal={proposal!r} (use the bootstrap proposal)")
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
@@ -413,13 +439,6 @@ class ParticleFilter(Estimator):
                                     (~observed).astype(float))
         return self._whitening[key]
 
-    def _prior_tuning(self, tun: np.ndarray) -> np.ndarray:
-        """The linearised proposal's tuning ``tun`` with ``P0`` in place of ``Q``."""
-        nx, P0 = self.model.nx, np.asarray(self.P0, dtype=float)  # required: never None
-        L0 = np.linalg.cholesky(P0)
-        return np.concatenate([P0.ravel(order="F"), np.linalg.inv(L0).ravel(order="F"),
-                               tun[2 * nx * nx:-nx * nx], L0.ravel(order="F")])
-
     def _reset(self) -> None:
         self._rng = np.random.default_rng(self.seed)
         self._X: np.ndarray | None = None
@@ -427,22 +446,6 @@ class ParticleFilter(Estimator):
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
 
     # -------------------------------------------------------------- step
-    def _spread(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """``N`` particles drawn about ``x`` with covariance ``P`` (in the tangent
-        space of a manifold), ``(nx, N)``."""
-        M, N = self.model.manifold, self.n_particles
-        d = square_root(P) @ self._rng.standard_normal((self.model.ndx, N))
-        return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
-
-    def _moments(self, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The weighted mean (on a manifold: there) and covariance of the particles."""
-        M = self.model.manifold
-        if M.euclidean_states:
-            x_hat = (X * W).sum(axis=1)
-            return x_hat, _spread(X - x_hat[:, None], W)
-        x_hat, dev = M.mean(X.T, W)
-        return x_hat, _spread(dev.T, W)
-
     def _step(self, y, u, first):
         m, N, nx = self.model, self.n_particles, self.model.ndx
         observed = ~np.isnan(y)
@@ -451,9 +454,9 @@ class ParticleFilter(Estimator):
         w = self._transition(u) if m.nw else np.zeros(0)
         if (first or self._X is None) and self._start is not None:
             V = self._rng.standard_normal((nx, N))
-            X, Yh, ell = self._start(self.x0, V, w, self._prior_tuning(tun), y0, WR, miss, n=N)
+            X, Yh, ell = self._start(self.x0, V, w, _prior_tuning(self.P0, tun), y0, WR, miss, n=N)
         elif first or self._X is None:
-            X = self._spread(self.x0, self.P0)
+            X = _about(m, self._rng, self.x0, self.P0, N)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
@@ -462,7 +465,7 @@ class ParticleFilter(Estimator):
         W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = self._spread(x_t, P_t)
+            X = _about(m, self._rng, x_t, P_t, N)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
             W, inc, X = self._update(X, ell[0], observed, const, None)
             status, success = ("failed: every particle weight is zero or not finite; "
@@ -470,7 +473,7 @@ class ParticleFilter(Estimator):
             if W is None:
                 W, inc = np.full(N, 1.0 / N), float("nan")
                 status += " (no update: the new particles' weights are not finite either)"
-        x_hat, P = self._moments(X, W)
+        x_hat, P = _moments(m, X, W)
         ess = effective_sample_size(W)
         if m.manifold.output_angles:  # each predicted output angle moved next to y
             Yh = y0[:, None] - m.manifold.output_difference(y0, Yh.T, NP).T
@@ -571,9 +574,7 @@ class ParticleFilter(Estimator):
             ``P (T, nx, nx)``.
         """
         n_paths = as_int(n_paths, "n_paths", minimum=1)
-        if not self.model.manifold.trivial:
-            raise ValueError(f"smooth does not handle the quaternions and angles of "
-                             f"{self.model.name} yet (the filter does)")
+        refuse_manifold(self.model, "smooth (the filter does)")
         try:
             LQ = np.linalg.cholesky(self.Q)
         except np.linalg.LinAlgError:

@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
-from estim.estimators.manifold_steps import check_manifold_options, usque_step
+from estim.estimators.manifold_steps import check_manifold_options, refuse_manifold, usque_step
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariance, ukf_step
 from estim.model import Model
@@ -264,9 +264,7 @@ class UKF(FusedKalman):
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
         m, Q = self.model, self.Q
-        if not m.manifold.trivial:
-            raise ValueError(f"smooth does not handle the quaternions and angles of "
-                             f"{m.name} yet (the filter does)")
+        refuse_manifold(m, "smooth (the filter does)")
 
         def predict(X, P, W):
             n, ns, nx = len(X), len(self._Wm), m.nx
