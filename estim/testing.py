@@ -37,7 +37,10 @@ Pharmacokinet. Biopharm. 15(6), 1987; Y. Bar-Shalom, X. R. Li, T. Kirubarajan,
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -45,6 +48,7 @@ from numpy.typing import ArrayLike
 from scipy import stats
 
 from estim._validate import as_float, did_you_mean
+from estim._version import __version__
 from estim.compare import Comparison
 from estim.estimators.base import Estimator
 from estim.experiment import Record
@@ -53,7 +57,7 @@ from estim.metrics import nees as nees_of
 from estim.simulate import replay
 
 __all__ = ["METRICS", "assert_better", "assert_close", "assert_consistent",
-           "assert_equivalent"]
+           "assert_equivalent", "assert_no_regression", "load_baseline", "save_baseline"]
 
 #: The per-seed metrics a comparison holds.
 METRICS = ("rmse", "nees")
@@ -323,3 +327,99 @@ def assert_close(a: Estimator, b: Estimator, record: Record | tuple, *, atol: fl
                 f"{tuple(int(i) for i in first[1:])}: {xa[tuple(first)]!r} against "
                 f"{xb[tuple(first)]!r} (atol {atol:g}, rtol {rtol:g}); {int(bad.sum())} "
                 f"entries differ in all")
+
+
+def save_baseline(comparison: Comparison, path: str | os.PathLike[str]) -> Path:
+    """Store a comparison's per-seed metrics as JSON (scenario, seeds, every estimator's
+    ``rmse`` and ``nees``, the estim version) for :func:`assert_no_regression`."""
+    if not isinstance(comparison, Comparison):
+        raise TypeError(f"comparison must be an estim.Comparison, got "
+                        f"{type(comparison).__name__}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {"scenario": comparison.scenario, "seeds": [int(s) for s in comparison.seeds],
+            "estim": __version__,
+            "metrics": {name: {"rmse": _json_values(comparison.rmse[name]),
+                               "nees": _json_values(comparison.nees.get(name, []))}
+                        for name in comparison.rmse}}
+    path.write_text(json.dumps(data, indent=1) + "\n")
+    return path
+
+
+def _json_values(values: ArrayLike) -> list[float | None]:
+    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, float)]
+
+
+def load_baseline(path: str | os.PathLike[str]) -> dict:
+    """A baseline written by :func:`save_baseline` (``ValueError`` naming the file when
+    it is not one)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        assert isinstance(data, dict) and {"scenario", "seeds", "metrics"} <= set(data)
+    except (OSError, ValueError, AssertionError) as exc:
+        raise ValueError(f"baseline {str(path)!r} is not an estim baseline (written by "
+                         f"estim.testing.save_baseline): {exc}") from None
+    return data
+
+
+def assert_no_regression(comparison: Comparison, baseline: str | os.PathLike[str] | dict, *,
+                         metric: str = "rmse", confidence: float = 0.95,
+                         margin: float = 0.0) -> dict[str, float]:
+    r"""Assert that no estimator of ``comparison`` got worse than in ``baseline``: for each
+    estimator in both, the one-sided paired test (seed by seed, the same seeds) that its
+    ``metric`` rose by more than ``margin`` times the baseline's mean must not pass at
+    ``confidence``. With the same code the per-seed numbers are identical and the test
+    is exact. A baseline of another scenario or another seed set is refused.
+
+    Returns
+    -------
+    dict
+        The mean change of the metric per estimator (positive: worse).
+    """
+    confidence = _level(confidence, "confidence")
+    margin = as_float(margin, "margin", minimum=0.0)
+    if not isinstance(comparison, Comparison):
+        raise TypeError(f"comparison must be an estim.Comparison, got "
+                        f"{type(comparison).__name__}")
+    where = "the baseline" if isinstance(baseline, dict) else repr(str(baseline))
+    data = baseline if isinstance(baseline, dict) else load_baseline(baseline)
+    if data["scenario"] != comparison.scenario:
+        raise ValueError(f"baseline: {where} is of scenario {data['scenario']!r}, not "
+                         f"{comparison.scenario!r}")
+    if [int(s) for s in data["seeds"]] != [int(s) for s in comparison.seeds]:
+        raise ValueError(f"baseline: {where} has seeds {_seed_text(data['seeds'])}, the "
+                         f"comparison {_seed_text(comparison.seeds)}: paired tests need "
+                         f"the same seeds (update the baseline)")
+    changes, regressions = {}, []
+    for name in comparison.rmse:
+        if name not in data["metrics"]:
+            continue
+        old = np.array([np.nan if v is None else v for v in data["metrics"][name][metric]],
+                       dtype=float)
+        new = _values(comparison, name, metric, "comparison")
+        if metric == "nees":
+            old = np.abs(old - 1.0)
+        ok = np.isfinite(old) & np.isfinite(new)
+        if ok.sum() < 2:
+            continue
+        d = new[ok] - old[ok]
+        kept = [s for s, k in zip(comparison.seeds, ok, strict=True) if k]
+        mean, lower, _ = _interval(d, confidence, 1) if d.any() else (0.0, 0.0, 0.0)
+        changes[name] = mean
+        if lower > margin * float(np.mean(old[ok])):
+            regressions.append(f"{name!r}: {metric} {np.mean(old[ok]):.4g} -> "
+                               f"{np.mean(new[ok]):.4g} ({mean / np.mean(old[ok]):+.2%}, "
+                               f"one-sided lower bound {lower:.3g}; worst "
+                               f"{_worst(-d, kept)})")
+    if regressions:
+        raise AssertionError(f"regression against {where} at confidence {confidence:g}: "
+                             + "; ".join(regressions))
+    return changes
+
+
+def _seed_text(seeds: Sequence[int]) -> str:
+    seeds = [int(s) for s in seeds]
+    if seeds == list(range(seeds[0], seeds[0] + len(seeds))) if seeds else False:
+        return f"{seeds[0]}..{seeds[-1]} ({len(seeds)})"
+    return str(seeds[:6])[:-1] + (", ...]" if len(seeds) > 6 else "]")
