@@ -105,3 +105,15 @@ def test_scenario_fixture_runs_every_scenario(pytester):
     result.stdout.fnmatch_lines(["*test_short?batch_reactor?*", "*test_short?van_der_pol?*"])
     import estim
     assert f"{len(estim.scenarios.SCENARIOS)} tests collected" in result.stdout.str()
+
+
+def test_the_example_test_modules_pass(pytester):
+    """examples/test_estimators.py (the assertions, the fixtures, a filterpy filter) and
+    the course's grading file pass as users run them."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for path, n in ((root / "examples" / "test_estimators.py", 6),
+                    (root / "examples" / "course" / "test_grade.py", 3)):
+        result = pytester.runpytest(str(path), "-q", "-p", "no:cacheprovider")
+        result.assert_outcomes(passed=n)
