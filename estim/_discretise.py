@@ -105,9 +105,14 @@ def euler_step(f: RightHandSide, x: Sym, u: Sym | Callable[[Sym], Sym], p: Sym,
 
 
 def as_holds(hold: str | Mapping[str, str], input_names: Sequence[str]) -> dict[str, str]:
-    """A model's ``hold=`` argument as ``{input name: "zoh" or "foh"}``."""
+    """A model's ``hold=`` argument as ``{input name: "zoh" or "foh"}``; ``"foh"`` on a
+    model without inputs is refused (it would be ignored)."""
     if isinstance(hold, str):
-        return dict.fromkeys(input_names, as_choice(hold, HOLDS, "hold"))
+        choice = as_choice(hold, HOLDS, "hold")
+        if choice == "foh" and not input_names:
+            raise ValueError("hold='foh' interpolates inputs between samples, but the "
+                             "model has none (inputs=...)")
+        return dict.fromkeys(input_names, choice)
     if not isinstance(hold, Mapping):
         raise TypeError(f"hold must be 'zoh', 'foh' or a dict {{input: hold}}, "
                         f"got {type(hold).__name__}")

@@ -283,7 +283,8 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
     U : (T, nu) or (T-1, nu) array, optional
         ``U[k]`` acts from sample k to k+1 and is the held input when ``y_{k+1}`` is
         taken (the convention of ``FullInformation.fit``); for a model with
-        ``hold="foh"``, ``(T, nu)``: the input at each sample. Zero if omitted.
+        ``hold="foh"``, ``(T, nu)``: the input at each sample. Required for a model with
+        inputs (``U=0``: zero inputs).
     names : sequence of str, optional
         The parameters to check (default: all of ``model.augmented``).
 

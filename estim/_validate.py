@@ -251,14 +251,24 @@ def as_input_table(value, T: int, nu: int, name: str = "inputs",
 
 
 def as_inputs(value, T: int, model, name: str = "U") -> np.ndarray:
-    """The inputs of a ``T``-sample record as a ``(T, nu)`` float array (zero if
-    ``value`` is None). ``(T-1, nu)`` is accepted for a held input (``U[k]`` acts from
-    sample k to k+1; the last row, never used, is zero); a model with ``hold="foh"``
-    takes ``(T, nu)``, the input at each sample. Non-finite inputs are refused. A
+    """The inputs of a ``T``-sample record as a ``(T, nu)`` float array. ``(T-1, nu)`` is
+    accepted for a held input (``U[k]`` acts from sample k to k+1; the last row, never
+    used, is zero); a model with ``hold="foh"`` takes ``(T, nu)``, the input at each
+    sample. A number is that input at every sample (``U=0``: zero inputs, on purpose).
+    None is an empty record for a model without inputs, and refused for one with inputs
+    (a silent zero input would fit the wrong problem). Non-finite inputs are refused. A
     pandas DataFrame is read by the model's input names."""
     nu = model.nu
     if value is None:
-        return np.zeros((T, nu))
+        if nu:
+            raise ValueError(
+                f"{name} is required: {model.name} has nu = {nu} input(s) "
+                f"{model.input_names}; give {name} ({T - 1}, {nu}) (or ({T}, {nu})), or "
+                f"{name}=0 to run with zero inputs on purpose")
+        return np.zeros((T, 0))
+    if isinstance(value, int | float | np.integer | np.floating) and \
+            not isinstance(value, bool | np.bool_):
+        value = np.full((T, nu), float(value))
     U = _numeric_array(by_name(value, model.input_names, name, "inputs"), name)
     if U.ndim == 1 and nu == 1:
         U = U[:, None]

@@ -40,7 +40,7 @@ from estim._parallel import makespan as _makespan  # compare's names for the sch
 from estim._parallel import plan as _plan
 from estim._parallel import startup as _startup
 from estim._runs import Factory, Run, Spec, build, run_batch, run_seed, summary
-from estim._validate import as_bool, as_float, as_int, check_keywords
+from estim._validate import as_bool, as_float, as_int, check_keywords, did_you_mean
 from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.scenarios import Scenario
@@ -455,6 +455,12 @@ def _check_compare(scenario: Scenario, estimators: object, seeds: object, n_jobs
     if not isinstance(backend, str):
         raise TypeError(f"backend must be a string (a joblib backend or 'dask'), "
                         f"got {type(backend).__name__}")
+    from joblib.parallel import BACKENDS  # joblib's own and any registered (ray, ...)
+
+    known = sorted({*BACKENDS, "dask"})
+    if backend not in known:
+        raise ValueError(f"backend must be one of {known} (joblib's registered backends "
+                         f"and 'dask'), got {backend!r}{did_you_mean(backend, known)}")
     keep = as_bool(keep_logs, "keep_logs")
     show = as_bool(progress, "progress", allow_none=True)
     burn = as_int(burn_in, "burn_in", minimum=0)

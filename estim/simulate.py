@@ -414,7 +414,7 @@ def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
         ``u[k]`` is the input applied after sample ``k`` (so ``u[k-1]`` is
         passed with ``y[k]``, as in :func:`simulate`); for a model with
         ``hold="foh"`` the input's value at sample ``k`` (passed with ``y[k]``).
-        Zero if omitted.
+        Required for a model with inputs (``u=0``: zero inputs, on purpose).
     x : (T, nx) array, optional
         The true states, where known (for :func:`~estim.rmse` and plots).
     t : (T,) array, optional
@@ -438,9 +438,15 @@ def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
     if not isinstance(estimator, Estimator):
         raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
     model = estimator.model
+    if isinstance(u, int | float) and not isinstance(u, bool):  # u=0: zero inputs
+        u = np.full((len(np.atleast_1d(np.asarray(y, dtype=object))), model.nu), float(u))
     Y, dts = _check_replay(model, y, u, x, t)  # dts: each interval (variable_dt) or None
     warn = as_bool(warn, "warn")
     T = Y.shape[0]
+    if u is None and model.nu:
+        raise ValueError(f"u is required: {model.name} has nu = {model.nu} input(s) "
+                         f"{model.input_names}; give u ({T}, {model.nu}), or u=0 to replay "
+                         f"with zero inputs on purpose")
     U = np.zeros((T, model.nu)) if u is None else _input_table(u, T, model)
     X = np.full((T, model.nx), np.nan) if x is None else \
         np.asarray(by_name(x, model.state_names, "x", "states"), dtype=float)

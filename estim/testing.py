@@ -54,6 +54,7 @@ from estim.estimators.base import Estimator
 from estim.experiment import Record
 from estim.log import Log
 from estim.metrics import nees as nees_of
+from estim.metrics import startup_samples
 from estim.simulate import replay
 
 __all__ = ["METRICS", "assert_better", "assert_close", "assert_consistent",
@@ -211,7 +212,8 @@ def _runs(result, burn_in: int | None) -> tuple[list[tuple[Log, int]] | None,
             not all(isinstance(g, Log) for g in logs):
         raise TypeError(f"result must be a Log, a list of Logs or a Comparison, got "
                         f"{type(result).__name__}")
-    return [(g, len(g) // 10 if burn_in is None else int(burn_in)) for g in logs], None
+    return [(g, startup_samples(len(g)) if burn_in is None else int(burn_in)) for g in logs], \
+        None
 
 
 def _by_seed(per: list[np.ndarray], what: str) -> tuple[np.ndarray, str]:
@@ -240,8 +242,9 @@ def assert_consistent(result: Log | Sequence[Log] | Comparison, level: float = 0
     level : float
         One minus the false-alarm rate, in (0, 1).
     burn_in : int, optional
-        Samples to leave out at the start of each log (default: the first tenth; the
-        start-up from the guess is not consistent by design).
+        Samples to leave out at the start of each log (default: the start-up that
+        ``compare``'s notes set apart, a tenth; from the guess a filter is not consistent
+        by design).
 
     Returns
     -------

@@ -156,3 +156,43 @@ def test_simulate_argument_errors():
         estim.simulate(estim.scenarios.lorenz(), ekf)
     with pytest.raises(ValueError, match="unknown scenario"):
         estim.scenarios.get("double_pendulum")
+
+
+def test_inputs_are_never_silently_zero():
+    """A model with inputs refuses a record without U in fit, filter, smooth, replay and
+    the tuning functions (naming U and nu); U=0 runs with zero inputs on purpose."""
+    m = estim.Model(states=["h"], inputs=["q"], outputs=["y"],
+                    ode=lambda x, u, p: -0.5 * x + u, output=lambda x, u, p: x, dt=0.1)
+    Y = np.full((20, 1), 0.3)
+    tuning = dict(Q=1e-4, R=1e-2, x0=[0.3], P0=0.1)
+    calls = [lambda: estim.FullInformation(m, Q=1e-4, R=1e-2).fit(Y),
+             lambda: estim.EKF(m, **tuning).filter(Y),
+             lambda: estim.UKF(m, **tuning).smooth(Y),
+             lambda: estim.EnKF(m, **tuning).filter(Y),
+             lambda: estim.tuning.als(m, Y, x0=[0.3], P0=0.1)]
+    for call in calls:
+        with pytest.raises(ValueError, match=r"U is required: model has nu = 1 input\(s\) "
+                                             r"\['q'\].* or U=0 to run with zero inputs"):
+            call()
+    with pytest.raises(ValueError, match=r"u is required: .* or u=0 to replay"):
+        estim.replay(estim.EKF(m, **tuning), Y)
+    zero = estim.EKF(m, **tuning).filter(Y, 0)
+    np.testing.assert_allclose(zero.x, estim.EKF(m, **tuning).filter(Y, np.zeros((19, 1))).x)
+    np.testing.assert_allclose(estim.replay(estim.EKF(m, **tuning), Y, u=0).x_hat, zero.x)
+    assert estim.FullInformation(m, Q=1e-4, R=1e-2).fit(Y, 0).success
+
+
+def test_corners_are_refused():
+    """codegen.memory refuses what export refuses; compare checks the backend's name; a
+    first-order hold on a model without inputs is refused."""
+    sc = estim.scenarios.get("van_der_pol")
+    for bad in (None, estim.FullInformation(sc.model, Q=0.01, R=1.0)):
+        with pytest.raises(TypeError, match="estimator must be an estim.EKF, estim.UKF or "
+                                            "estim.MHE with rti=True"):
+            estim.codegen.memory(bad)
+    with pytest.raises(ValueError, match=r"backend must be one of .* got 'lokky'; did you "
+                                         r"mean 'loky'"):
+        estim.compare(sc, {"ekf": estim.EKF}, backend="lokky")
+    with pytest.raises(ValueError, match="hold='foh' .* the model has none"):
+        estim.Model(states=["x"], outputs=["y"], ode=lambda x, u, p: -x,
+                    output=lambda x, u, p: x, dt=0.1, hold="foh")

@@ -126,17 +126,10 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
-    from estim.estimators.fused import FusedKalman
     from estim.estimators.mhe import MHE
 
-    if not isinstance(estimator, (FusedKalman, MHE)):
-        raise TypeError(f"estimator must be an estim.EKF, estim.UKF or estim.MHE with "
-                        f"rti=True, got {type(estimator).__name__}")
+    _exportable(estimator)
     m = estimator.model
-    if isinstance(estimator, MHE):
-        mhe.check(estimator)
-    else:
-        check_model(m)
     if name is None:
         name = re.sub(r"\W+", "_", f"{estimator.name}_{m.name}".lower()).strip("_")
         if name[:1].isdigit():
@@ -165,9 +158,26 @@ def memory(estimator: EKF | UKF | MHE) -> int:
     (8-byte doubles, pointers and ``casadi_int``; the filter state, the tuning, the
     step's results and CasADi's work arrays; in the square-root form also the factor
     of ``P0``; for the MHE also the window, the arrival cost and the real-time
-    iteration's intermediate results)."""
+    iteration's intermediate results). Refuses what :func:`export` refuses, with its
+    errors."""
     from estim.estimators.mhe import MHE
 
+    _exportable(estimator)
     if isinstance(estimator, MHE):
         return mhe.memory(estimator)
     return kalman.memory(estimator)
+
+
+def _exportable(estimator: object) -> None:
+    """A ``TypeError`` or ``ValueError`` (as :func:`export` documents them) for an
+    estimator the export does not handle."""
+    from estim.estimators.fused import FusedKalman
+    from estim.estimators.mhe import MHE
+
+    if not isinstance(estimator, (FusedKalman, MHE)):
+        raise TypeError(f"estimator must be an estim.EKF, estim.UKF or estim.MHE with "
+                        f"rti=True, got {type(estimator).__name__}")
+    if isinstance(estimator, MHE):
+        mhe.check(estimator)
+    else:
+        check_model(estimator.model)

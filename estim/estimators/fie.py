@@ -398,7 +398,8 @@ class FullInformation(Estimator):
         U : (T-1, nu) or (T, nu) array, optional
             ``U[k]`` acts from sample k to k+1 (and is the held input when
             ``y_{k+1}`` is taken). With ``hold="foh"``, ``(T, nu)``: the input at
-            each sample, linear in between. Zero if omitted.
+            each sample, linear in between. Required for a model with inputs
+            (``U=0``: zero inputs, on purpose).
         guess : (T, nx) array, optional
             Initial trajectory; default ``x0`` repeated (zeros without ``x0``).
         Q, R : optional

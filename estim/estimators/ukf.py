@@ -248,7 +248,8 @@ class UKF(FusedKalman):
             Measurements, NaN where missing.
         U : (T-1, nu) or (T, nu) array, optional
             ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
-            the input at each sample), as in ``FullInformation.fit``. Zero if omitted.
+            the input at each sample), as in ``FullInformation.fit``; required
+            for a model with inputs (``U=0``: zero inputs, on purpose).
         t : (T,) array, optional
             Sample times, for a model built with ``variable_dt=True``.
 

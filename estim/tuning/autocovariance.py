@@ -115,7 +115,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     Y : (T, ny) array
         Measurements; every output at every sample (no NaN).
     U : (T, nu) or (T-1, nu) array, optional
-        Inputs as for :func:`estim.replay` (zero if omitted).
+        Inputs as for :func:`estim.replay` (required for a model with inputs).
     gain : None, (nx, ny) array or EKF, optional
         The filter whose innovations are used. None (default): for a linear model the
         steady-state Kalman gain of ``(Q0, R0)``, for a nonlinear one an
