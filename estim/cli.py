@@ -2,8 +2,8 @@
 
 ``estim run`` with no arguments is the main job: the batch reactor of the
 KU Leuven course with EKF, clipped EKF, UKF and MHE (N = 25, zero prior,
-0 <= x <= 10) over 5 seeds, a table on standard output and PNGs of the
-first seed.
+within the model's bounds x >= 0) over 5 seeds, a table on standard output
+and PNGs of the first seed.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from estim import scenarios
-from estim._validate import unknown_keywords_message
+from estim._validate import did_you_mean, unknown_keywords_message
 from estim.compare import compare
 
 DEFAULT_ESTIMATORS = ("ekf", "ekf:clip=true", "ukf", "mhe-25=mhe:horizon=25,arrival_cost=none")
@@ -128,8 +128,49 @@ def _cmd_list(args) -> int:
     return 0
 
 
+def load_scenario(target: str) -> scenarios.Scenario:
+    """A scenario by name (:mod:`estim.scenarios`), or from a user's file:
+    ``path/to/file.py:name`` (``name`` default ``scenario``), a :class:`~estim.Scenario`
+    or a function of no arguments returning one."""
+    if ".py" not in target:
+        return scenarios.get(target)
+    stem, _, rest = target.partition(".py")
+    path, name = Path(stem + ".py"), rest.lstrip(":") or "scenario"
+    if not path.is_file():
+        raise ValueError(f"scenario file {str(path)!r} does not exist")
+    spec = importlib.util.spec_from_file_location(f"estim_user_{path.stem}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(path.parent.resolve()))
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.pop(0)
+    if not hasattr(module, name):
+        found = [k for k, v in vars(module).items()
+                 if isinstance(v, scenarios.Scenario) or (callable(v) and not k.startswith("_")
+                                                          and not isinstance(v, type))]
+        raise ValueError(f"{path} has no {name!r}; give file.py:name, one of {found}")
+    value = getattr(module, name)
+    if callable(value) and not isinstance(value, scenarios.Scenario):
+        value = value()
+    if not isinstance(value, scenarios.Scenario):
+        raise TypeError(f"{path}:{name} must be an estim.Scenario or a function returning "
+                        f"one, got {type(value).__name__}")
+    return value
+
+
+def _scenario_arg(value: str) -> str:
+    """A scenario name or ``file.py[:name]``, checked when the command line is read."""
+    if ".py" in value or value in scenarios.SCENARIOS:
+        return value
+    known = sorted(scenarios.SCENARIOS)
+    raise argparse.ArgumentTypeError(f"unknown scenario {value!r}; known: {', '.join(known)}"
+                                     f", or file.py:name{did_you_mean(value, known)}")
+
+
 def _cmd_run(args) -> int:
-    sc = scenarios.get(args.scenario)
+    sc = load_scenario(args.scenario)
     if args.steps is not None:
         sc = sc.replace(n_steps=args.steps)
     if args.plot:
@@ -170,7 +211,7 @@ def _cmd_tune(args) -> int:
     from estim.metrics import rmse
     from estim.simulate import replay, simulate
 
-    sc = scenarios.get(args.scenario)
+    sc = load_scenario(args.scenario)
     if args.steps is not None:
         sc = sc.replace(n_steps=args.steps)
     model, guess = sc.model, {k: sc.tuning[k] for k in ("x0", "P0")}
@@ -257,15 +298,19 @@ def _int_arg(minimum: int | None, nonzero: bool = False):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="estim", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="estim", description="Command line: estim list, estim run, estim tune and estim "
+                                  "observe (estim COMMAND --help for each).")
     sub = parser.add_subparsers(dest="command")
     sub.add_parser("list", help="list scenarios and estimators")
     run = sub.add_parser("run", help="compare estimators on a scenario (Monte Carlo)")
-    run.add_argument("scenario", nargs="?", default="batch_reactor",
-                     choices=sorted(scenarios.SCENARIOS))
+    where = (f"one of {', '.join(sorted(scenarios.SCENARIOS))}, or file.py:name for a "
+             f"Scenario (or a function returning one) in your own file")
+    run.add_argument("scenario", nargs="?", default="batch_reactor", type=_scenario_arg,
+                     help=f"the experiment (default batch_reactor): {where}")
     run.add_argument("--estimator", "-e", action="append",
-                     help="[label=]name[:key=value,...], repeatable (default: ekf, ekf:clip=true, "
-                          "ukf, mhe-25)")
+                     help="[label=]name[:key=value,...], repeatable (default: "
+                          + " ".join(f"-e {e}" for e in DEFAULT_ESTIMATORS) + ")")
     run.add_argument("--seeds", type=_int_arg(1), default=5, help="number of seeds (default 5)")
     run.add_argument("--steps", type=_int_arg(1), default=None,
                      help="override the scenario length")
@@ -275,7 +320,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                      help="parallel jobs (joblib; -1: all cores)")
     tune = sub.add_parser("tune", help="estimate Q and R from a simulated record and compare "
                                        "the EKF tuned with them")
-    tune.add_argument("scenario", choices=sorted(scenarios.SCENARIOS))
+    tune.add_argument("scenario", type=_scenario_arg, help=f"the experiment: {where}")
     tune.add_argument("--method", default="als", choices=["als", "ml"],
                       help="autocovariance least squares (default; two passes, the second "
                            "from the filter of the first estimate) or maximum likelihood")

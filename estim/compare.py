@@ -43,6 +43,7 @@ from estim._runs import Factory, Run, Spec, build, run_batch, run_seed, summary
 from estim._validate import as_bool, as_float, as_int, check_keywords, did_you_mean
 from estim.estimators.base import Estimator
 from estim.log import Log
+from estim.model import Model
 from estim.scenarios import Scenario
 from estim.solvers.seeds import CHUNK
 from estim.solvers.seeds import threads as seed_threads
@@ -228,13 +229,21 @@ def _fmt_s(seconds: float) -> str:
 def compare(scenario: Scenario, estimators: Mapping[str, Spec],
             seeds: Iterable[int] = range(5), *, n_jobs: int = 1, backend: str = "loky",
             keep_logs: bool = False, burn_in: int = 0, progress: bool | None = None,
-            min_parallel_seconds: float | None = None, batch: bool | None = None
-            ) -> Comparison:
+            min_parallel_seconds: float | None = None, batch: bool | None = None,
+            **experiment: Any) -> Comparison:
     """Run every estimator on the scenario for every seed (same noise per seed).
 
     Parameters
     ----------
-    scenario : Scenario
+    scenario : Scenario or Model
+        The experiment; a bare :class:`~estim.Model` with the experiment's fields as
+        keywords (below), as :func:`~estim.simulate` takes them.
+    **experiment
+        Fields of :class:`~estim.Scenario`: with a model, ``x0``, ``n_steps``, ``Q``,
+        ``R`` and ``tuning`` (the estimators' ``{Q, R, x0, P0}``) are required, and
+        ``inputs``, ``controller``, ``feedback``, ``clip``, ``plant_changes``,
+        ``sampling``, ``name`` may be given; with a scenario, any of them replaces the
+        scenario's (e.g. ``n_steps=50``).
     estimators : dict
         Name to an estimator class, a factory ``(model, tuning) -> estimator``,
         or a ready instance (copied for every worker).
@@ -282,8 +291,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
     -------
     Comparison
     """
-    if not isinstance(scenario, Scenario):
-        raise TypeError(f"scenario must be an estim.Scenario, got {type(scenario).__name__}")
+    scenario = _experiment(scenario, experiment)
     seed_list, n_jobs, burn_in, keep_logs, progress = _check_compare(
         scenario, estimators, seeds, n_jobs, backend, keep_logs, burn_in, progress)
     if min_parallel_seconds is not None:
@@ -418,6 +426,32 @@ def _bar(total: int, show: bool) -> Any:
     except ImportError:  # pragma: no cover - optional extra
         return _NoBar()
     return tqdm(total=total, unit="run", leave=False)
+
+
+#: What compare takes of a Scenario as keywords.
+_FIELDS = ("x0", "n_steps", "Q", "R", "tuning", "inputs", "controller", "feedback", "clip",
+           "plant_changes", "sampling", "name", "description", "remarks")
+
+
+def _experiment(scenario: object, fields: dict[str, Any]) -> Scenario:
+    """The scenario of :func:`compare`: a Scenario (with ``fields`` replaced) or one
+    built from a model and ``fields``."""
+    unknown = sorted(set(fields) - set(_FIELDS))
+    if unknown:
+        raise TypeError(f"compare got unexpected keyword arguments {unknown}; the "
+                        f"experiment's fields are {list(_FIELDS)}"
+                        f"{did_you_mean(unknown[0], list(_FIELDS))}")
+    if isinstance(scenario, Scenario):
+        return scenario.replace(**fields) if fields else scenario
+    if isinstance(scenario, Model):
+        missing = [k for k in ("x0", "n_steps", "Q", "R", "tuning") if k not in fields]
+        if missing:
+            raise ValueError(f"compare on a bare Model needs {missing} as keywords (the "
+                             f"truth's x0, the length, the plant's Q and R, and the "
+                             f"estimators' tuning {{Q, R, x0, P0}}), or an estim.Scenario")
+        return Scenario(fields.pop("name", scenario.name), scenario, **fields)
+    raise TypeError(f"scenario must be an estim.Scenario or an estim.Model, got "
+                    f"{type(scenario).__name__}")
 
 
 def _check_compare(scenario: Scenario, estimators: object, seeds: object, n_jobs: object,

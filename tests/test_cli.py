@@ -80,3 +80,43 @@ def test_tune_rejects_an_unknown_method(capsys):
     with pytest.raises(SystemExit):
         cli.main(["tune", "van_der_pol", "--method", "guess"])
     assert "invalid choice" in capsys.readouterr().err
+
+
+USER_FILE = '''
+import casadi as ca
+import numpy as np
+
+import estim
+
+
+def scenario():
+    m = estim.Model(states=["h1", "h2"], inputs=["q"], outputs=["h2_m"], params={"a": 0.5},
+                    ode=lambda x, u, p: ca.vertcat(u[0] - p["a"] * ca.sqrt(ca.fmax(x[0], 0)),
+                                                   p["a"] * ca.sqrt(ca.fmax(x[0], 0))
+                                                   - 0.4 * ca.sqrt(ca.fmax(x[1], 0))),
+                    output=lambda x, u, p: x[1], dt=0.5, lower=0.0, name="two tanks")
+    return estim.Scenario("tanks", m, x0=[1.0, 1.0], n_steps=60, Q=1e-4, R=1e-3,
+                          inputs=lambda t: [0.5 + 0.1 * np.sin(0.2 * t)],
+                          tuning=dict(Q=1e-4, R=1e-3, x0=[0.8, 1.2], P0=0.1))
+
+
+FIXED = scenario()
+'''
+
+
+def test_run_and_tune_take_a_scenario_from_the_users_file(tmp_path, capsys):
+    path = tmp_path / "experiment.py"
+    path.write_text(USER_FILE)
+    assert cli.main(["run", f"{path}:scenario", "-e", "ekf", "-e", "ukf", "--seeds", "2",
+                     "--plot", ""]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("tanks: 2 seed(s)") and "ukf" in out
+    assert cli.main(["run", f"{path}:FIXED", "-e", "ekf", "--seeds", "2", "--plot", ""]) == 0
+    assert cli.main(["tune", f"{path}", "--steps", "400", "--check-seeds", "1"]) == 0
+    assert "scenario tuning" in capsys.readouterr().out
+    assert cli.main(["run", f"{path}:nothing", "--plot", ""]) == 2
+    assert "has no 'nothing'; give file.py:name, one of ['scenario', 'FIXED']" in \
+        capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["run", "van_der_pool"])
+    assert "unknown scenario 'van_der_pool'" in capsys.readouterr().err
