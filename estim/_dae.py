@@ -47,7 +47,7 @@ import casadi as ca
 import numpy as np
 from numpy.polynomial import Polynomial
 
-from estim._discretise import as_column, euler_step, input_at, rk4_step
+from estim._discretise import as_column, equation, euler_step, input_at, rk4_step
 
 __all__ = ["DAE_INTEGRATORS", "LINEAR_SOLVE_MAX", "RADAU_DEGREE", "RESIDUAL_TOL", "dae_functions",
            "radau_tableau"]
@@ -77,7 +77,7 @@ def dae_functions(model: Any) -> tuple[ca.Function, ca.Function, ca.Function, ca
     psym = [ca.SX.sym(n) for n in model.param_names]
     p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
     pdict = dict(zip(model.param_names, psym, strict=True))
-    g = as_column(model._alg(x, z, u, pdict), nz, "alg")
+    g = as_column(equation(model, "alg", model._alg, x, z, u, pdict), nz, "alg")
     gz = ca.jacobian(g, z)
     if ca.sprank(gz.sparsity()) < nz:
         free = [model.algebraic_names[j] for j in range(nz) if not ca.depends_on(g, z[j])]
@@ -88,8 +88,8 @@ def dae_functions(model: Any) -> tuple[ca.Function, ca.Function, ca.Function, ca
             + "): the model is not index 1 (an index-2 or higher system, e.g. a pendulum "
             "whose constraint holds only the positions); differentiate the constraints "
             "until they determine every algebraic state")
-    ode = as_column(model._ode(x, z, u, pdict), nx, "ode")
-    y = as_column(model._output(x, z, u, pdict), model.ny, "output")
+    ode = as_column(equation(model, "ode", model._ode, x, z, u, pdict), nx, "ode")
+    y = as_column(equation(model, "output", model._output, x, z, u, pdict), model.ny, "output")
     linear = not ca.depends_on(gz, z) and nz <= LINEAR_SOLVE_MAX
     Z, f_c, H, H_x = (_solved(x, z, u, p, g, gz, ode, y) if linear else
                       _newton(model, x, z, u, p, g, ode, y))

@@ -63,6 +63,43 @@ def as_column(expr, size: int, argname: str) -> ca.SX:
     return ca.SX(expr) if isinstance(expr, ca.DM) else expr
 
 
+#: Hints for errors raised inside a user's equation: (what the message contains, hint).
+_EQUATION_HINTS = (
+    ("truth value", "a Python if/and/or/max/min on a symbol: the equations are built once "
+                    "with symbols, so branch with ca.if_else(cond, a, b), ca.fmax/ca.fmin, "
+                    "or the smooth helpers of estim.smooth"),
+    ("must be real number", "a math.* function on a symbol: use ca.* (ca.sqrt, ca.exp, "
+                            "ca.log, ...) or numpy ufuncs"),
+    ("Wrong number or type of arguments", "an entry that is not a number or a CasADi "
+                                          "expression (None? a list inside the list?)"),
+    ("division by zero", "a division by a Python zero"),
+    ("stop<=len", "an index beyond a vector: x has nx entries, u has nu, p is a dict by "
+                  "parameter name"),
+    ("index out of range", "an index beyond a vector: x has nx entries, u has nu, p is a "
+                           "dict by parameter name"),
+)
+
+
+def equation(model: Any, which: str, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``, the model's equation ``which`` (``"ode"``, ``"output"``, ...) called
+    on symbols; an exception inside it is raised again (the same type where it can be,
+    else ``ValueError``) with the model's name, the equation and a hint for the common
+    causes, the original chained."""
+    try:
+        return fn(*args)
+    except Exception as exc:  # noqa: BLE001 - re-raised with what was being built
+        text = str(exc).strip().splitlines()
+        first = text[0] if text else type(exc).__name__
+        hint = next((h for key, h in _EQUATION_HINTS if key in str(exc)), "")
+        message = (f"{getattr(model, 'name', 'model')}: building the equation {which}= "
+                   f"failed: {type(exc).__name__}: {first}" + (f" ({hint})" if hint else ""))
+        try:
+            new = type(exc)(message)
+        except Exception:  # noqa: BLE001 - an exception type that takes other arguments
+            new = ValueError(message)
+        raise new from exc
+
+
 def input_at(u: Sym | Callable[[Sym], Sym], s: float | Sym) -> Sym:
     """The input at the fraction ``s`` of the sample: ``u(s)`` for an interpolated
     input (a callable), else ``u`` (held)."""

@@ -36,6 +36,7 @@ from estim._discretise import (
     as_column,
     as_holds,
     discretise,
+    equation,
     euler_step,
     rk4_step,
 )
@@ -496,12 +497,12 @@ def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Functi
     p = ca.vertcat(*psym) if psym else ca.SX(0, 1)
     pdict = dict(zip(model.param_names, psym, strict=True))
 
-    y = as_column(model._output(x, u, pdict), ny, "output")
+    y = as_column(equation(model, "output", model._output, x, u, pdict), ny, "output")
     _check_constants(y, model.output_names, "output")
     H = ca.Function("h", [x, u, p], [y], ["x", "u", "p"], ["y"])
     H_x = ca.Function("H_x", [x, u, p], [ca.jacobian(y, x)], ["x", "u", "p"], ["C"])
     if model._ode is not None:
-        xdot = as_column(model._ode(x, u, pdict), nx, "ode")
+        xdot = as_column(equation(model, "ode", model._ode, x, u, pdict), nx, "ode")
         _check_constants(xdot, model.state_names, "ode")
         f_c = ca.Function("f_c", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
         F, F_x = discretise(f_c, x, w, p, u_of, integrator=model.integrator,
@@ -509,7 +510,7 @@ def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Functi
                             variable_dt=model.variable_dt)
         return f_c, F, F_x, H, H_x
     assert model._dynamics is not None  # a model has exactly one of ode and dynamics
-    xn = as_column(model._dynamics(x, u, pdict), nx, "dynamics")
+    xn = as_column(equation(model, "dynamics", model._dynamics, x, u, pdict), nx, "dynamics")
     _check_constants(xn, model.state_names, "dynamics")
     F = ca.Function("F", [x, u, p], [xn], ["x", "u", "p"], ["x_next"])
     F_x = ca.Function("F_x", [x, u, p], [ca.jacobian(xn, x)], ["x", "u", "p"], ["A"])

@@ -196,3 +196,14 @@ def test_corners_are_refused():
     with pytest.raises(ValueError, match="hold='foh' .* the model has none"):
         estim.Model(states=["x"], outputs=["y"], ode=lambda x, u, p: -x,
                     output=lambda x, u, p: x, dt=0.1, hold="foh")
+
+
+@pytest.mark.parametrize("ode, error, hint", [
+    (lambda x, u, p: x[0] if x[0] > 0 else -x[0], RuntimeError, "ca.if_else"),
+    (lambda x, u, p: ca.vertcat(x[0], None), NotImplementedError, "None?"),
+    (lambda x, u, p: ca.vertcat(x[5], x[0]), RuntimeError, "an index beyond a vector"),
+])
+def test_errors_inside_user_equations_name_the_model_and_equation(ode, error, hint):
+    with pytest.raises(error, match=r"^mine: building the equation ode= failed: .*" + hint):
+        estim.Model(states=["a", "b"], outputs=["y"], ode=ode, output=lambda x, u, p: x[0],
+                    dt=0.1, name="mine")
