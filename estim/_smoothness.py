@@ -283,8 +283,7 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
     U : (T, nu) or (T-1, nu) array, optional
         ``U[k]`` acts from sample k to k+1 and is the held input when ``y_{k+1}`` is
         taken (the convention of ``FullInformation.fit``); for a model with
-        ``hold="foh"``, ``(T, nu)``: the input at each sample. Required for a model with
-        inputs (``U=0``: zero inputs).
+        ``hold="foh"``, ``(T, nu)``: the input at each sample. Zero if omitted.
     names : sequence of str, optional
         The parameters to check (default: all of ``model.augmented``).
 
@@ -301,7 +300,7 @@ def zero_derivative_parameters(model, X, U=None, names: Sequence[str] | None = N
                          f"{augmented}, got {unknown}")
     X = as_record(X, model.nx, "X", missing=False, names=model.state_names, what="states")
     T = X.shape[0]
-    U = as_inputs(U, T, model)
+    U = np.zeros((T, model.nu)) if U is None else as_inputs(U, T, model)  # (a diagnostic)
     if not names:
         return []
     if model.sampled:  # inputs at the samples; transitions from each to the next

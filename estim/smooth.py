@@ -1,5 +1,5 @@
 r"""Smooth replacements for the switches of a model: ``relu``, ``max``, ``min``, ``abs``,
-``step``, ``clip``.
+``step``, ``clip``, and ``sqrt`` (a square root with a bounded slope at 0).
 
 A model written with ``ca.fmin``, ``ca.fmax``, ``ca.fabs`` or ``ca.if_else`` on a state
 has a derivative that jumps where the switch flips: Gauss-Newton and Ipopt can then cut
@@ -54,7 +54,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import _numeric_array, as_float
 
-__all__ = ["abs", "clip", "max", "min", "relu", "step"]
+__all__ = ["abs", "clip", "max", "min", "relu", "sqrt", "step"]
 
 #: What the helpers take: CasADi expressions or numbers and arrays. They return a CasADi
 #: expression when any argument is one, else a numpy value.
@@ -68,9 +68,9 @@ LOG2 = float(np.log(2.0))
 
 _CASADI_TYPES = (ca.SX, ca.MX, ca.DM)
 _CA = SimpleNamespace(tanh=ca.tanh, exp=ca.exp, expm1=ca.expm1, log1p=ca.log1p,
-                      hypot=ca.hypot)
+                      hypot=ca.hypot, sqrt=ca.sqrt)
 _NP = SimpleNamespace(tanh=np.tanh, exp=np.exp, expm1=np.expm1, log1p=np.log1p,
-                      hypot=np.hypot)
+                      hypot=np.hypot, sqrt=np.sqrt)
 
 
 # ----------------------------------------------------------------- plumbing
@@ -337,3 +337,39 @@ def clip(x: Operand, lower: Operand, upper: Operand, width: float) -> Any:
             raise ValueError(f"lower must be less than upper, got lower={low}, "
                              f"upper={high}")
     return low + w * _softplus((xv - low) / w, op) - w * _softplus((xv - high) / w, op)
+
+
+def sqrt(x: Operand, width: float) -> Any:
+    r"""Smooth :math:`\sqrt{\max(x, 0)}`, with a bounded slope at 0: the textbook tank
+    outflow :math:`a\sqrt{h}` at an empty tank, whose derivative is infinite there.
+
+    .. math:: \operatorname{sqrt}_w(x) = \frac{r}{\sqrt{r + w}}, \qquad
+              r = \operatorname{relu}_w(x)
+
+    Below :math:`\sqrt{\max(x, 0)}` for :math:`x \ge w` and within
+    :math:`0.53\sqrt{w}` of it everywhere (the largest difference at :math:`x = 0`); for
+    :math:`x \gg w` the difference is about :math:`w / (2\sqrt x)`. Its derivative is
+    continuous and at most about :math:`0.35/\sqrt{w}` (where the exact one is
+    infinite); for :math:`x \ll -w` it is 0, as the exact function.
+
+    Parameters
+    ----------
+    x : CasADi expression, float or array
+        Argument.
+    width : float
+        :math:`w > 0`, in the units of ``x``.
+
+    Returns
+    -------
+    CasADi expression of the argument's type, or numpy float / array
+
+    Examples
+    --------
+    >>> from estim import smooth
+    >>> smooth.sqrt([-1.0, 0.0, 0.25, 4.0], 1e-4).round(4)
+    array([0.    , 0.0053, 0.4999, 2.    ])
+    """
+    w = _width(width)
+    op, (xv,) = _args(x=x)
+    r = w * _softplus(xv / w, op)
+    return r / op.sqrt(r + w)
