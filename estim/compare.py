@@ -25,6 +25,7 @@ written by :mod:`estim._report`.
 from __future__ import annotations
 
 import importlib.util
+import inspect
 import os
 import sys
 import time
@@ -438,15 +439,16 @@ def _experiment(scenario: object, fields: dict[str, Any]) -> Scenario:
     built from a model and ``fields``."""
     unknown = sorted(set(fields) - set(_FIELDS))
     if unknown:
-        raise TypeError(f"compare got unexpected keyword arguments {unknown}; the "
-                        f"experiment's fields are {list(_FIELDS)}"
-                        f"{did_you_mean(unknown[0], list(_FIELDS))}")
+        options = [n for n in inspect.signature(compare).parameters if n != "experiment"]
+        raise TypeError(f"unknown option {unknown[0]!r} of compare"
+                        f"{did_you_mean(unknown[0], options + list(_FIELDS))} (its options: "
+                        f"{options}; the experiment's fields: {list(_FIELDS)})")
     if isinstance(scenario, Scenario):
         return scenario.replace(**fields) if fields else scenario
     if isinstance(scenario, Model):
         missing = [k for k in ("x0", "n_steps", "Q", "R", "tuning") if k not in fields]
         if missing:
-            raise ValueError(f"compare on a bare Model needs {missing} as keywords (the "
+            raise TypeError(f"scenario: compare on a bare Model needs {missing} as keywords (the "
                              f"truth's x0, the length, the plant's Q and R, and the "
                              f"estimators' tuning {{Q, R, x0, P0}}), or an estim.Scenario")
         return Scenario(fields.pop("name", scenario.name), scenario, **fields)

@@ -138,8 +138,11 @@ def test_ready_instance_is_copied():
 
 def test_compare_bad_input():
     sc = estim.scenarios.van_der_pol(n_steps=10)
-    with pytest.raises(TypeError, match="scenario must be"):
+    with pytest.raises(TypeError, match=r"scenario: compare on a bare Model needs \['x0', "
+                                        r"'n_steps', 'Q', 'R', 'tuning'\] as keywords"):
         estim.compare(sc.model, {"ekf": estim.EKF})
+    with pytest.raises(TypeError, match="scenario must be an estim.Scenario or an estim.Model"):
+        estim.compare("van_der_pol", {"ekf": estim.EKF})
     with pytest.raises(ValueError, match="at least one estimator"):
         estim.compare(sc, {})
     with pytest.raises(ValueError, match="at least one seed"):

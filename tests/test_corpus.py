@@ -268,9 +268,9 @@ CASES = [
     Case("fit-U-string", lambda: fie().fit(Y5, U=[["a"]] * 5), T, r"\bU\b"),
     Case("fit-U-shape", lambda: fie().fit(Y5, U=np.zeros((2, 1))), V, r"\bU\b"),
     Case("fit-U-nan", lambda: fie().fit(Y5, U=np.full((5, 1), nan)), V, r"\bU\b"),
-    Case("fit-guess-shape", lambda: fie().fit(Y5, guess=np.zeros((4, 2))), V, r"guess"),
-    Case("fit-guess-nan", lambda: fie().fit(Y5, guess=np.full((5, 2), nan)), V, r"guess"),
-    Case("fit-guess-string", lambda: fie().fit(Y5, guess="x"), T, r"guess"),
+    Case("fit-guess-shape", lambda: fie().fit(Y5, 0, guess=np.zeros((4, 2))), V, r"guess"),
+    Case("fit-guess-nan", lambda: fie().fit(Y5, 0, guess=np.full((5, 2), nan)), V, r"guess"),
+    Case("fit-guess-string", lambda: fie().fit(Y5, 0, guess="x"), T, r"guess"),
     # --------------------------------------------------------- shooting
     Case("shooting-window-zero", lambda: shooting(window=0), V, r"window"),
     Case("shooting-window-bool", lambda: shooting(window=True), T, r"window"),

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
+from estim._locate import after_failure
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
@@ -164,6 +165,7 @@ class FusedKalman(Estimator):
         """A failed update: keep the prediction of a trusted estimate, or re-anchor on
         the last trusted estimate with ``P + P0`` and update with this measurement."""
         kept, what = self._failure_texts(flags)
+        where = after_failure(self.model, self._s[:self._nx], s_prior[:self._nx], self._u)
         if self._trusted:
             self._s_trusted[:] = self._s
         if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
@@ -187,7 +189,7 @@ class FusedKalman(Estimator):
                       f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
         self._trusted = False
         nx = self.model.nx
-        return self._s[:nx].copy(), StepInfo(status=status, success=False,
+        return self._s[:nx].copy(), StepInfo(status=status + where, success=False,
                                              P=covariance(self._s[nx:], self.model.ndx,
                                                           self._sqrt))
 
