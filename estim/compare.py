@@ -128,6 +128,9 @@ class Comparison:
     nees : dict of str -> (n_seeds,) array
         The time-averaged NEES per state dimension of every run (after the burn-in), per
         estimator, in seed order (NaN without a covariance or for a run that raised).
+    burn_in : int
+        The samples left out of RMSE and NEES at the start of every run (the table says
+        so).
     """
 
     scenario: str
@@ -139,14 +142,17 @@ class Comparison:
     parallel: str = ""
     batched: str = ""
     nees: dict[str, np.ndarray] = field(default_factory=dict)
+    burn_in: int = 0
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
               "normalised estimation error squared per state, averaged over time and seeds; "
               "1 when the reported covariance matches the errors, above 1 overconfident, "
-              "below 1 pessimistic. cons.: NEES/n within two standard errors (over the "
-              "seeds) of 1; '-' without a covariance. step: wall time per step. failed: "
-              "steps that failed and were re-anchored; flagged: inexact or suspect steps.")
+              "below 1 pessimistic. cons.: 'yes' when NEES/n is within two standard errors "
+              "(over the seeds) of 1; else 'slightly' when the errors are within 10 % of "
+              "the σ reported (0.81 <= NEES/n <= 1.21), 'pessimistic' or 'overconfident' "
+              "beyond; '-' without a covariance. step: wall time per step. failed: steps "
+              "that failed and were re-anchored; flagged: inexact or suspect steps.")
 
     def notes(self) -> list[str]:
         r"""Why a row looks the way it does, a line per estimator that needs one.
@@ -405,7 +411,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seed_list, rows, all_rmse, logs, remarks=scenario.remarks,
-                      parallel=note, batched=batch_note, nees=all_nees)
+                      parallel=note, batched=batch_note, nees=all_nees, burn_in=burn_in)
 
 
 class _NoBar:
