@@ -86,3 +86,25 @@ def test_a_diagonal_estimator_takes_a_diagonal_tuning_only():
         est.set_tuning(Q=[0.01, 0.0])
     with pytest.raises(TypeError, match="R must be numeric"):
         est.set_tuning(R="large")
+
+
+def test_tuning_corners_are_reported():
+    """ALS reports a filter that diverges on the record as a failed status and refuses a
+    constant record; maximum likelihood names kappa when the UKF's sigma points break and
+    refuses a record with fewer values than free parameters."""
+    from estim.tuning import als, maximum_likelihood
+
+    sc = estim.scenarios.get("van_der_pol", n_steps=400)
+    log = estim.simulate(sc, None, seed=0)
+    guess = dict(x0=sc.tuning["x0"], P0=sc.tuning["P0"])
+    Y = log.y.copy()
+    Y[200:] = 1e150
+    res = als(sc.model, Y, Q0=0.01, R0=1.0, **guess)
+    assert not res.success and res.status.startswith("failed: the filter with Q0, R0 diverged")
+    with pytest.raises(ValueError, match=r"Y is constant in every output \['y1', 'y2'\]"):
+        als(sc.model, np.ones((400, 2)), **guess)
+    with pytest.raises(ValueError, match="kappa must make nx \\+ kappa positive .* got -5"):
+        maximum_likelihood(sc.model, log.y, estimator="ukf", kappa=-5, **guess)
+    with pytest.raises(ValueError, match="Y has 4 measured values after the burn-in for 4 "
+                                         "free parameters"):
+        maximum_likelihood(sc.model, log.y[:2], **guess)

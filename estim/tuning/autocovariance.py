@@ -279,73 +279,84 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         q = 0.1 * np.diag(Cp @ R0m @ Cp.T)
         Q0 = np.diag(np.maximum(q, 1e-3 * max(q.max(), 1e-12)))
     Q0m = as_covariance(Q0, nx, "Q0", definite=False)
-    filt = _run_filter(model, Y, U, W, Uh, ekf, L, x0v, P0m, Q0m, R0m, linear)
-    rho = filt.rho
+    constant = [model.output_names[i] for i in range(ny) if np.ptp(Y[:, i]) == 0]
+    if len(constant) == ny:
+        raise ValueError(f"Y is constant in every output {constant}: its autocovariances "
+                         f"hold no information about Q and R")
+    try:
+        filt = _run_filter(model, Y, U, W, Uh, ekf, L, x0v, P0m, Q0m, R0m, linear)
+        rho = filt.rho
 
-    # ---- burn-in and samples
-    decay = int(np.ceil(np.log(1e-3) / np.log(rho))) if 0 < rho < 1 else 1
-    if burn_in is None:
-        burn_in = int(min(max(decay, lags), T // 4))
-    k_lo, k_hi = burn_in, T - lags  # the products e_{k+j} e_k^T, j < lags
-    n = k_hi - k_lo + 1
-    if n < max(20, 2 * lags):
-        raise ValueError(f"Y has too few samples ({T}) for lags={lags} and burn_in={burn_in}: "
-                         f"{n} products per lag; give a longer record or fewer lags")
-    e = filt.run.e
-    rows = _rows(lags, ny)
-    Chat = np.stack([e[k_lo + j:k_hi + j + 1].T @ e[k_lo:k_hi + 1] / n for j in range(lags)])
-    b = _stack(Chat, rows)
+        # ---- burn-in and samples
+        decay = int(np.ceil(np.log(1e-3) / np.log(rho))) if 0 < rho < 1 else 1
+        if burn_in is None:
+            burn_in = int(min(max(decay, lags), T // 4))
+        k_lo, k_hi = burn_in, T - lags  # the products e_{k+j} e_k^T, j < lags
+        n = k_hi - k_lo + 1
+        if n < max(20, 2 * lags):
+            raise ValueError(f"Y has too few samples ({T}) for lags={lags} and burn_in={burn_in}: "
+                             f"{n} products per lag; give a longer record or fewer lags")
+        e = filt.run.e
+        rows = _rows(lags, ny)
+        Chat = np.stack([e[k_lo + j:k_hi + j + 1].T @ e[k_lo:k_hi + 1] / n for j in range(lags)])
+        b = _stack(Chat, rows)
 
-    # ---- the design and the least squares
-    QB = _qbasis(qblock, Gm)
-    RB = list(rblock.basis)
-    nq = len(QB)
-    coef, coef_all, M = _design(filt, QB, RB, lags, k_lo, k_hi, T)
-    A_als = _stack(coef, rows)  # (rows, params)
-    _identifiable(A_als, lags)
-    fit = _fit(A_als, b, coef_all, rows, M, [qblock, rblock],
-               [slice(0, nq), slice(nq, nq + len(RB))], weighting == "optimal", n)
-    theta, cov = fit.theta, fit.cov
+        # ---- the design and the least squares
+        QB = _qbasis(qblock, Gm)
+        RB = list(rblock.basis)
+        nq = len(QB)
+        coef, coef_all, M = _design(filt, QB, RB, lags, k_lo, k_hi, T)
+        A_als = _stack(coef, rows)  # (rows, params)
+        _identifiable(A_als, lags)
+        fit = _fit(A_als, b, coef_all, rows, M, [qblock, rblock],
+                   [slice(0, nq), slice(nq, nq + len(RB))], weighting == "optimal", n)
+        theta, cov = fit.theta, fit.cov
 
-    # ---- the estimates and their standard errors
-    def mats(th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        Qw = qblock.matrix(th[:nq])
-        return Gm @ Qw @ Gm.T, rblock.matrix(th[nq:]), Qw
+        # ---- the estimates and their standard errors
+        def mats(th: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            Qw = qblock.matrix(th[:nq])
+            return Gm @ Qw @ Gm.T, rblock.matrix(th[nq:]), Qw
 
-    Qh, Rh, Qw = mats(theta)
-    Qh, Rh = 0.5 * (Qh + Qh.T), 0.5 * (Rh + Rh.T)
-    JQ = np.stack([mats(np.eye(len(theta))[i])[0] for i in range(len(theta))], axis=-1)
-    JR = np.stack([mats(np.eye(len(theta))[i])[1] for i in range(len(theta))], axis=-1)
+        Qh, Rh, Qw = mats(theta)
+        Qh, Rh = 0.5 * (Qh + Qh.T), 0.5 * (Rh + Rh.T)
+        JQ = np.stack([mats(np.eye(len(theta))[i])[0] for i in range(len(theta))], axis=-1)
+        JR = np.stack([mats(np.eye(len(theta))[i])[1] for i in range(len(theta))], axis=-1)
 
-    def se(J: np.ndarray) -> np.ndarray:
-        v = np.sqrt(np.maximum(np.einsum("abi,ij,abj->ab", J, cov, J), 0.0))
-        return np.where(np.any(J != 0, axis=-1), v, np.nan)
+        def se(J: np.ndarray) -> np.ndarray:
+            v = np.sqrt(np.maximum(np.einsum("abi,ij,abj->ab", J, cov, J), 0.0))
+            return np.where(np.any(J != 0, axis=-1), v, np.nan)
 
-    se_Q, se_R = se(JQ), se(JR)
-    Qu, Ru, _ = mats(fit.theta_u)
+        se_Q, se_R = se(JQ), se(JR)
+        Qu, Ru, _ = mats(fit.theta_u)
 
-    # ---- the check: a filter with the estimates, after the burn-in
-    check = innovation_check(_whitened(model, Y, U, W, Uh, filt, Qh, Rh, x0v)[burn_in:])
+        # ---- the check: a filter with the estimates, after the burn-in
+        check = innovation_check(_whitened(model, Y, U, W, Uh, filt, Qh, Rh, x0v)[burn_in:])
 
-    details = {"lags": lags, "weighting": weighting, "burn_in": burn_in, "samples": n,
-               "linearization": "time-invariant" if filt.invariant else "time-varying",
-               "gain": filt.what, "spectral_radius": rho, "constraint_active": fit.active,
-               "unconstrained": {"Q": Qu, "R": Ru}, "theta": theta, "theta_cov": cov,
-               "autocovariance": Chat, "equations": (A_als, b), "Q0": Q0m, "R0": R0m,
-               "iterations": 1}
-    if G is not None:
-        details["Q_w"] = Qw
-    if weighting == "optimal":
-        from scipy import stats
+        details = {"lags": lags, "weighting": weighting, "burn_in": burn_in, "samples": n,
+                   "linearization": "time-invariant" if filt.invariant else "time-varying",
+                   "gain": filt.what, "spectral_radius": rho, "constraint_active": fit.active,
+                   "unconstrained": {"Q": Qu, "R": Ru}, "theta": theta, "theta_cov": cov,
+                   "autocovariance": Chat, "equations": (A_als, b), "Q0": Q0m, "R0": R0m,
+                   "iterations": 1}
+        if G is not None:
+            details["Q_w"] = Qw
+        if weighting == "optimal":
+            from scipy import stats
 
-        dof = len(rows) - len(theta)
-        stat = n * fit.objective
-        details["overidentification"] = (stat, dof, float(stats.chi2.sf(stat, dof)))
-    # variances the record hardly determines: a standard error beyond ten times the
-    # largest variance of their matrix
-    vague = [f"{name}[{i},{i}]" for name, V, s in (("Q", Qh, se_Q), ("R", Rh, se_R))
-             for i in range(len(V)) if s[i, i] > 10 * max(float(np.max(np.diag(V))), 1e-300)]
-    status = "ok" if not vague else (f"poorly determined: {', '.join(vague)} (standard error "
-                                     f"above ten times the largest variance of its matrix)")
-    return TuningResult(method="als", Q=Qh, R=Rh, stderr={"Q": se_Q, "R": se_R, "params": {}},
-                        check=check, objective=fit.objective, status=status, details=details)
+            dof = len(rows) - len(theta)
+            stat = n * fit.objective
+            details["overidentification"] = (stat, dof, float(stats.chi2.sf(stat, dof)))
+        # variances the record hardly determines: a standard error beyond ten times the
+        # largest variance of their matrix
+        vague = [f"{name}[{i},{i}]" for name, V, s in (("Q", Qh, se_Q), ("R", Rh, se_R))
+                 for i in range(len(V)) if s[i, i] > 10 * max(float(np.max(np.diag(V))), 1e-300)]
+        status = "ok" if not vague else (f"poorly determined: {', '.join(vague)} (standard error "
+                                         f"above ten times the largest variance of its matrix)")
+        return TuningResult(method="als", Q=Qh, R=Rh, stderr={"Q": se_Q, "R": se_R, "params": {}},
+                            check=check, objective=fit.objective, status=status, details=details)
+    except np.linalg.LinAlgError as exc:  # the filter diverged on this record
+        return TuningResult(method="als", Q=Q0m, R=R0m, success=False,
+                            status=f"failed: the filter with Q0, R0 diverged on this record "
+                                   f"({exc}); give Q0 and R0 closer to the noise, or a "
+                                   f"stabilising gain",
+                            details={"Q0": Q0m, "R0": R0m})

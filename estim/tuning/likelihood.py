@@ -119,6 +119,9 @@ def _check_common(model: object, estimator: str, alpha: float, beta: float, kapp
     kind = as_choice(estimator, ESTIMATORS, "estimator")
     ukf = (as_float(alpha, "alpha", positive=True), as_float(beta, "beta"),
            as_float(kappa, "kappa"))
+    if kind == "ukf" and model.nx + ukf[2] <= 0:
+        raise ValueError(f"kappa must make nx + kappa positive for the UKF's sigma points "
+                         f"(nx = {model.nx}), got {kappa!r}")
     return model, kind, ukf
 
 
@@ -278,6 +281,12 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         raise ValueError("nothing to estimate: structure holds Q and R fixed and params is "
                          "empty")
     par = _Parametrisation(model, structures, Q0m, R0m, spec)
+    measured = int(rec.measured[rec.burn:].sum())
+    if measured <= len(par.theta0):
+        raise ValueError(f"Y has {measured} measured values after the burn-in for "
+                         f"{len(par.theta0)} free parameters: a maximum-likelihood fit needs "
+                         f"more data than parameters (a longer record, or a structure with "
+                         f"fewer free entries)")
 
     t0 = time.perf_counter()
     obj = _Objective(model, kind, rec.T, ukf, par, rec.data(), hessian)
