@@ -75,6 +75,19 @@ def tangent_jacobian(fun: Any, n: int) -> Any:
     return ca.substitute(ca.jacobian(fun(d), d), d, ca.DM.zeros(n))
 
 
+def _updated(M: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: Any
+             ) -> tuple[Any, Any, Any, Any]:
+    """``(s_new, s_prior, nis, P)`` after an update by the tangent step ``delta`` of the
+    prediction ``(xb, Pb)``: the retraction, and the update's covariance ``P_update``
+    carried to the new estimate by the reset Jacobian (see the module)."""
+    xh = M.retract(xb, delta)
+    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), delta.numel())
+    Ph = J @ P_update @ J.T
+    Ph = 0.5 * (Ph + Ph.T)
+    return (ca.vertcat(xh, ca.vec(Ph)), ca.vertcat(xb, ca.vec(Pb)),
+            ca.dot(e, ca.solve(S, e)), Ph)
+
+
 def mekf_step(est: Any, predict: bool) -> ca.Function:
     """The multiplicative EKF's fused step (see the module), with the flags of
     :func:`estim.solvers.kalman.fused_function`."""
@@ -95,16 +108,9 @@ def mekf_step(est: Any, predict: bool) -> ca.Function:
     S = C @ Pb @ C.T + Rm
     S = 0.5 * (S + S.T)
     K = ca.solve(S, C @ Pb).T
-    delta = K @ e
-    xh = M.retract(xb, delta)
     IKC = ca.DM.eye(nd) - K @ C
-    Ph = IKC @ Pb @ IKC.T + K @ Rm @ K.T
-    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), nd)
-    Ph = J @ Ph @ J.T
-    Ph = 0.5 * (Ph + Ph.T)
-    nis = ca.dot(e, ca.solve(S, e))
-    s_new = ca.vertcat(xh, ca.vec(Ph))
-    s_prior = ca.vertcat(xb, ca.vec(Pb))
+    s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e,
+                                       IKC @ Pb @ IKC.T + K @ Rm @ K.T, e, S)
     ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
     ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
     ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
@@ -164,15 +170,7 @@ def usque_step(est: Any, predict: bool, cholesky: Any) -> ca.Function:
     Pxz = cov(sig, dZ)
     e = ca.if_else(mask, M.output_difference(y, zr + dzbar), 0)
     K = ca.solve(S, Pxz.T).T
-    delta = K @ e
-    xh = M.retract(xb, delta)
-    Ph = Pb - K @ S @ K.T
-    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), nd)
-    Ph = J @ Ph @ J.T
-    Ph = 0.5 * (Ph + Ph.T)
-    nis = ca.dot(e, ca.solve(S, e))
-    s_new = ca.vertcat(xh, ca.vec(Ph))
-    s_prior = ca.vertcat(xb, ca.vec(Pb))
+    s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e, Pb - K @ S @ K.T, e, S)
     ok = ca.logic_and(ca.fabs(ca.sum1(ca.vertcat(s_new, nis))) < ca.inf, cholesky(Ph)[1])
     name = "usque_predict_update" if predict else "usque_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
