@@ -37,12 +37,15 @@ theory for state estimation in robotics", arXiv:1812.01537, 2018.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import casadi as ca
 import numpy as np
+
+from estim.exceptions import EstimationWarning
 
 __all__ = ["Manifold", "on_manifold", "unit_quaternions", "wrap"]
 
@@ -311,10 +314,6 @@ def on_manifold(manifold: Manifold, F: ca.Function) -> tuple[ca.Function, ca.Fun
 def unit_quaternions(manifold: Manifold, x: np.ndarray, argname: str) -> np.ndarray:
     """``x`` with each quaternion of unit norm: one of another norm is normalised with a
     warning, a zero one refused (``ValueError`` naming ``argname``)."""
-    import warnings
-
-    from estim.exceptions import EstimationWarning
-
     x = np.array(x, dtype=float)
     for g in manifold.quaternions:
         norm = float(np.linalg.norm(x[list(g)]))
