@@ -69,6 +69,11 @@ def notes(result: Comparison) -> list[str]:
             parts.append(f"RMSE {r.rmse_mean / best.rmse_mean:.0f}× the best "
                          f"({best.name}); after the start-up its largest error is "
                          f"{r.largest_error}")
+        if parts and r.consistent is False and r.nees_mean < 1 and \
+                getattr(result, "augmented", None):
+            parts.append(f"expected with the parameters {result.augmented} estimated as "
+                         f"states: process noise on them in Q, which the plant's constant "
+                         f"parameters do not have, widens the reported σ")
         if parts:
             out.append(f"{r.name}: " + "; ".join(parts))
             why = r.caveat or result.remarks.get(r.kind, "")

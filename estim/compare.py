@@ -131,6 +131,10 @@ class Comparison:
     burn_in : int
         The samples left out of RMSE and NEES at the start of every run (the table says
         so).
+    augmented : list of str
+        The model's parameters estimated as states (``Model.augment``): a filter that
+        gives them process noise the plant's constant parameters do not have is
+        pessimistic by design, which the notes say.
     """
 
     scenario: str
@@ -143,6 +147,7 @@ class Comparison:
     batched: str = ""
     nees: dict[str, np.ndarray] = field(default_factory=dict)
     burn_in: int = 0
+    augmented: list[str] = field(default_factory=list)
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
@@ -411,7 +416,8 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seed_list, rows, all_rmse, logs, remarks=scenario.remarks,
-                      parallel=note, batched=batch_note, nees=all_nees, burn_in=burn_in)
+                      parallel=note, batched=batch_note, nees=all_nees, burn_in=burn_in,
+                      augmented=list(scenario.model.augmented))
 
 
 class _NoBar:

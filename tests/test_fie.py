@@ -67,7 +67,7 @@ def test_missing_rows_are_dropped_exactly():
     Y[10, 0] = np.nan
     x_ref, _, _ = _rts_reference(sys, Y)
     fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
-    res = fie.fit(Y)
+    res = fie.fit(Y, 0)
     np.testing.assert_allclose(res.x, x_ref, atol=1e-8)
     assert np.isnan(res.v[4]).all() and np.isnan(res.v[10, 0])
 
@@ -158,7 +158,7 @@ def test_singular_system_falls_back_to_the_ridge():
         x = A @ x + 0.05 * rng.standard_normal(2)
     Y = np.array(Y)
     fie = estim.FullInformation(two, Q=0.05**2, R=0.1**2)
-    res = fie.fit(Y)
+    res = fie.fit(Y, 0)
     ref = estim.FullInformation(one, Q=0.05**2, R=0.1**2).fit(Y)
     assert res.success and fie._problem(30, full=True).gn._ridge
     assert np.isfinite(res.x).all()
@@ -243,7 +243,7 @@ def test_reset_with_new_prior_uses_it():
     fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0)
     tight = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=1e-6)
     fie.reset(P0=1e-6)
-    np.testing.assert_allclose(fie.fit(Y).x, tight.fit(Y).x, atol=1e-10)
+    np.testing.assert_allclose(fie.fit(Y, 0).x, tight.fit(Y, 0).x, atol=1e-10)
     mhe = estim.MHE(sys.model, horizon=4, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
                     arrival_cost="fixed", solver="gauss-newton")
     ref = estim.MHE(sys.model, horizon=4, Q=sys.Q, R=sys.R, x0=sys.x0, P0=1e-6,

@@ -101,13 +101,13 @@ def test_fit_covariances_equal_rts_smoother(mode, T, missing):
     xs, Ps, _, Pf = _filterpy_rts(sys, Y)
     fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
                                 solver_options={"mode": mode})
-    res = fie.fit(Y)
+    res = fie.fit(Y, 0)
     assert res.success and res.P.shape == (T, 4, 4)
     assert _relative(res.P, Ps) < 1e-8
     assert _relative(res.x, xs) < 1e-8
     np.testing.assert_array_equal(res.P_last, res.P[-1])
     assert _relative(res.P[-1], Pf[-1]) < 1e-8  # the smoother's last is the filter's
-    again = fie.fit(Y)  # P_last read first, alone: the same numbers
+    again = fie.fit(Y, 0)  # P_last read first, alone: the same numbers
     np.testing.assert_array_equal(again.P_last, again.P[-1])
 
 
@@ -118,7 +118,7 @@ def test_ipopt_fit_has_the_same_covariances():
     _, Ps, _, _ = _filterpy_rts(sys, Y)
     fie = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0,
                                 solver="ipopt", solver_options={"ipopt.tol": 1e-12})
-    res = fie.fit(Y)
+    res = fie.fit(Y, 0)
     assert res.solver == "ipopt" and _relative(res.P, Ps) < 1e-8
 
 
@@ -131,7 +131,7 @@ def test_robust_fit_covariances_are_those_of_the_reweighted_problem():
     Y[20, 0] += 30.0
     Y[33, 1] -= 20.0
     res = estim.FullInformation(sys.model, Q=sys.Q, R=R, x0=sys.x0, P0=sys.P0,
-                                loss="huber").fit(Y)
+                                loss="huber").fit(Y, 0)
     w = res.measurement_weights
     assert w[20, 0] < 0.1 and w[33, 1] < 0.1
     # the reference: the update with the reweighted variances, sample by sample
@@ -211,7 +211,7 @@ def test_nees_of_a_fit_on_its_own_model():
         Y.append(sys.C @ x + np.linalg.cholesky(sys.R) @ rng.standard_normal(2))
         x = sys.A @ x + np.linalg.cholesky(sys.Q) @ rng.standard_normal(nx)
     res = estim.FullInformation(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0
-                                ).fit(np.array(Y))
+                                ).fit(np.array(Y), 0)
     nees = estim.nees(res, truth=np.array(X))
     assert 0.8 * nx < nees.mean() < 1.2 * nx
 
@@ -225,7 +225,7 @@ def test_smoothers_equal_the_kalman_smoother_on_linear_models(cls, missing):
     if missing:
         Y = _missing(Y)
     xs, Ps, xf, Pf = _filterpy_rts(sys, Y)
-    res = cls(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0).smooth(Y)
+    res = cls(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0).smooth(Y, 0)
     assert res.success and res.P.shape == (50, 4, 4) and res.gain.shape == (49, 4, 4)
     for ours, ref in ((res.x, xs), (res.P, Ps), (res.x_filtered, xf), (res.P_filtered, Pf)):
         assert _relative(ours, ref) < 1e-10
