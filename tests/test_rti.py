@@ -133,3 +133,35 @@ def test_the_step_time_counts_the_preparation_it_did():
     log = estim.simulate(sc, estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning), seed=0)
     prep = np.array([d["preparation_time"] for d in log.diagnostics[8:]])
     assert (prep > 0).all() and (log.solve_time[8:] > prep).all()
+
+
+def test_tuning_and_interval_changes_between_the_phases():
+    """A set_tuning between prepare and step linearises the prepared window again: the
+    step equals one prepared after the change. A variable_dt model's interval goes to
+    prepare; step takes the same or none, and a different one is refused."""
+    sc = estim.scenarios.van_der_pol(n_steps=30)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2)
+    a = estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning)
+    b = estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning)
+    for y in log.y[:20]:
+        a.step(y)
+        b.step(y)
+    a.prepare()
+    a.set_tuning(R=4.0 * np.asarray(sc.tuning["R"]))  # after the preparation
+    b.set_tuning(R=4.0 * np.asarray(sc.tuning["R"]))
+    b.prepare()
+    np.testing.assert_allclose(a.step(log.y[20]), b.step(log.y[20]), atol=1e-12)
+    np.testing.assert_allclose(a.info.P, b.info.P, atol=1e-12)
+    m = estim.Model(states=["x"], outputs=["y"], ode=lambda x, u, p: -0.5 * x,
+                    output=lambda x, u, p: x, dt=0.1, variable_dt=True)
+    c = estim.MHE(m, horizon=3, rti=True, Q=1e-3, R=1e-2, x0=[1.0], P0=1.0)
+    d = estim.MHE(m, horizon=3, rti=True, Q=1e-3, R=1e-2, x0=[1.0], P0=1.0)
+    for k in range(4):
+        c.step([0.9 ** k], dt=0.1 + 0.05 * k)
+        d.step([0.9 ** k], dt=0.1 + 0.05 * k)
+    c.prepare(dt=0.3)
+    np.testing.assert_allclose(c.step([0.6]), d.step([0.6], dt=0.3), atol=1e-12)
+    c.prepare(dt=0.2)
+    with pytest.raises(ValueError, match=r"step got dt = 0.25, but prepare\(\) prepared "
+                                         r"the window for dt = 0.2"):
+        c.step([0.5], dt=0.25)

@@ -208,8 +208,16 @@ class MHE(RealTimeIteration):
         self._WR = weight_factor(self.R)
         if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
             self._W0 = weight_factor(self.P0)
+        prepared = getattr(self, "_prepared", None)
+        before = getattr(self, "_before_prepare", None)
+        if self.rti and prepared is not None and before is not None:
+            # a window prepared with the old tuning (its arrival cost moved on with it):
+            # back to the state before prepare(), and prepared again with the new tuning
+            self._restore(before)
+            self._dt = self._prepared_dt
+            self._prepare(prepared[0])
 
-    def prepare(self, u: ArrayLike | None = None) -> None:
+    def prepare(self, u: ArrayLike | None = None, dt: float | None = None) -> None:
         r"""The preparation phase of the real-time iteration (``rti=True``): before the
         next measurement arrives, shift the window, predict its newest state and
         linearise and eliminate the window up to that state, with the input ``u`` that
@@ -219,12 +227,17 @@ class MHE(RealTimeIteration):
         phase). Calling :meth:`step` without :meth:`prepare` does both. Until the
         window is full (the first ``horizon`` samples) a step solves the window to
         convergence, and :meth:`prepare` does nothing. Calling it again before the
-        step does nothing (a different ``u`` then raises a ValueError).
+        step does nothing (a different ``u`` then raises a ValueError). ``dt``: the
+        interval to the arriving sample, for a model built with ``variable_dt=True``
+        (default the model's); :meth:`step` then takes the same ``dt`` or none, and a
+        different one is refused. A :meth:`set_tuning` between the two phases
+        linearises the prepared window again with the new tuning.
         """
         if not self.rti:
             raise ValueError("prepare() is the preparation phase of the real-time "
                              "iteration: build the MHE with rti=True")
         u = self._check_u(u)
+        self._dt = None if dt is None else self._check_dt(dt)
         if self._prepared is not None:  # prepared already: the window has moved
             if not np.array_equal(self._prepared[0], u):
                 raise ValueError(f"prepare() was called already with u = "
@@ -232,6 +245,7 @@ class MHE(RealTimeIteration):
             return
         if self._first or self._n < self.horizon:  # filling: step solves the window
             return
+        self._before_prepare = self._state()  # for a set_tuning before the step
         self._prepare(u)
 
     # ------------------------------------------------------- late measurements

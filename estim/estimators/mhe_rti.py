@@ -46,8 +46,12 @@ class RealTimeIteration(MovingWindow):
     _rti_prepare: FastFunction
     _rti_feedback: FastFunction
     _rti_cost: FastFunction
-    #: The preparation of the next step: ``(u, its time)``, or None before it.
+    #: The preparation of the next step: ``(u, its time)``, or None before it; and the
+    #: interval it was prepared for (None: the model's).
     _prepared: tuple[np.ndarray, float] | None
+    _prepared_dt: float | None = None
+    #: The window's state before the last prepare() (MovingWindow._state), or None.
+    _before_prepare: dict | None = None
 
     def _build_rti(self, solver: str, options: dict) -> None:
         """The real-time iteration's two compiled phases (see :mod:`~estim.solvers.rti`)."""
@@ -85,13 +89,15 @@ class RealTimeIteration(MovingWindow):
     def _reset(self) -> None:
         """The window's state (:meth:`MovingWindow._reset`), and nothing prepared."""
         super()._reset()
-        self._prepared = None
+        self._prepared = self._before_prepare = None
 
     # ---------------------------------------------------------------- phases
     def _prepare(self, u: np.ndarray) -> tuple[np.ndarray, float]:
-        """The preparation of the full window for the arriving sample's input ``u``:
-        shift the window and linearise it; returns (and keeps) ``(u, its time)``."""
+        """The preparation of the full window for the arriving sample's input ``u`` (and
+        interval ``_dt``): shift the window and linearise it; returns (and keeps)
+        ``(u, its time)``."""
         t0 = time.perf_counter()
+        self._prepared_dt = self._dt
         self._shift(u)
         self._linearise(u)
         self._prepared = (u.copy(), time.perf_counter() - t0)
@@ -141,6 +147,7 @@ class RealTimeIteration(MovingWindow):
         here when :meth:`MHE.prepare <estim.MHE.prepare>` was not called). None if the
         step is not finite: the window, with room for the sample, is then to be solved
         to convergence."""
+        self._before_prepare = None  # the step consumes the preparation
         if self._prepared is None and (first or self._n < self.horizon):
             out = self._startup(y, u, first)  # the window fills: projected Gauss-Newton
             if out is None:  # not finite: the converged solver
@@ -153,6 +160,11 @@ class RealTimeIteration(MovingWindow):
         elif not np.array_equal(prepared[0], u):
             raise ValueError(f"step got u = {u}, but prepare() prepared the window for "
                              f"u = {prepared[0]}: give step the input given to prepare")
+        elif self._dt is not None and self._dt != self._prepared_dt:
+            before = self.model.dt if self._prepared_dt is None else self._prepared_dt
+            raise ValueError(f"step got dt = {self._dt:g}, but prepare() prepared the window "
+                             f"for dt = {before:g}: give prepare the interval "
+                             f"(prepare(u, dt=...))")
         return self._feedback(y, u, prepared[1], inside)
 
     def _startup(self, y: np.ndarray, u: np.ndarray, first: bool
