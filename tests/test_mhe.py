@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import warnings
+
+import casadi as ca
 import numpy as np
 import pytest
 from conftest import make_linear
@@ -262,3 +265,24 @@ def test_auto_solver_refuses_another_solvers_options():
     # Gauss-Newton's own options are fine with "auto"
     mhe = estim.MHE(sc.model, horizon=5, solver_options={"max_iter": 5}, **sc.tuning)
     assert mhe.solver == "gauss-newton"
+
+
+def test_solver_warnings_are_kept_not_printed(capsys):
+    """Ipopt at a square root's bound: CasADi's "Failed to calculate multipliers"
+    warnings go to the step's diagnostics, not to stderr."""
+    m = estim.Model(states=["h1", "h2"], inputs=["q"], outputs=["y"],
+                    ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(ca.fmax(x[0], 0)),
+                                                   0.5 * ca.sqrt(ca.fmax(x[0], 0))
+                                                   - 0.4 * ca.sqrt(ca.fmax(x[1], 0))),
+                    output=lambda x, u, p: x[1], dt=0.5, lower=0.0, name="tanks")
+    U = np.zeros((40, 1))
+    U[:20] = 0.3
+    sc = estim.Scenario("tanks", m, x0=[0.3, 0.3], n_steps=40, Q=0.0, R=1e-4, inputs=U,
+                        clip=True, tuning=dict(Q=1e-5, R=1e-4, x0=[0.3, 0.3], P0=0.01))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", estim.EstimationWarning)  # (the fmax advice)
+        log = estim.simulate(sc, estim.MHE(m, horizon=10, solver="ipopt", **sc.tuning),
+                             seed=0, warn=False)
+    kept = [d["solver_messages"] for d in log.diagnostics if "solver_messages" in d]
+    assert kept and "Failed to calculate multipliers" in kept[0]
+    assert "Failed to calculate" not in capsys.readouterr().err

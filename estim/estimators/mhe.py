@@ -324,6 +324,7 @@ class MHE(RealTimeIteration):
             extra={"window": self._X[s0:].copy(), "arrival_mean": self._xbar.copy(),
                    "arrival_covariance": None if self._Pbar is None else self._Pbar.copy(),
                    "solver_time": sol.solve_time, "solver": self.solver,
+                   **({"solver_messages": sol.messages} if sol.messages else {}),
                    **({} if self._loss is None or self._nlp.weights is None else
                       {"measurement_weights": self._nlp.weights[s0:].copy(),
                        "outliers": sol.outliers})})

@@ -23,6 +23,8 @@ outputs. One NLP thus serves every window length, built once.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import time
 
 import casadi as ca
@@ -222,20 +224,23 @@ class LeastSquaresNLP(Reweighted):
             return Solution(np.asarray(X0, float), False,
                             "non-finite cost at the initial guess", 0, start,
                             time.perf_counter() - t0)
+        written = io.StringIO()  # CasADi's warnings (e.g. on the multipliers) kept
         try:
-            if self.solver_name == "fatrop":
-                sol = solve_fatrop(self._solver, self._fatrop, X0, p, self.lbx, self.ubx,
-                                   self.N, self.model.nx)
-            else:
-                args = {"x0": x0, "p": p, "lbx": self.lbx, "ubx": self.ubx}
-                if self._lam_x is not None and self.bounded:
-                    args["lam_x0"] = self._lam_x if same_window else self._shifted(self._lam_x)
-                sol = self._solver(**args)
+            with contextlib.redirect_stderr(written):
+                if self.solver_name == "fatrop":
+                    sol = solve_fatrop(self._solver, self._fatrop, X0, p, self.lbx, self.ubx,
+                                       self.N, self.model.nx)
+                else:
+                    args = {"x0": x0, "p": p, "lbx": self.lbx, "ubx": self.ubx}
+                    if self._lam_x is not None and self.bounded:
+                        args["lam_x0"] = (self._lam_x if same_window else
+                                          self._shifted(self._lam_x))
+                    sol = self._solver(**args)
             stats = self._solver.stats()
         except RuntimeError as exc:  # solver crashed on NaN or similar
             return Solution(np.asarray(X0, float), False,
                             f"error: {str(exc).strip().splitlines()[-1]}"[:200], 0, np.nan,
-                            time.perf_counter() - t0)
+                            time.perf_counter() - t0, messages=written.getvalue().strip())
         elapsed = time.perf_counter() - t0
         status = str(stats.get("return_status", "unknown"))
         iters = int(stats.get("iter_count", 0))
@@ -255,7 +260,8 @@ class LeastSquaresNLP(Reweighted):
         elif np.isfinite(X).all():  # an early stop: usable if no worse than the start
             cost = self.gn.cost(X.ravel(), p, self._complete)
             usable = bool(np.isfinite(cost) and not cost > start)
-        return Solution(X, ok, status, iters, cost, elapsed, usable)
+        return Solution(X, ok, status, iters, cost, elapsed, usable,
+                        messages=written.getvalue().strip())
 
     def _solve_gn(self, X0, p, reweight=None) -> Solution:
         """The structured Gauss-Newton solve (see :meth:`StructuredGaussNewton.solve`)."""

@@ -31,6 +31,7 @@ class Solution:
     build_time: float = 0.0
     outliers: int = 0  # robust loss: measurement components beyond OUTLIER_SIGMA
     outlier_cost: float = 0.0  # and their share of the cost
+    messages: str = ""  # what the solver wrote to stderr (CasADi's warnings), captured
 
     def __post_init__(self):
         self.usable = self.usable or self.success
