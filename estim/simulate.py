@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
+from estim._locate import locate
 from estim._manifold import NP, unit_quaternions
 from estim._validate import (
     _numeric_array,
@@ -178,13 +179,36 @@ class _Recorder:
         log = self.log(model, estimator, t, x, y, u)
         if warn and log.failures > FAILED_FRACTION * len(log):
             name = getattr(estimator, "name", type(estimator).__name__)
-            first = str(log.status[~log.success][0])
-            hint = " (the model or its Jacobian is not finite at the estimates: a sqrt, " \
-                "log or division at the edge of its domain?)" if "non-finite" in first else ""
+            k = int(np.flatnonzero(~log.success)[0])
+            first = str(log.status[k])
+            hint = ""
+            if "non-finite" in first and "(not finite:" not in first:
+                where = _located(model, log, k)
+                hint = (f" (not finite: {where})" if where else
+                        " (the model or its Jacobian is not finite at the estimates: a sqrt, "
+                        "log or division at the edge of its domain?)")
             warnings.warn(f"{name} on {log.model_name or 'the model'}: {log.problems()}; "
                           f"see log.status{hint}", EstimationWarning,
                           stacklevel=4)  # this method, simulate, its argument check, caller
         return log
+
+
+def _located(model: Model, log: Log, k: int) -> str:
+    """What of the model is not finite around the first failed step ``k``: at the
+    estimate before it (the transition into ``k``) or at ``k`` itself
+    (:func:`estim._locate.locate`); empty if nothing is found."""
+    for j in (k - 1, k):
+        if j < 0 or model.sampled:
+            continue
+        u = log.u[j] if j < len(log.u) else np.zeros(model.nu)
+        w = model.transition(None, u)
+        try:
+            text = locate(model, np.asarray(log.x_hat[j], dtype=float), w, u)
+        except Exception:  # noqa: BLE001 - a diagnosis must never hide the warning
+            text = ""
+        if text:
+            return text
+    return ""
 
 
 def algebraic_states(model: Model, X: np.ndarray, U: np.ndarray) -> np.ndarray:

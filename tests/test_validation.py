@@ -207,3 +207,20 @@ def test_errors_inside_user_equations_name_the_model_and_equation(ode, error, hi
     with pytest.raises(error, match=r"^mine: building the equation ode= failed: .*" + hint):
         estim.Model(states=["a", "b"], outputs=["y"], ode=ode, output=lambda x, u, p: x[0],
                     dt=0.1, name="mine")
+
+
+def test_a_failed_step_says_what_is_not_finite():
+    """The EKF's status at a square root of a negative state names the entry and the
+    operation; the run's warning does the same for estimators whose status does not."""
+    from estim.simulate import _located
+
+    m = estim.Model(states=["h1", "h2"], inputs=["q"], outputs=["y"],
+                    ode=lambda x, u, p: ca.vertcat(u[0] - 0.5 * ca.sqrt(x[0]),
+                                                   0.5 * ca.sqrt(x[0]) - 0.4 * ca.sqrt(x[1])),
+                    output=lambda x, u, p: x[1], dt=0.5, name="tanks")
+    Y = np.full((10, 1), 0.5)
+    log = estim.replay(estim.EKF(m, Q=1e-4, R=1e-4, x0=[0.01, 0.5], P0=1.0), Y, u=0,
+                       warn=False)
+    assert "(not finite: F entry 'h1' is nan: sqrt of -0.0025 at [0.01, 0.5])" in \
+        log.status[1]
+    assert _located(m, log, 1) == "F entry 'h1' is nan: sqrt of -0.0025 at [0.01, 0.5]"
