@@ -46,6 +46,7 @@ from estim.estimators.base import Estimator
 from estim.log import Log
 from estim.model import Model
 from estim.scenarios import Scenario
+from estim.simulate import dimensions_message
 from estim.solvers.seeds import CHUNK
 from estim.solvers.seeds import threads as seed_threads
 
@@ -487,8 +488,8 @@ def _check_compare(scenario: Scenario, estimators: object, seeds: object, n_jobs
                             f"an estimator, got the class {spec.__name__}")
         if isinstance(spec, Estimator) and (spec.model.nx, spec.model.ny, spec.model.nu) != (
                 scenario.model.nx, scenario.model.ny, scenario.model.nu):
-            raise ValueError(f"estimators[{name!r}] was built for a model of other dimensions "
-                             f"than the scenario's")
+            raise ValueError(dimensions_message(f"estimators[{name!r}]", spec.model,
+                                                 scenario.model))
     if isinstance(seeds, str | bytes) or not hasattr(seeds, "__iter__"):
         raise TypeError(f"seeds must be an iterable of seeds (e.g. range(5)), "
                         f"got {type(seeds).__name__}")

@@ -193,6 +193,21 @@ class _Recorder:
         return log
 
 
+def dimensions_message(what: str, est_model: Model, plant: Model) -> str:
+    """Why an estimator's model and the plant do not fit, with the sizes and the fix."""
+    def sizes(m: Model) -> str:
+        return f"nx={m.nx} {m.state_names}, ny={m.ny}, nu={m.nu}"
+
+    hint = ""
+    extra = [n for n in est_model.state_names if n not in plant.state_names]
+    if est_model.nx > plant.nx and extra:
+        hint = (f"; the estimator's model has the states {extra} the plant lacks (augmented "
+                f"parameters or disturbances?): simulate the plant with that model too, its "
+                f"truth for them in x0 (Scenario(model=augmented, x0=[..., values]))")
+    return (f"{what} was built for a model of other dimensions than the plant: "
+            f"{sizes(est_model)} against the plant's {sizes(plant)}{hint}")
+
+
 def _located(model: Model, log: Log, k: int) -> str:
     """What of the model is not finite around the first failed step ``k``: at the
     estimate before it (the transition into ``k``) or at ``k`` itself
@@ -338,7 +353,7 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
         raise TypeError(f"target must be a Scenario or a Model, got {type(target).__name__}")
     est = _PlantOnly(model) if estimator is None else estimator
     if est.model.nx != model.nx or est.model.ny != model.ny or est.model.nu != model.nu:
-        raise ValueError("estimator was built for a model of other dimensions than the plant")
+        raise ValueError(dimensions_message("estimator", est.model, model))
     n_steps, seed, clip, plant_changes = _check_simulate(
         model, n_steps, seed, clip, inputs, controller, missing, plant_changes)
     warn = as_bool(warn, "warn")

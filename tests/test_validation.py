@@ -224,3 +224,13 @@ def test_a_failed_step_says_what_is_not_finite():
     assert "(not finite: F entry 'h1' is nan: sqrt of -0.0025 at [0.01, 0.5])" in \
         log.status[1]
     assert _located(m, log, 1) == "F entry 'h1' is nan: sqrt of -0.0025 at [0.01, 0.5]"
+
+
+def test_a_size_mismatch_gives_the_sizes_and_the_fix():
+    sc = estim.scenarios.get("van_der_pol")
+    ekf = estim.EKF(sc.model.augment("mu"), Q=0.01, R=1.0, x0=[0, 0, 1.0], P0=1.0)
+    with pytest.raises(ValueError, match=r"nx=3 \['x1', 'x2', 'mu'\], ny=2, nu=0 against the "
+                                         r"plant's nx=2 .* the states \['mu'\] the plant lacks"):
+        estim.simulate(sc, ekf)
+    with pytest.raises(ValueError, match=r"estimators\['ekf'\] was built .* \['mu'\]"):
+        estim.compare(sc, {"ekf": ekf})
