@@ -17,7 +17,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-__all__ = ["after_failure", "locate"]
+__all__ = ["after_failure", "first_located", "locate"]
 
 #: Nodes of an entry's graph examined at most.
 MAX_NODES = 4000
@@ -90,16 +90,24 @@ def _operation(fun: ca.Function, args: tuple, row: int) -> str:
     return ""
 
 
+def first_located(model: Any, points: Any) -> str:
+    """What :func:`locate` finds at the first of ``points``, ``(x, w, u)`` triples, where
+    it finds something; empty otherwise (a diagnosis that raises counts as nothing: it
+    must never break what called it)."""
+    for x, w, u in points:
+        try:
+            text = locate(model, np.asarray(x, dtype=float), w, u)
+        except Exception:  # noqa: BLE001 - a diagnosis must never break the caller
+            text = ""
+        if text:
+            return text
+    return ""
+
+
 def after_failure(model: Any, x_prev: np.ndarray, x_prior: np.ndarray, w: np.ndarray) -> str:
     """`` (not finite: ...)`` for a failed filter step: what :func:`locate` finds at the
     prediction ``x_prior`` (the output and its Jacobian there), else at the previous
     estimate ``x_prev`` (the transition); empty when it finds nothing."""
     u = np.asarray(model.measurement_input(w), dtype=float)
-    for x in (x_prior, x_prev):
-        try:
-            text = locate(model, np.asarray(x, dtype=float), w, u)
-        except Exception:  # noqa: BLE001 - a diagnosis must never break the recovery
-            text = ""
-        if text:
-            return f" (not finite: {text})"
-    return ""
+    text = first_located(model, ((x, w, u) for x in (x_prior, x_prev)))
+    return f" (not finite: {text})" if text else ""

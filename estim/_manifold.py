@@ -217,14 +217,18 @@ class Manifold:
                 out[j] = b[i] - a[i] if kind == "e" else wrap(b[i] - a[i], ops)
         return np.stack(out, axis=-1) if ops is NP else ca.vertcat(*out)
 
-    def output_difference(self, y: Any, yhat: Any, ops: _Ops = CA) -> Any:
-        r""":math:`y \ominus \hat y`: ``y - yhat`` with the output angles wrapped."""
+    def output_difference(self, y: Any, yhat: Any, ops: _Ops = CA,
+                          rows: Sequence[int] | None = None) -> Any:
+        r""":math:`y \ominus \hat y`: ``y - yhat`` with the output angles wrapped; on numpy
+        arrays the last axis may hold some outputs only, ``rows`` (default all)."""
         e = y - yhat
         if not self.output_angles:
             return e
         if ops is NP:
             e = np.array(e, dtype=float)
-            e[..., self.output_angles] = wrap(e[..., self.output_angles])
+            at = self.output_angles if rows is None else \
+                [i for i, r in enumerate(rows) if r in self.output_angles]
+            e[..., at] = wrap(e[..., at])
             return e
         return ca.vertcat(*[wrap(e[i], ops) if i in self.output_angles else e[i]
                             for i in range(e.numel())])
@@ -245,12 +249,10 @@ class Manifold:
         w = np.full(len(X), 1.0 / len(X)) if weights is None else np.asarray(weights)
         ref = X[int(np.argmax(w))]
         for _ in range(1 if self.euclidean_states else iterations):
-            d = self.local(ref, X, NP)
-            step = w @ d
+            step = w @ self.local(ref, X, NP)
             ref = self.retract(ref, step, NP)
-            if not np.all(np.abs(step) < 1e-13):
-                continue
-            break
+            if np.all(np.abs(step) < 1e-13):
+                break
         return ref, self.local(ref, X, NP)
 
     def errors(self, x_hat: np.ndarray, x: np.ndarray) -> np.ndarray:

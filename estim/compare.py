@@ -30,7 +30,7 @@ import os
 import sys
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -442,29 +442,28 @@ def _bar(total: int, show: bool) -> Any:
     return tqdm(total=total, unit="run", leave=False)
 
 
-#: What compare takes of a Scenario as keywords.
-_FIELDS = ("x0", "n_steps", "Q", "R", "tuning", "inputs", "controller", "feedback", "clip",
-           "plant_changes", "sampling", "name", "description", "remarks")
+#: What compare takes of a Scenario as keywords: its fields but the model.
+_FIELDS = tuple(f.name for f in fields(Scenario) if f.name != "model")
 
 
-def _experiment(scenario: object, fields: dict[str, Any]) -> Scenario:
-    """The scenario of :func:`compare`: a Scenario (with ``fields`` replaced) or one
-    built from a model and ``fields``."""
-    unknown = sorted(set(fields) - set(_FIELDS))
+def _experiment(scenario: object, given: dict[str, Any]) -> Scenario:
+    """The scenario of :func:`compare`: a Scenario (with the ``given`` fields replaced) or one
+    built from a model and them."""
+    unknown = sorted(set(given) - set(_FIELDS))
     if unknown:
         options = [n for n in inspect.signature(compare).parameters if n != "experiment"]
         raise TypeError(f"unknown option {unknown[0]!r} of compare"
                         f"{did_you_mean(unknown[0], options + list(_FIELDS))} (its options: "
                         f"{options}; the experiment's fields: {list(_FIELDS)})")
     if isinstance(scenario, Scenario):
-        return scenario.replace(**fields) if fields else scenario
+        return scenario.replace(**given) if given else scenario
     if isinstance(scenario, Model):
-        missing = [k for k in ("x0", "n_steps", "Q", "R", "tuning") if k not in fields]
+        missing = [k for k in ("x0", "n_steps", "Q", "R", "tuning") if k not in given]
         if missing:
-            raise TypeError(f"scenario: compare on a bare Model needs {missing} as keywords (the "
-                             f"truth's x0, the length, the plant's Q and R, and the "
-                             f"estimators' tuning {{Q, R, x0, P0}}), or an estim.Scenario")
-        return Scenario(fields.pop("name", scenario.name), scenario, **fields)
+            raise TypeError(f"scenario: compare on a bare Model needs {missing} as keywords "
+                            f"(the truth's x0, the length, the plant's Q and R, and the "
+                            f"estimators' tuning {{Q, R, x0, P0}}), or an estim.Scenario")
+        return Scenario(given.pop("name", scenario.name), scenario, **given)
     raise TypeError(f"scenario must be an estim.Scenario or an estim.Model, got "
                     f"{type(scenario).__name__}")
 

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
-from estim._locate import locate
+from estim._locate import first_located
 from estim._manifold import NP, unit_quaternions
 from estim._validate import (
     _numeric_array,
@@ -211,19 +211,14 @@ def dimensions_message(what: str, est_model: Model, plant: Model) -> str:
 def _located(model: Model, log: Log, k: int) -> str:
     """What of the model is not finite around the first failed step ``k``: at the
     estimate before it (the transition into ``k``) or at ``k`` itself
-    (:func:`estim._locate.locate`); empty if nothing is found."""
-    for j in (k - 1, k):
-        if j < 0 or model.sampled:
-            continue
+    (:func:`estim._locate.first_located`); empty if nothing is found."""
+    def point(j: int) -> tuple:
         u = log.u[j] if j < len(log.u) else np.zeros(model.nu)
-        w = model.transition(None, u)
-        try:
-            text = locate(model, np.asarray(log.x_hat[j], dtype=float), w, u)
-        except Exception:  # noqa: BLE001 - a diagnosis must never hide the warning
-            text = ""
-        if text:
-            return text
-    return ""
+        return log.x_hat[j], model.transition(None, u), u
+
+    if model.sampled:
+        return ""
+    return first_located(model, (point(j) for j in (k - 1, k) if j >= 0))
 
 
 def algebraic_states(model: Model, X: np.ndarray, U: np.ndarray) -> np.ndarray:
@@ -477,12 +472,13 @@ def replay(estimator: Estimator, y: ArrayLike, u: ArrayLike | None = None,
     if not isinstance(estimator, Estimator):
         raise TypeError(f"estimator must be an estim estimator, got {type(estimator).__name__}")
     model = estimator.model
-    if isinstance(u, int | float) and not isinstance(u, bool):  # u=0: zero inputs
-        u = np.full((len(np.atleast_1d(np.asarray(y, dtype=object))), model.nu), float(u))
-    Y, dts = _check_replay(model, y, u, x, t)  # dts: each interval (variable_dt) or None
+    value = u if isinstance(u, int | float) and not isinstance(u, bool) else None  # u=0
+    Y, dts = _check_replay(model, y, None if value is not None else u, x, t)  # (variable_dt)
     warn = as_bool(warn, "warn")
     T = Y.shape[0]
-    if u is None and model.nu:
+    if value is not None:
+        u = np.full((T, model.nu), float(value))
+    elif u is None and model.nu:
         raise ValueError(f"u is required: {model.name} has nu = {model.nu} input(s) "
                          f"{model.input_names}; give u ({T}, {model.nu}), or u=0 to replay "
                          f"with zero inputs on purpose")

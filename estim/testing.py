@@ -84,9 +84,8 @@ def _values(comparison: Comparison | Mapping[str, ArrayLike], label: str, metric
         raise ValueError(f"{argname}: {label!r} is not in the comparison; its estimators are "
                          f"{list(table)}{did_you_mean(str(label), list(table))}")
     values = np.asarray(table[label], dtype=float).ravel()
-    if metric == "nees" and isinstance(comparison, Comparison):
-        values = np.abs(values - 1.0)  # distance from consistency: lower is better
-    return values
+    # NEES per dimension: its distance from consistency, lower being better
+    return np.abs(values - 1.0) if metric == "nees" else values
 
 
 def _level(value: Any, name: str) -> float:

@@ -12,6 +12,7 @@ from estim.estimators.manifold_steps import check_manifold_options, mekf_step, r
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariances, ekf_step
 from estim.model import Model
+from estim.solvers.kalman import ekf_checks
 from estim.solvers.rts import transitions
 
 
@@ -138,10 +139,7 @@ class EKF(FusedKalman):
         nis = ca.dot(e, ca.solve(S, e))
         s_new = ca.vertcat(xh, ca.vec(Ph))
         s_prior = ca.vertcat(xb, ca.vec(Pb))
-        # finite, and a covariance with a positive diagonal (lost in overflowing updates)
-        ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
-        ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
-        ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
+        ok, ok_mean, ok_prior = ekf_checks(s_new, nis, Ph, xb, Pb)
         name = "ekf_predict_update" if predict else "ekf_update"
         return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                     ok_mean, mask, s_prior)

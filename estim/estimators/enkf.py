@@ -102,7 +102,14 @@ from estim._manifold import NP
 from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ensembles import over_points, run_record, square_root
+from estim.estimators.ensembles import (
+    deviations,
+    draw_about,
+    moved,
+    over_points,
+    run_record,
+    square_root,
+)
 from estim.estimators.filtering import FilterResult
 from estim.model import Model
 
@@ -160,14 +167,14 @@ def _etkf(A: np.ndarray, B: np.ndarray, e: np.ndarray, LR: np.ndarray
     return A @ w / c, Aa, nis
 
 
-def _moments(X: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The mean and covariance (``ddof=1``) of members ``X`` (nx, N); None when the
-    covariance is not finite (members finite but too far apart)."""
-    x = X.mean(axis=1)
-    A = X - x[:, None]
+def _moments(model: Model, X: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The mean and covariance (``ddof=1``) of members ``X`` (nx, N) (on a manifold: the
+    mean there and the covariance of the tangent deviations); None when they are not
+    finite (members finite but too far apart)."""
     with np.errstate(all="ignore"):
+        x, A = deviations(model, X)
         P = A @ A.T / (X.shape[1] - 1)
-    if not np.isfinite(P).all():
+    if not (np.isfinite(P).all() and np.isfinite(x).all()):
         return None
     return x, 0.5 * (P + P.T)
 
@@ -260,54 +267,32 @@ class EnKF(Estimator):
         return None if self._X is None else self._X.copy()
 
     # -------------------------------------------------------------- step
-    def _spread(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        """``N`` members drawn about ``x`` with covariance ``P`` (in the tangent space
-        of a manifold), ``(nx, N)``."""
-        M, N = self.model.manifold, self.n_ensemble
-        d = square_root(P) @ self._rng.standard_normal((self.model.ndx, N))
-        return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
-
-    def _moments(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The members' mean and covariance (:func:`_moments`; on a manifold the mean
-        there and the covariance of the tangent deviations)."""
-        M = self.model.manifold
-        if M.euclidean_states:
-            return _moments(X)
-        with np.errstate(all="ignore"):
-            xb, dev = M.mean(X.T)
-        moments = _moments(dev.T)
-        return None if moments is None or not np.isfinite(xb).all() else (xb, moments[1])
-
     def _step(self, y, u, first):
         m, N, nd = self.model, self.n_ensemble, self.model.ndx
         observed = ~np.isnan(y)
         w = self._transition(u) if m.nw else np.zeros(0)
         status, success = "ok", True
         if first or self._X is None:
-            X = self._spread(self.x0, self.P0)
+            X = draw_about(m, self._rng, self.x0, self.P0, N)
         else:
             V = self._rng.standard_normal((nd, N))
             X = self._advance(self._X, V, w, self._LQ, n=N)[0]
             if self.inflation != 1.0:
-                if m.manifold.euclidean_states:
-                    xb = X.mean(axis=1, keepdims=True)
-                    with np.errstate(all="ignore"):
-                        X = xb + self.inflation * (X - xb)
-                else:
-                    xc, dev = m.manifold.mean(X.T)
-                    X = m.manifold.retract(xc, self.inflation * dev, NP).T
+                with np.errstate(all="ignore"):
+                    xb, A = deviations(m, X)
+                    X = moved(m, xb[:, None], self.inflation * A)
         Xa, e, nis = self._analyse(X, y, observed, w)
-        moments = None if Xa is None else self._moments(Xa)
+        moments = None if Xa is None else _moments(m, Xa)
         if moments is None:  # a forecast or analysis that is not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = self._spread(x_t, P_t)
+            X = draw_about(m, self._rng, x_t, P_t, N)
             Xa, e, nis = self._analyse(X, y, observed, w)
-            moments = None if Xa is None else self._moments(Xa)
+            moments = None if Xa is None else _moments(m, Xa)
             status, success = ("failed: non-finite ensemble; re-anchored on the last "
                                "trusted estimate with P + P0"), False
             if moments is None:
                 Xa, e, nis, moments = (X, np.zeros(m.ny), float("nan"),
-                                       self._moments(X) or (x_t, P_t))
+                                       _moments(m, X) or (x_t, P_t))
                 status += " (no update: the new ensemble's analysis is not finite either)"
         x_hat, P = moments
         if success and observed.any():
@@ -345,40 +330,28 @@ class EnKF(Estimator):
         """The analysis of members ``X`` (nx, N) with measured outputs ``Yo`` (m, N) and
         measurement ``yo`` (m,): anomalies and increments in the tangent space of a
         manifold (quaternions, angles; output angles wrapped), else plain differences."""
-        M, N = self.model.manifold, X.shape[1]
+        m = self.model
+        M, rows = m.manifold, np.flatnonzero(observed)
+        xb, A = deviations(m, X)
         if M.trivial:
-            xb = X.mean(axis=1)
-            A = X - xb[:, None]
             yb = Yo.mean(axis=1)
             B, e = Yo - yb[:, None], yo - yb
-        else:
-            xb, dev = M.mean(X.T)
-            A = dev.T
-            out = np.zeros((N, self.model.ny))  # wrapped about the first member's output
-            out[:, observed] = Yo.T
-            dy = M.output_difference(out, out[0], NP)[:, observed].T
+        else:  # output anomalies wrapped about the first member's outputs
+            dy = M.output_difference(Yo.T, Yo[:, 0], NP, rows).T
             yb = Yo[:, 0] + dy.mean(axis=1)
             B = dy - dy.mean(axis=1, keepdims=True)
-            full = np.zeros(self.model.ny)
-            full[observed] = yo - yb
-            e = M.output_difference(full, np.zeros(self.model.ny), NP)[observed]
+            e = M.output_difference(yo, yb, NP, rows)
         if self.variant == "etkf":
             shift, Aa, nis = _etkf(A, B, e, LR)
             if M.trivial:
                 return (xb + shift)[:, None] + Aa, e, nis
-            return M.retract(xb, (shift[:, None] + Aa).T, NP).T, e, nis
+            return moved(m, xb[:, None], shift[:, None] + Aa), e, nis
         E = LR @ self._rng.standard_normal(Yo.shape)
         E -= E.mean(axis=1, keepdims=True)
-        if M.trivial:
-            D = yo[:, None] + E - Yo
-        else:
-            full = np.zeros((N, self.model.ny))
-            full[:, observed] = (yo[:, None] + E - Yo).T
-            D = M.output_difference(full, np.zeros(self.model.ny), NP)[:, observed].T
+        D = yo[:, None] + E - Yo if M.trivial else \
+            M.output_difference((yo[:, None] + E).T, Yo.T, NP, rows).T
         dX, nis = _stochastic(A, B, D, e, Ro)
-        if M.trivial:
-            return X + dX, e, nis
-        return M.retract(X.T, dX.T, NP).T, e, nis
+        return moved(m, X, dX), e, nis
 
     # ------------------------------------------------------------ record
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> FilterResult:

@@ -1,5 +1,7 @@
 """What the particle filter and the ensemble Kalman filter share: square roots of
-covariances for drawing noise, and a model's Functions evaluated over many points.
+covariances for drawing noise, points drawn about an estimate and their mean and
+deviations (in the tangent space of a model with quaternions or angles), and a model's
+Functions evaluated over many points.
 
 Both carry their distribution by ``N`` points stored as the columns of an
 ``(nx, N)`` array and evaluate the model at all of them in one call: through
@@ -15,10 +17,11 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from estim._manifold import NP
 from estim._validate import as_inputs, as_record
 from estim._vectorised import vectorised
 
-__all__ = ["over_points", "run_record", "square_root"]
+__all__ = ["deviations", "draw_about", "moved", "over_points", "run_record", "square_root"]
 
 
 def square_root(M: np.ndarray) -> np.ndarray:
@@ -29,6 +32,34 @@ def square_root(M: np.ndarray) -> np.ndarray:
     except np.linalg.LinAlgError:
         lam, V = np.linalg.eigh(0.5 * (M + M.T))
         return V * np.sqrt(np.clip(lam, 0.0, None))
+
+
+def draw_about(model, rng: np.random.Generator, x: np.ndarray, P: np.ndarray, N: int
+               ) -> np.ndarray:
+    """``N`` points drawn about ``x`` with covariance ``P`` (in the tangent space of the
+    model's manifold: ``x (+) L xi``), ``(nx, N)``."""
+    d = square_root(P) @ rng.standard_normal((model.ndx, N))
+    return moved(model, x[:, None], d)
+
+
+def moved(model, X: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Points ``X`` ``(nx, N)`` moved by tangent vectors ``D`` ``(ndx, N)``: ``X + D``, or
+    the retraction on a manifold."""
+    M = model.manifold
+    return X + D if M.euclidean_states else M.retract(X.T, D.T, NP).T
+
+
+def deviations(model, X: np.ndarray, W: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The (``W``-weighted; default equal) mean of points ``X`` ``(nx, N)`` and their
+    deviations from it, ``(ndx, N)``: on a manifold its Karcher mean and the tangent
+    vectors (:meth:`estim._manifold.Manifold.mean`)."""
+    M = model.manifold
+    if M.euclidean_states:
+        x = X.mean(axis=1) if W is None else (X * W).sum(axis=1)
+        return x, X - x[:, None]
+    x, dev = M.mean(X.T, W)
+    return x, dev.T
 
 
 def over_points(fun: ca.Function) -> Callable[..., list[np.ndarray]]:

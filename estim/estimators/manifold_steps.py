@@ -42,6 +42,8 @@ from typing import Any
 
 import casadi as ca
 
+from estim.solvers.kalman import ekf_checks
+
 __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
            "usque_step"]
 
@@ -111,9 +113,7 @@ def mekf_step(est: Any, predict: bool) -> ca.Function:
     IKC = ca.DM.eye(nd) - K @ C
     s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e,
                                        IKC @ Pb @ IKC.T + K @ Rm @ K.T, e, S)
-    ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
-    ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
-    ok_prior = ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
+    ok, ok_mean, ok_prior = ekf_checks(s_new, nis, Ph, xb, Pb)
     name = "mekf_predict_update" if predict else "mekf_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                ok_mean, mask, s_prior)

@@ -50,7 +50,13 @@ from estim._manifold import NP
 from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ensembles import over_points, run_record, square_root
+from estim.estimators.ensembles import (
+    deviations,
+    draw_about,
+    over_points,
+    run_record,
+    square_root,
+)
 from estim.estimators.manifold_steps import refuse_manifold
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
@@ -156,24 +162,11 @@ def _innovation(y: np.ndarray, observed: np.ndarray, Yh: np.ndarray, Wp: np.ndar
         return e, float("nan")
 
 
-def _about(model: Model, rng: np.random.Generator, x: np.ndarray, P: np.ndarray, N: int
-           ) -> np.ndarray:
-    """``N`` particles drawn about ``x`` with covariance ``P`` (in the tangent space of
-    a manifold), ``(nx, N)``."""
-    M = model.manifold
-    d = square_root(P) @ rng.standard_normal((model.ndx, N))
-    return x[:, None] + d if M.euclidean_states else M.retract(x, d.T, NP).T
-
-
 def _moments(model: Model, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weighted mean (on a manifold: there, the weighted Karcher mean) and
-    covariance of the particles ``X`` ``(nx, N)``."""
-    M = model.manifold
-    if M.euclidean_states:
-        x_hat = (X * W).sum(axis=1)
-        return x_hat, _spread(X - x_hat[:, None], W)
-    x_hat, dev = M.mean(X.T, W)
-    return x_hat, _spread(dev.T, W)
+    """The weighted mean (on a manifold: the weighted Karcher mean) and covariance of the
+    particles ``X`` ``(nx, N)``."""
+    x_hat, D = deviations(model, X, W)
+    return x_hat, _spread(D, W)
 
 
 def _prior_tuning(P0: np.ndarray, tun: np.ndarray) -> np.ndarray:
@@ -456,7 +449,7 @@ class ParticleFilter(Estimator):
             V = self._rng.standard_normal((nx, N))
             X, Yh, ell = self._start(self.x0, V, w, _prior_tuning(self.P0, tun), y0, WR, miss, n=N)
         elif first or self._X is None:
-            X = _about(m, self._rng, self.x0, self.P0, N)
+            X = draw_about(m, self._rng, self.x0, self.P0, N)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
@@ -465,7 +458,7 @@ class ParticleFilter(Estimator):
         W, inc, X = self._update(X, ell[0], observed, const, self._W)
         if W is None:  # every weight zero or not finite: re-anchor
             x_t, P_t = self._anchor(*self._trusted)
-            X = _about(m, self._rng, x_t, P_t, N)
+            X = draw_about(m, self._rng, x_t, P_t, N)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
             W, inc, X = self._update(X, ell[0], observed, const, None)
             status, success = ("failed: every particle weight is zero or not finite; "

@@ -34,12 +34,22 @@ from estim.consistency import SUSPECT_TAIL, chi2_limit
 from estim.model import Model
 from estim.solvers.triangular import tria
 
-__all__ = ["finite", "fused_function", "matrix", "record_function", "step_symbols"]
+__all__ = ["ekf_checks", "finite", "fused_function", "matrix", "record_function",
+           "step_symbols"]
 
 
 def finite(v) -> ca.SX:
     """1 where every entry of ``v`` is finite (a NaN or inf makes the sum not finite)."""
     return ca.fabs(ca.sum1(ca.vec(v))) < ca.inf
+
+
+def ekf_checks(s_new, nis, Ph, xb, Pb) -> tuple:
+    """``(ok, ok_mean, ok_prior)`` of an extended Kalman update: the new state and the NIS
+    finite with a covariance of positive diagonal (lost in overflowing updates), the
+    prediction's mean finite, and its covariance too."""
+    ok = ca.logic_and(ca.fabs(ca.sum1(s_new) + nis) < ca.inf, ca.mmin(ca.diag(Ph)) > 0)
+    ok_mean = ca.fabs(ca.sum1(xb)) < ca.inf
+    return ok, ok_mean, ca.logic_and(ok_mean, ca.fabs(ca.sum1(ca.vec(Pb))) < ca.inf)
 
 
 def matrix(v, n: int, diagonal: bool):
