@@ -503,8 +503,10 @@ def _check_compare(scenario: Scenario, estimators: object, seeds: object, n_jobs
     if not isinstance(backend, str):
         raise TypeError(f"backend must be a string (a joblib backend or 'dask'), "
                         f"got {type(backend).__name__}")
-    from joblib.parallel import BACKENDS  # joblib's own and any registered (ray, ...)
-
+    try:
+        from joblib.parallel import BACKENDS  # joblib's own and any registered (ray, ...)
+    except ImportError:  # no joblib: n_jobs != 1 is refused below, with the fix
+        BACKENDS = {"loky", "multiprocessing", "threading"}
     known = sorted({*BACKENDS, "dask"})
     if backend not in known:
         raise ValueError(f"backend must be one of {known} (joblib's registered backends "

@@ -15,7 +15,6 @@ import math
 import sys
 from functools import cache
 from typing import NamedTuple
-from unittest import mock
 
 import casadi as ca
 import numpy as np
@@ -72,9 +71,22 @@ def log_without_P():
     return lg
 
 
+@contextlib.contextmanager
 def no_module(*names):
-    """A context in which importing ``names`` fails (as if not installed)."""
-    return mock.patch.dict(sys.modules, {n: None for n in names})
+    """A context in which importing ``names`` and their submodules fails (as if not
+    installed). Only these entries of ``sys.modules`` are changed and restored: modules
+    first imported inside the context stay imported after it."""
+    hidden = {key: sys.modules[key] for key in list(sys.modules)
+              if any(key == n or key.startswith(n + ".") for n in names)}
+    for key in hidden:
+        del sys.modules[key]
+    sys.modules.update({n: None for n in names})
+    try:
+        yield
+    finally:
+        for n in names:
+            sys.modules.pop(n, None)
+        sys.modules.update(hidden)
 
 
 def mhe(solver="gauss-newton", **kw):
