@@ -106,6 +106,8 @@ def layout(estimator: MHE, sizes: Mapping[str, int]) -> tuple[str, int, dict[str
         ("u_last", nu, "the previous input (sampled inputs)"),
         ("u_prepared", nu, "the input given to prepare"),
         ("cost_last", 1, "the window's cost at the last estimate (its chi-square statistic)"),
+        ("trusted_x", nx, "the last estimate returned with status 0 (x0 at reset)"),
+        ("trusted_P", nx * nx, "and its covariance (P0 at reset)"),
         ("work memory of prepare and step", None, ""),
         ("u_in", nu, ""), ("Xs", window, ""), ("trial", window, ""), ("dX", window, ""),
         ("P", nx * nx, ""), ("P_held", nx * nx, ""), ("grad_y", nx, ""), ("G", window, ""),

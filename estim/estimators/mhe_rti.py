@@ -7,14 +7,18 @@ the preparation (:meth:`RealTimeIteration._prepare`, before the measurement arri
 shifts the window and linearises and eliminates it up to its newest state, and the
 feedback (:meth:`RealTimeIteration._feedback`) adds the measurement, projects the step
 on the bounds and reports the window's cost and its consistency. While the window fills
-(:meth:`RealTimeIteration._startup`) each sample's window is solved to convergence by
-projected Gauss-Newton steps with the same Functions; a step that is not finite is left
+(:meth:`RealTimeIteration._startup`), and when a feedback step is not finite or its cost
+is beyond the chi-square tail, the sample's window is solved to convergence by projected
+Gauss-Newton steps with the same Functions, and restarted on the last trusted estimate
+when that solve is not usable, as the converged MHE restarts
+(:meth:`RealTimeIteration._solve_window`); a restart that is not finite either is left
 to the converged solver.
 """
 
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,6 +32,17 @@ from estim.solvers.robust import RobustLoss
 #: below this step (relative to ``1 + max|X|``) or after this many iterations.
 RTI_STARTUP_XTOL = 1e-10
 RTI_STARTUP_ITERATIONS = 50
+
+
+class WindowSolve(NamedTuple):
+    """A window solved by :meth:`RealTimeIteration._converge`."""
+
+    X: np.ndarray  #: (N, nx) the window found
+    P: np.ndarray  #: (nx * nx) its newest state's covariance, column-major
+    iterations: int
+    converged: bool
+    cost: float  #: the window's weighted sum of squares (its chi-square statistic)
+    check: str  #: ``"ok"`` or ``"suspect: ..."``
 
 
 class RealTimeIteration(MovingWindow):
@@ -169,20 +184,54 @@ class RealTimeIteration(MovingWindow):
 
     def _startup(self, y: np.ndarray, u: np.ndarray, first: bool
                  ) -> tuple[np.ndarray, StepInfo] | None:
-        """A step while the window fills (``rti=True``): projected Gauss-Newton on the
-        window with the preparation and feedback Functions, iterated to convergence.
+        """A step while the window fills (``rti=True``): the window, shifted for the
+        arriving sample, solved to convergence (:meth:`_solve_window`)."""
+        t0 = time.perf_counter()
+        if not first:
+            self._shift(u)
+        return self._solve_window(y, u, t0, 0, "gauss-newton (rti start-up)")
+
+    def _solve_window(self, y: np.ndarray, u: np.ndarray, t0: float, iterations: int,
+                      solver: str) -> tuple[np.ndarray, StepInfo] | None:
+        """The window with the arriving sample solved to convergence (:meth:`_converge`)
+        and taken, as the converged MHE takes its solve: a window that is not finite, or
+        whose iterations stop early at a cost the data do not support, is restarted on
+        the last trusted estimate with this measurement alone (:meth:`_anchor_window`)
+        and solved again, with the status ``"failed: ...; re-anchored ..."``. None if
+        that is not finite either (the converged solver then takes the window).
+        ``iterations``: Gauss-Newton steps taken before on this sample."""
+        out = self._converge(y, u)
+        failure = None
+        if out is None or (not out.converged and out.check != "ok"):
+            failure = ("the window's Gauss-Newton steps are not finite" if out is None else
+                       f"the window's Gauss-Newton steps did not converge in "
+                       f"{RTI_STARTUP_ITERATIONS} at cost {out.cost:.3g}")
+            iterations += 0 if out is None else out.iterations
+            self._anchor_window()
+            out = self._converge(y, u)
+            if out is None:
+                return None
+        status = self._solve_status(failure, True, out.converged, f"the Gauss-Newton steps "
+                                    f"did not converge in {RTI_STARTUP_ITERATIONS}",
+                                    out.check, "window")
+        return self._rti_accept(out.X, out.P, y, u, out.cost, status,
+                                failure is None and out.converged and out.check == "ok",
+                                iterations + out.iterations, time.perf_counter() - t0, 0.0,
+                                solver)
+
+    def _converge(self, y: np.ndarray, u: np.ndarray) -> WindowSolve | None:
+        """The window (its data shifted, the sample ``(y, u)`` arriving) solved by
+        projected Gauss-Newton with the preparation and feedback Functions: ``(X, P,
+        iterations, converged, cost, check)`` (:class:`WindowSolve`), or None if a step
+        is not finite.
 
         Each iteration linearises at ``X``; the variables at a bound whose gradient
         points out of the box are held (their step 0) and the step of the others is
         halved (at most 30 times) until the projected point does not raise the cost.
         Stops when the step is below ``xtol`` relative to ``1 + max|X|``, or after
-        ``max_iter`` iterations (then ``"inexact"``); the covariance is the one of the
-        window found (its last state's block of the inverse Gauss-Newton matrix). None if
-        a step is not finite (the window is then solved by the converged solver)."""
+        ``max_iter`` iterations (not converged); the covariance is the one of the window
+        found (its last state's block of the inverse Gauss-Newton matrix)."""
         m, N = self.model, self.horizon
-        t0 = time.perf_counter()
-        if not first:
-            self._shift(u)
         s0 = N - (self._n + 1)
         self._X[:s0] = self._X[s0]
         self._rti_measurement(y)
@@ -217,26 +266,24 @@ class RealTimeIteration(MovingWindow):
                 return None
             if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
                 break
-        converged = iteration < RTI_STARTUP_ITERATIONS
         self._X[:] = X
         self._linearise(u)  # the covariance at the window found
         P = self._rti_feedback.evaluate()[1]
         if not np.isfinite(P).all():
             return None
         value, check = self._rti_check(X)
-        status = self._solve_status(None, True, converged, f"the start-up's Gauss-Newton "
-                                    f"steps did not converge in {RTI_STARTUP_ITERATIONS}",
-                                    check, "window")
-        return self._rti_accept(X, P, y, u, value, status, converged and check == "ok",
-                                iteration, time.perf_counter() - t0, 0.0,
-                                "gauss-newton (rti start-up)")
+        return WindowSolve(X, P, iteration, iteration < RTI_STARTUP_ITERATIONS, value, check)
 
     def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float, inside: bool
                   ) -> tuple[np.ndarray, StepInfo] | None:
         """The feedback phase of the real-time iteration: the prepared window with the
-        measurement ``y``; None (the window prepared, to be solved) if the step is not
-        finite. Its ``solve_time`` is the feedback's time, with the preparation's when
-        this step prepared the window itself (``inside``)."""
+        measurement ``y``. A step that is not finite or whose window cost is beyond the
+        chi-square tail (``"suspect"``) is not taken: the prepared window is then solved
+        to convergence (:meth:`_solve_window`), so that an outlier or a lost
+        linearisation does not carry an absurd window into the next samples. None (the
+        window prepared, to be solved) if that is not finite either. Its
+        ``solve_time`` is the feedback's time, with the preparation's when this step
+        prepared the window itself (``inside``)."""
         N = self.horizon
         t0 = time.perf_counter()
         self._rti_measurement(y)
@@ -244,13 +291,20 @@ class RealTimeIteration(MovingWindow):
         X = self._X + dX.reshape(N, -1)
         if self._bounded:
             np.clip(X, self.lower, self.upper, out=X)
-        if not (np.isfinite(X).all() and np.isfinite(P).all()):
-            return None
-        self._prepared = None
-        cost, check = self._rti_check(X)
-        return self._rti_accept(X, P, y, u, cost, check, check == "ok", 1,
-                                time.perf_counter() - t0 + (preparation if inside else 0.0),
-                                preparation, "gauss-newton (rti)")
+        solver = "gauss-newton (rti)"
+        if np.isfinite(X).all() and np.isfinite(P).all():
+            cost, check = self._rti_check(X)
+            if check == "ok":
+                self._prepared = None
+                return self._rti_accept(X, P, y, u, cost, check, True, 1,
+                                        time.perf_counter() - t0 +
+                                        (preparation if inside else 0.0),
+                                        preparation, solver)
+        out = self._solve_window(y, u, t0 - (preparation if inside else 0.0), 1,
+                                 solver + ", the window solved to convergence")
+        if out is not None:
+            self._prepared = None
+        return out
 
     # ---------------------------------------------------------------- helpers
     def _rti_check(self, X: np.ndarray) -> tuple[float, str]:

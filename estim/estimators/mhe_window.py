@@ -171,12 +171,18 @@ class MovingWindow(Estimator):
         """Restart the window after a failed solve: only this measurement, the arrival
         cost on the last trusted estimate with its covariance inflated by ``P0``."""
         N = self.horizon
-        x, P = self._anchor(*self._trusted)
-        self._Y[:] = np.nan
+        self._anchor_window()
         self._Y[N - 1] = y
         self._Uprev[N - 1] = u
-        self._X[:] = x
         self._n = 1
+
+    def _anchor_window(self) -> None:
+        """An empty window at the last trusted estimate (:meth:`_anchor`), the arrival
+        cost on it with its covariance inflated by ``P0``."""
+        x, P = self._anchor(*self._trusted)
+        self._Y[:] = np.nan
+        self._X[:] = x
+        self._n = 0
         self._history.clear()
         if self.arrival_cost != "none":
             self._xbar = x
