@@ -106,8 +106,8 @@ def main(argv: list[str] | None = None) -> dict:
                 x_py.append(est.step(y))
             assert np.array_equal(np.array(x_py), log.x_hat)
         diff = float(np.max(np.abs(c_out[:, :2] - log.x_hat)))
-        codes = {"ok": 0, "inexact": 1, "suspect": 2} if isinstance(est, estim.MHE) else \
-            {"ok": 0, "suspect": 1, "rejected": 2}
+        codes = {"ok": 0, "inexact": 1, "suspect": 2, "failed": 3} \
+            if isinstance(est, estim.MHE) else {"ok": 0, "suspect": 1, "rejected": 2}
         results[name] = {"difference": diff, "memory": codegen.memory(est),
                          "statuses": c_out[:, 2].astype(int), "directory": out / name,
                          "python_statuses": [codes[s.split(":")[0]] for s in log.status]}

@@ -276,14 +276,11 @@ class RealTimeIteration(MovingWindow):
 
     def _feedback(self, y: np.ndarray, u: np.ndarray, preparation: float, inside: bool
                   ) -> tuple[np.ndarray, StepInfo] | None:
-        """The feedback phase of the real-time iteration: the prepared window with the
-        measurement ``y``. A step that is not finite or whose window cost is beyond the
-        chi-square tail (``"suspect"``) is not taken: the prepared window is then solved
-        to convergence (:meth:`_solve_window`), so that an outlier or a lost
-        linearisation does not carry an absurd window into the next samples. None (the
-        window prepared, to be solved) if that is not finite either. Its
-        ``solve_time`` is the feedback's time, with the preparation's when this step
-        prepared the window itself (``inside``)."""
+        """The feedback phase: the prepared window with the measurement ``y``. A step
+        that is not finite or ``"suspect"`` (cost beyond the chi-square tail) is not
+        taken: the window is solved to convergence (:meth:`_solve_window`), so that an
+        outlier or a lost linearisation does not carry an absurd window on. ``solve_time``
+        is the feedback's, with the preparation's if this step prepared (``inside``)."""
         N = self.horizon
         t0 = time.perf_counter()
         self._rti_measurement(y)
