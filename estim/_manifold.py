@@ -186,6 +186,51 @@ class Manifold:
         """No quaternion and no angle among the states (``x ⊕ δ = x + δ``)."""
         return not (self.quaternions or self.angles)
 
+    # ------------------------------------------------------ the padded tangent
+    # The windowed solvers keep one block of size nx per slot: their tangent vector is
+    # *padded* to nx, each tangent coordinate at the stored position of its state (a
+    # quaternion's three at its first three components) and a pad, always 0, at each
+    # quaternion's fourth. Euclidean states keep their positions, so bounds apply as
+    # they are.
+    @property
+    def slots(self) -> list[int]:
+        """The stored position of each tangent coordinate in a padded tangent vector."""
+        out = [0] * self.ndx
+        for kind, i, j in self._segments:
+            for a, b in (zip(j, i[:3], strict=True) if kind == "q" else [(j, i)]):
+                out[a] = b
+        return out
+
+    @property
+    def pads(self) -> list[int]:
+        """The positions of the pads: the fourth component of each quaternion."""
+        return [g[3] for g in self.quaternions]
+
+    def padded(self, v: Any) -> Any:
+        """A tangent vector ``(..., ndx)`` padded to ``(..., nx)`` (CasADi column or
+        numpy array)."""
+        if isinstance(v, np.ndarray):
+            out = np.zeros(v.shape[:-1] + (self.nx,))
+            out[..., self.slots] = v
+            return out
+        parts: list[Any] = [0.0] * self.nx
+        for j, i in enumerate(self.slots):
+            parts[i] = v[j]
+        return ca.vertcat(*parts)
+
+    def padded_matrix(self, M: np.ndarray) -> np.ndarray:
+        """An ``ndx x ndx`` matrix embedded at the tangent positions of an ``nx x nx``
+        one, 1 on the pads' diagonal."""
+        out = np.zeros((self.nx, self.nx))
+        out[np.ix_(self.slots, self.slots)] = M
+        out[self.pads, self.pads] = 1.0
+        return out
+
+    def unpadded_matrix(self, M: np.ndarray) -> np.ndarray:
+        """The tangent block ``(..., ndx, ndx)`` of a padded ``(..., nx, nx)`` one."""
+        s = self.slots
+        return M[..., s, :][..., :, s]
+
     # ------------------------------------------------------------ the operations
     def retract(self, x: Any, d: Any, ops: _Ops = CA) -> Any:
         r""":math:`x \oplus \delta`: ``x`` (nx,) moved by the tangent vector ``d`` (ndx,);

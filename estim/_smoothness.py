@@ -207,7 +207,10 @@ def nonsmooth_operations(model) -> list[NonSmoothOperation]:
     """
     labels = list(model.state_names) + list(model.input_names) + list(model.param_names)
     nx, nu = model.nx, model.nu
-    parts = [("dynamics", model.f_c if model.f_c is not None else model.F),
+    # (the transition before a manifold's normalisation: the wrap of an angle state is
+    # no switch for the estimators, which take its steps in the tangent space)
+    parts = [("dynamics", model.f_c if model.f_c is not None else
+              getattr(model, "_F_vector", model.F)),
              ("output", model.H)]
     out: list[NonSmoothOperation] = []
     for where, fun in parts:

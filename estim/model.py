@@ -284,6 +284,9 @@ class Model(TransitionInputs):
             else:
                 self.f_c, self.F, self.F_x, self.H, self.H_x = _functions(self)
                 self.Z = None
+            #: the transition before the manifold's normalisation (whose wrap of the
+            #: angles is not a switch the estimators should be warned about)
+            self._F_vector = self.F
             if not self.manifold.euclidean_states:  # quaternions kept unit, angles wrapped
                 self.F, self.F_x = on_manifold(self.manifold, self.F)
         self._local = threading.local()
@@ -469,7 +472,7 @@ class Model(TransitionInputs):
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
-        for key in ("F", "H", "F_x", "H_x", "f_c", "_local"):
+        for key in ("F", "H", "F_x", "H_x", "f_c", "_local", "_F_vector"):
             state.pop(key, None)
         return state
 

@@ -177,7 +177,8 @@ def satellite(excitation: bool = True, fault: bool = True, n_steps: int = 400,
     the model declares its unit quaternion (``models.satellite(quaternion=True)``): the
     EKF and the UKF estimate a 3-dof attitude error, and the tuning's attitude blocks
     are 3 x 3, without the 1e-10 process noise the additive form needs on the
-    quaternion (docs/attitude.md); the other estimators do not take it yet.
+    quaternion (docs/attitude.md); the MHE and full information take it too with a
+    positive definite ``Q`` (their weights are its inverse).
     """
     excitation, fault = as_bool(excitation, "excitation"), as_bool(fault, "fault")
     fault_time = as_float(fault_time, "fault_time")

@@ -266,9 +266,9 @@ def test_declarations_are_checked():
         estim.EKF(m, Q=1e-4, R=1e-2, x0=[0.0, 0, 0, 0, 1.0], P0=0.1)
     with pytest.raises(ValueError, match=r"Q must be .* \(4, 4\) matrix"):
         estim.EKF(m, Q=np.eye(5), R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1)
-    with pytest.raises(ValueError, match=r"MHE does not handle the quaternions .* "
-                                         r"model.euclidean\(\)"):
-        estim.MHE(m, horizon=5, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1)
+    with pytest.raises(ValueError, match=r"ShootingObserver does not handle the "
+                                         r"quaternions .* model.euclidean\(\)"):
+        estim.ShootingObserver(m, window=3, every=2, R=1e-2, x0=[1.0, 0, 0, 0, 1.0])
     mhe = estim.MHE(m.euclidean(), horizon=5, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1)
     assert mhe.model.ndx == 5
     with pytest.raises(ValueError, match="square-root form"):

@@ -59,6 +59,7 @@ from estim._validate import as_bounds, as_covariance, as_float, as_vector, check
 from estim.consistency import consistency_status
 from estim.exceptions import EstimationWarning
 from estim.model import Model
+from estim.solvers.weights import weight_factor
 
 #: The protocol's names, and the consistency test and warning class it reports with.
 __all__ = ["EstimationWarning", "Estimator", "StepInfo", "consistency_status"]
@@ -354,6 +355,15 @@ class Estimator:
         if success:
             return check
         return f"inexact: {status}" + ("" if check == "ok" else f"; {check}")
+
+    def _weight_factor(self, P: np.ndarray) -> np.ndarray:
+        """The weight factor :math:`W` with :math:`W^\top W = P^{-1}` of a state
+        covariance ``P`` (ndx x ndx); on a manifold padded to the windowed solvers'
+        ``nx x nx`` blocks (:meth:`Manifold.padded_matrix
+        <estim._manifold.Manifold.padded_matrix>`)."""
+        M = self.model.manifold
+        W = weight_factor(P)
+        return W if M.euclidean_states else M.padded_matrix(W)
 
     def _anchor(self, x: np.ndarray, P: np.ndarray | None = None
                 ) -> tuple[np.ndarray, np.ndarray | None]:

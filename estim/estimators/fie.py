@@ -16,6 +16,7 @@ from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
+from estim.estimators.manifold_steps import unit_bounds
 from estim.model import Model
 from estim.solvers.nlp import LeastSquaresNLP
 from estim.solvers.options import check_solver_options, resolve_solver
@@ -47,10 +48,21 @@ def _residual_map(model: Model, T: int) -> FastFunction:
     allows it.
     """
     nx, nu, ny, pm = model.nx, model.nu, model.ny, ca.DM(model.p)
+    M = model.manifold
     X, U, Up, Y = (ca.MX.sym(n, k, T) for n, k in (("X", nx), ("U", model.nw), ("Up", nu),
                                                     ("Y", ny)))
-    w = X[:, 1:] - model.F.map(T - 1)(X[:, :-1], U[:, :-1], pm) if T > 1 else ca.MX(nx, 0)
-    fun = ca.Function("residuals", [X, U, Up, Y], [w, Y - model.H.map(T)(X, Up, pm)])
+    if T == 1:
+        w = ca.MX(M.ndx, 0)
+    elif M.euclidean_states:
+        w = X[:, 1:] - model.F.map(T - 1)(X[:, :-1], U[:, :-1], pm)
+    else:  # the tangent vectors x_{k+1} - F(x_k) on the manifold
+        a, b = ca.SX.sym("x", nx), ca.SX.sym("x_next", nx)
+        local = ca.Function("local", [a, b], [M.local(a, b)])
+        w = local.map(T - 1)(model.F.map(T - 1)(X[:, :-1], U[:, :-1], pm), X[:, 1:])
+    v = M.output_difference(Y, model.H.map(T)(X, Up, pm)) if not M.output_angles else \
+        ca.horzcat(*[M.output_difference(Y[:, k], model.H(X[:, k], Up[:, k], pm))
+                     for k in range(T)])
+    fun = ca.Function("residuals", [X, U, Up, Y], [w, v])
     try:
         fun = fun.expand()
     except RuntimeError:  # e.g. an integrator inside the model: stays mapped
@@ -251,7 +263,7 @@ def _result(model: Model, solver: str, maps: dict[int, FastFunction], nlp: Least
         if T not in maps:
             maps[T] = _residual_map(m, T)
         w, v = maps[T](*data)
-        return w.reshape(T - 1, m.nx).copy(), v.reshape(T, m.ny).copy()
+        return w.reshape(T - 1, m.ndx).copy(), v.reshape(T, m.ny).copy()
 
     p_snapshot, complete = nlp._p.copy(), nlp._complete
     cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
@@ -324,6 +336,7 @@ class FullInformation(Estimator):
     """
 
     name = "fie"
+    _manifold_aware = True  # with the Gauss-Newton solver
     _requires_P0 = False
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
@@ -338,11 +351,16 @@ class FullInformation(Estimator):
         self._x0_given = x0 is not None
         if P0 is not None and x0 is None:
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
-        super().__init__(model, Q=Q, R=R, x0=np.zeros(model.nx) if x0 is None else x0, P0=P0)
+        if x0 is None:  # the start: zeros (identity quaternions)
+            x0 = np.zeros(model.nx)
+            x0[[g[0] for g in model.manifold.quaternions]] = 1.0
+        super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         if np.linalg.eigvalsh(self.Q)[0] <= 0:
             raise ValueError("Q must be positive definite for full-information estimation "
                              "(the weights are Q^-1)")
         self.lower, self.upper = self._bounds(lower, upper)
+        unit_bounds(model, self.lower, self.upper)
+        LeastSquaresNLP.check_solver(model, solver)
         self.solver = solver
         self.solver_options = solver_options
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
@@ -370,10 +388,10 @@ class FullInformation(Estimator):
     set_tuning.__doc__ = Estimator.set_tuning.__doc__
 
     def _tuning_changed(self) -> None:
-        self._WQ = weight_factor(self.Q)
+        self._WQ = self._weight_factor(self.Q)
         self._WR = weight_factor(self.R)
         P0 = self.P0 if self._x0_given else None  # a prior needs its mean
-        self._W0 = None if P0 is None else weight_factor(P0)
+        self._W0 = None if P0 is None else self._weight_factor(P0)
         self._prior = self._W0 is not None
 
     def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
@@ -418,7 +436,7 @@ class FullInformation(Estimator):
         if Q is not None or R is not None:
             new = self._validated_tuning(Q=Q, R=R)
             Qf, Rf = new.get("Q", self.Q), new.get("R", self.R)
-            weights = (weight_factor(Qf), weight_factor(Rf), Rf)
+            weights = (self._weight_factor(Qf), weight_factor(Rf), Rf)
         Yr, W, Uy = _record(self.model, Y, U, t)
         T, nx = Yr.shape[0], self.model.nx
         if guess is None:
@@ -502,7 +520,7 @@ class FullInformation(Estimator):
         capacity = max(8, 1 << (T - 1).bit_length())  # doubles: log2(T) problems built
         res, sol = self._solve(Y, U, Uprev, guess, capacity, prior=self._start, robust=robust)
         measured = int(np.isfinite(Y).sum())
-        dof = measured + (0 if self._start[1] is None else m.nx)
+        dof = measured + (0 if self._start[1] is None else m.ndx)
         return res, sol.usable, sol.consistency(dof, measured)
 
     def _step(self, y, u, first):
@@ -518,7 +536,7 @@ class FullInformation(Estimator):
             failure = self._failure(usable, res.status, res.cost)
             x, P = self._anchor(*self._trusted)
             self._Ys, self._Ws, self._Us = [y.copy()], [], [u.copy()]
-            self._start = (x, None if P is None else weight_factor(P))
+            self._start = (x, None if P is None else self._weight_factor(P))
             self._X = None
             res, usable, check = self._solve_record(robust=True)
         x_hat = res.x[-1].copy() if usable else self._start[0].copy()

@@ -41,11 +41,12 @@ from __future__ import annotations
 from typing import Any
 
 import casadi as ca
+import numpy as np
 
 from estim.solvers.kalman import ekf_checks
 
 __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
-           "usque_step"]
+           "unit_bounds", "usque_step"]
 
 
 def check_manifold_options(model: Any, form: str, clip: bool) -> None:
@@ -60,6 +61,18 @@ def check_manifold_options(model: Any, form: str, clip: bool) -> None:
     if clip:
         raise ValueError(f"clip=True: clipping does not handle the quaternions and angles "
                          f"of {model.name}; give bounds to an MHE instead")
+
+
+def unit_bounds(model: Any, lower: Any, upper: Any) -> None:
+    """A ``ValueError`` for bounds on a quaternion component (a unit quaternion is
+    bounded by its norm; its steps are rotations) or on an angle (it wraps)."""
+    M = model.manifold
+    at = [i for g in M.quaternions for i in g] + list(M.angles)
+    bounded = [model.state_names[i] for i in at
+               if np.isfinite(lower[i]) or np.isfinite(upper[i])]
+    if bounded:
+        raise ValueError(f"lower/upper: {bounded} are quaternion components or angles of "
+                         f"{model.name}, which cannot be bounded; bound the other states")
 
 
 def refuse_manifold(model: Any, what: str) -> None:

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_int
 from estim.estimators.base import StepInfo
+from estim.estimators.manifold_steps import refuse_manifold, unit_bounds
 from estim.estimators.mhe_rti import (
     RTI_STARTUP_ITERATIONS,
     RTI_STARTUP_XTOL,
@@ -161,6 +162,7 @@ class MHE(RealTimeIteration):
     """
 
     name = "mhe"
+    _manifold_aware = True  # with the Gauss-Newton solver, not the real-time iteration
 
     def __init__(self, model: Model, *, horizon: int, Q: ArrayLike, R: ArrayLike,
                  x0: ArrayLike, P0: ArrayLike | None = None, arrival_cost: str = "filtering",
@@ -184,6 +186,9 @@ class MHE(RealTimeIteration):
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
+        if self.rti:
+            refuse_manifold(model, "rti=True (the converged MHE does)")
+        unit_bounds(model, self.lower, self.upper)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlp = LeastSquaresNLP(model, self.horizon, self.lower, self.upper, solver,
                                     solver_options or {}, diagonal_Q=self._diagonal["Q"],
@@ -204,10 +209,10 @@ class MHE(RealTimeIteration):
         if self.rti:
             self._rti_Qinv[:] = np.linalg.inv(self.Q).ravel(order="F")
             self._rti_R[:] = self.R.ravel(order="F")
-        self._WQ = weight_factor(self.Q)
+        self._WQ = self._weight_factor(self.Q)
         self._WR = weight_factor(self.R)
         if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
-            self._W0 = weight_factor(self.P0)
+            self._W0 = self._weight_factor(self.P0)
         prepared = getattr(self, "_prepared", None)
         before = getattr(self, "_before_prepare", None)
         if self.rti and prepared is not None and before is not None:

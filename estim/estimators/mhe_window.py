@@ -23,9 +23,9 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim.estimators.base import Estimator
+from estim.estimators.manifold_steps import tangent_jacobian
 from estim.solvers.nlp import LeastSquaresNLP
 from estim.solvers.solution import Solution
-from estim.solvers.weights import weight_factor
 
 
 class MovingWindow(Estimator):
@@ -64,7 +64,8 @@ class MovingWindow(Estimator):
     def _reset(self) -> None:
         """An empty window at the prior ``x0, P0``."""
         m, N = self.model, self.horizon
-        self._W0 = None if self.P0 is None else weight_factor(self.P0)  # reset may change P0
+        # (reset may change P0)
+        self._W0 = None if self.P0 is None else self._weight_factor(self.P0)
         self._Y = np.full((N, m.ny), np.nan)      # window measurements, oldest first
         self._U = np.zeros((N, m.nw))             # _U[j]: input from slot j to j+1
         self._Uprev = np.zeros((N, m.nu))         # input held when y of slot j was taken
@@ -84,20 +85,26 @@ class MovingWindow(Estimator):
     def _build_cov_step(self) -> ca.Function:
         """EKF covariance step at x: update with the measured rows, then predict."""
         m = self.model
-        nx, nu, ny = m.nx, m.nu, m.ny
-        x, u, up = ca.SX.sym("x", nx), ca.SX.sym("u", m.nw), ca.SX.sym("u_prev", nu)
+        nx, nu, ny = m.ndx, m.nu, m.ny  # the covariance's size: the tangent space's
+        x, u, up = ca.SX.sym("x", m.nx), ca.SX.sym("u", m.nw), ca.SX.sym("u_prev", nu)
         mask = ca.SX.sym("mask", ny)
         P = ca.SX.sym("P", nx, nx)
         Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)  # the tuning is data
         p = ca.DM(m.p)
         D = ca.diag(mask)
-        C = D @ m.H_x(x, up, p)
+        M = m.manifold
+        if M.euclidean_states:
+            C, A = m.H_x(x, up, p), m.F_x(x, u, p)
+        else:  # the Jacobians along the retraction (as the multiplicative EKF's)
+            C = tangent_jacobian(lambda d: m.H(M.retract(x, d), up, p), nx)
+            xn = m.F(x, u, p)
+            A = tangent_jacobian(lambda d: M.local(xn, m.F(M.retract(x, d), u, p)), nx)
+        C = D @ C
         Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ P @ C.T + Rm
         K = ca.solve(0.5 * (S + S.T), C @ P).T
         IKC = ca.DM.eye(nx) - K @ C
         Pu = IKC @ P @ IKC.T + K @ Rm @ K.T
-        A = m.F_x(x, u, p)
         Pn = A @ Pu @ A.T + Q
         return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P), ca.vec(Q), ca.vec(R)],
                            [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
@@ -113,7 +120,7 @@ class MovingWindow(Estimator):
             mask = np.isfinite(y_old).astype(float)
             Pn, _ = self._cov_step(x_est, u_old, up_old, mask, Pbar.ravel(order="F"),
                                    self.Q, self.R)
-            Pn = Pn.reshape(self.model.nx, self.model.nx, order="F")
+            Pn = Pn.reshape(self.model.ndx, self.model.ndx, order="F")
             # a non-finite linearisation: the covariance grows as for a random walk
             self._Pbar = Pn.copy() if np.isfinite(Pn).all() else Pbar + self.Q
         xbar = self._X[1].copy()  # previous window's estimate of the new first time
@@ -152,7 +159,7 @@ class MovingWindow(Estimator):
         assert Pbar is not None and P0 is not None  # an arrival cost needs P0
         W: np.ndarray | None
         try:
-            W = weight_factor(Pbar)
+            W = self._weight_factor(Pbar)
         except np.linalg.LinAlgError:  # lost definiteness: back to the prior's spread
             self._Pbar, W = P0.copy(), self._W0
         return W
@@ -164,7 +171,7 @@ class MovingWindow(Estimator):
         sol = nlp.solve(self._X, self._Y, self._U, self._Uprev, self._n, self._xbar,
                         weight, self._WQ, self._WR, self.R, robust=robust)
         measured = nlp.measured(self._Y, self._n)
-        dof = measured + (self.model.nx if weight is not None else 0)
+        dof = measured + (self.model.ndx if weight is not None else 0)
         return sol, sol.consistency(dof, measured)
 
     def _reanchor(self, y: np.ndarray, u: np.ndarray) -> None:

@@ -74,6 +74,7 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction, jitted
+from estim._manifold import NP
 from estim.model import Model
 from estim.solvers.chunked import (
     Chunked,
@@ -201,6 +202,7 @@ class StructuredGaussNewton(Globalised):
         self.newton, self.jit = bool(newton), bool(jit)
         self.full = bool(full)
         self._stages = StageFunctions(model, diagonal_Q, diagonal_R)
+        self._tangent = self._stages.tangent
         if mode == "auto":  # compiled code: small chunks compile fast and run as fast
             per_slot = self._stages.fused(False, False).n_instructions()
             mode = "mapped" if self.jit or N * per_slot > AUTO_UNROLL_INSTRUCTIONS \
@@ -369,8 +371,8 @@ class StructuredGaussNewton(Globalised):
         self._xbuf[:] = x
         self._pbuf[:] = p
         fun = self._function("covs", bool(complete))
-        out = fun.evaluate()[0]
-        return out.reshape(self.N, nx, nx).transpose(0, 2, 1).copy()
+        out = fun.evaluate()[0].reshape(self.N, nx, nx).transpose(0, 2, 1)
+        return self.model.manifold.unpadded_matrix(out) if self._tangent else out.copy()
 
     def covariance(self, x: np.ndarray, p: np.ndarray, complete: bool = False) -> np.ndarray:
         """``(J^T J)^{-1}`` block of the last state at ``x`` (the posterior covariance)
@@ -379,4 +381,21 @@ class StructuredGaussNewton(Globalised):
         self._xbuf[:] = x
         self._pbuf[:] = p
         fun = self._function("cov", bool(complete))
-        return fun.evaluate()[0].reshape(nx, nx, order="F").copy()
+        out = fun.evaluate()[0].reshape(nx, nx, order="F")
+        return self.model.manifold.unpadded_matrix(out) if self._tangent else out.copy()
+
+    def _step_to(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+        r"""``x`` moved by ``d``; on a manifold the retraction :math:`x \oplus d` of every
+        slot by its padded tangent step (see :class:`~estim.solvers.stages.StageFunctions`)."""
+        if not self._tangent:
+            return super()._step_to(x, d)
+        M, nx = self.model.manifold, self.model.nx
+        out = M.retract(x.reshape(-1, nx), d.reshape(-1, nx)[:, M.slots], NP).ravel()
+        return self._project(out) if self._bounded else out
+
+    def _delta(self, xn: np.ndarray, x: np.ndarray) -> np.ndarray:
+        r"""The step from ``x`` to ``xn``; on a manifold :math:`x_n \ominus x`, padded."""
+        if not self._tangent:
+            return xn - x
+        M, nx = self.model.manifold, self.model.nx
+        return M.padded(M.local(x.reshape(-1, nx), xn.reshape(-1, nx), NP)).ravel()

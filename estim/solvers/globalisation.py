@@ -71,6 +71,8 @@ class Globalised:
     _ridge: bool
     _complete: bool
     _prefer_roll: bool
+    #: the states move on a manifold: steps in the (padded) tangent space
+    _tangent: bool = False
 
     def _function(self, key: str, complete: bool | None = None) -> Any:
         """The compiled function ``key`` (see the class)."""
@@ -151,7 +153,8 @@ class Globalised:
             # level (an ascending one means the near-singular solve lost accuracy: not
             # converged; the line search rejects it and the damping below regularises)
             d_gn = dirs[-1]
-            move = proj(x + d_gn) - x if bounded else d_gn
+            move = self._delta(self._step_to(x, d_gn), x) if bounded or self._tangent \
+                else d_gn
             decrease = -float(g @ move)
             if decrease != decrease and not (lam or self._ridge):
                 # a singular block: from now on with the ridge (see _damp)
@@ -171,7 +174,7 @@ class Globalised:
             if rest <= xtol * (1.0 + xmax) or (
                     0.0 <= decrease <= self.ftol * abs(f) and reweight is None):
                 status = "ok"
-                xn = x + move
+                xn = self._step_to(x, d_gn) if self._tangent else x + move
                 self._xbuf[:] = xn
                 fn = float(self._function("cost").evaluate()[0][0])
                 if fn <= f - 1e-4 * max(decrease, 0.0):  # the last step, confirmed by the cost
@@ -196,7 +199,7 @@ class Globalised:
                 last_full = np.inf
                 continue
             xn, alpha, evaluated, fn = new
-            step = np.abs(xn - x).max()
+            step = np.abs(self._delta(xn, x)).max()
             # Gauss-Newton's linear rate near a large-residual optimum: full steps that
             # shrink slowly and gain little, the previous one too (not the steps far from
             # it, which halve the cost or are damped: the ratio of two steps is the local
@@ -239,13 +242,13 @@ class Globalised:
         ``slope``: ``g @ d`` if known. Returns ``(x_new, alpha, evaluation or None,
         cost at x_new)``, or None on failure.
         """
-        proj, bounded = self._project, self._bounded
         if slope is None:
-            slope = float(g @ (proj(x + 1e-8 * d) - x)) if bounded else float(g @ d)
+            slope = float(g @ self._delta(self._step_to(x, 1e-8 * d), x)) if \
+                self._bounded else float(g @ d)
         if not slope < 0.0:
             return None  # not a descent direction (or not finite)
-        paths = ("line",) if self.N == 1 else ("roll", "line") if self._prefer_roll \
-            else ("line", "roll")
+        paths = ("line",) if self.N == 1 or self._tangent else ("roll", "line") \
+            if self._prefer_roll else ("line", "roll")
         cost = self._function("cost")
         full = {}
         for path in paths:
@@ -257,7 +260,7 @@ class Globalised:
                 ev, self._xbuf[:] = None, xn
                 fn = float(cost.evaluate()[0][0])
             # Armijo test (False for NaN); the gradient of f is 2 g
-            if fn <= f + 2e-4 * float(g @ (xn - x)):
+            if fn <= f + 2e-4 * float(g @ self._delta(xn, x)):
                 self._prefer_roll = path == "roll"
                 return xn, 1.0, ev, fn
             full[path] = fn if fn == fn else np.inf
@@ -267,7 +270,7 @@ class Globalised:
             xn = self._point(path, x, d, alpha)
             self._xbuf[:] = xn
             fn = float(cost.evaluate()[0][0])
-            if fn <= f + 2e-4 * float(g @ (xn - x)):
+            if fn <= f + 2e-4 * float(g @ self._delta(xn, x)):
                 self._prefer_roll = path == "roll"
                 return xn, alpha, None, fn
             alpha *= 0.5
@@ -277,7 +280,16 @@ class Globalised:
         """The point ``alpha`` along ``path`` (see :meth:`_line_search`)."""
         if path == "roll":
             return self._rolled(x, d, alpha)
-        return self._project(x + alpha * d) if self._bounded else x + alpha * d
+        return self._step_to(x, alpha * d)
+
+    def _step_to(self, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The point ``x`` moved by the step ``d`` (flat, slot-major), projected on the
+        bounds: ``x + d`` (on a manifold, the retraction)."""
+        return self._project(x + d) if self._bounded else x + d
+
+    def _delta(self, xn: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The step from ``x`` to ``xn``: ``xn - x`` (on a manifold, in the tangent space)."""
+        return xn - x
 
     def _rolled(self, x, d, alpha: float) -> np.ndarray:
         """The step ``alpha d`` from ``x`` taken through the dynamics (projected)."""

@@ -76,6 +76,7 @@ class LeastSquaresNLP(Reweighted):
                  diagonal_R: bool = False, full: bool = False, loss: RobustLoss | None = None):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
+        self.check_solver(model, solver)
         self.model, self.N, self.solver_name = model, N, solver
         nx, nu, ny = model.nx, model.nu, model.ny
         self.lbx = np.tile(lower, N)
@@ -128,6 +129,17 @@ class LeastSquaresNLP(Reweighted):
         self._solver = build_eliminated(model, N, solver, options, p, Y, U, Up, part, a, xbar,
                                         W0, WQd, pm)
         self.reset()
+
+    @staticmethod
+    def check_solver(model: Model, solver: str) -> None:
+        """A ``ValueError`` if ``solver`` cannot solve ``model``'s problem: only the
+        structured Gauss-Newton solver handles quaternions and angles (its steps move in
+        the tangent space, its residuals wrap)."""
+        if solver != "gauss-newton" and not model.manifold.trivial:
+            raise ValueError(f"solver={solver!r} does not handle the quaternions and angles "
+                             f"of {model.name} yet: give solver='gauss-newton' (the "
+                             f"default), whose steps move in the tangent space, or "
+                             f"model.euclidean()")
 
     def reset(self) -> None:
         """Forget the warm-start multipliers and the solver's adaptive state."""
@@ -277,9 +289,9 @@ class LeastSquaresNLP(Reweighted):
 
     def degrees_of_freedom(self, Y: np.ndarray, n: int, arrival: bool) -> int:
         """Chi-square degrees of freedom of the cost of a window of ``n`` measured slots
-        (its measured outputs, and ``nx`` for an arrival term), for the consistency test
+        (its measured outputs, and ``ndx`` for an arrival term), for the consistency test
         of :func:`~estim.consistency.consistency_status`."""
-        return self.measured(Y, n) + (self.model.nx if arrival else 0)
+        return self.measured(Y, n) + (self.model.ndx if arrival else 0)
 
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the

@@ -54,10 +54,18 @@ class StageFunctions:
         a, om, wq = ca.SX.sym("a"), ca.SX.sym("omega"), ca.SX.sym("wq", nx * nx)
         xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
         W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
+        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
+        self._fused: dict[tuple, ca.Function] = {}
+        self._elimination()
+        #: the states move on a manifold: steps in the padded tangent space
+        self.tangent = not model.manifold.euclidean_states
+        if self.tangent:
+            self._tangent_terms(model, [x, y, wy, up, a, xbar, w0, a0], [x, xb, u, om, wq])
+            return
         # arrival and measurement terms of one slot; a diagonal R gives diagonal
         # weights (also with missing rows), applied as row scalings
         r0 = W0 @ (x - xbar)
-        e = y - model.H(x, up, pm)
+        e = model.manifold.output_difference(y, model.H(x, up, pm))
         C = model.H_x(x, up, pm)
         if diagonal_R:
             wd = wy[[i * ny + i for i in range(ny)]]
@@ -100,6 +108,9 @@ class StageFunctions:
         Gp = om * model.F(xp, u, pm) + (1 - om) * xp
         self.roll = ca.Function("roll", [xp, x, d, xb, dn, u, om, alpha],
                                 [Gp + (xb + alpha * dn - G - alpha * ca.jtimes(G, x, d))])
+    def _elimination(self) -> None:
+        """The block elimination's steps: ``fwd``, ``last`` and ``bwd``."""
+        nx = self.nx
         Dj = ca.SX.sym("D", nx, nx)
         # one elimination step: with S_{j-1} = L D L^T factored once,
         # V = L^{-1} [E_{j-1}, z~_{j-1}] and Vs = D^{-1} V give
@@ -121,8 +132,53 @@ class StageFunctions:
         dn, Vj, vj = ca.SX.sym("d_next", nx), ca.SX.sym("Vs", nx, nx), ca.SX.sym("vs", nx)
         Lj = ca.SX.sym("L", nx, nx)
         self.bwd = ca.Function("bwd", [dn, Vj, vj, Lj], [lower_transposed_solve(Lj, vj - Vj @ dn)])
-        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
-        self._fused: dict[tuple, ca.Function] = {}
+
+
+    def _tangent_terms(self, model: Model, margs: list, targs: list) -> None:
+        r"""The slot terms of a model whose states move on a manifold
+        (:mod:`estim._manifold`): the residuals are tangent vectors, :math:`x \ominus
+        \bar x`, :math:`y \ominus h(x)` and :math:`x_{k+1} \ominus F(x_k)`, and the
+        blocks are their derivatives along :math:`x \oplus \delta` at
+        :math:`\delta = 0` (padded to ``nx``: each pad has a unit diagonal and no
+        residual, so its step is 0). The Gauss-Newton iteration then moves in the
+        tangent space and retracts (:meth:`StructuredGaussNewton._step_to
+        <estim.solvers.gauss_newton.StructuredGaussNewton._step_to>`)."""
+        M, nx, ny = model.manifold, self.nx, self.ny
+        pm = ca.DM(model.p)
+        x, y, wy, up, a, xbar, w0, _ = margs
+        xa, xb, u, om, wq = targs
+        dx, db = ca.SX.sym("dx", nx), ca.SX.sym("db", nx)
+        self._pad = ca.diag(ca.DM([float(i in M.pads) for i in range(nx)]))
+
+        def moved(v, d):
+            return M.retract(v, d[M.slots])
+
+        xr = moved(x, dx)
+        r0 = ca.reshape(w0, nx, nx) @ M.padded(M.local(xbar, xr))
+        ry = ca.reshape(wy, ny, ny) @ M.output_difference(y, model.H(xr, up, pm))
+        J0, Jy = ca.jacobian(r0, dx), ca.jacobian(ry, dx)
+        c = a * ca.sumsqr(r0) + ca.sumsqr(ry)
+        A0a = a * gram(J0) + self._pad
+        gy = a * (J0.T @ r0) + Jy.T @ ry
+        self._meas_parts = ca.Function("meas_parts", margs + [dx],
+                                       [A0a + gram(Jy), A0a, gy, c, ry])
+        at0 = [ca.DM.zeros(nx)]
+        self.meas, self.meas_cost = (
+            ca.Function(name, margs, ca.substitute(outs, [dx], at0))
+            for name, outs in (("meas", [A0a + gram(Jy), gy, c]), ("meas_cost", [c])))
+        # the process term: om = 0 chains an unused slot to the next at no cost
+        ar, br = moved(xa, dx), moved(xb, db)
+        G = om * model.F(ar, u, pm) + (1 - om) * ar
+        W = om * ca.reshape(wq, nx, nx) + (1 - om) * ca.DM.eye(nx)
+        rw = W @ M.padded(M.local(G, br))
+        Ja, Jb = ca.jacobian(rw, dx), ca.jacobian(rw, db)
+        outs = [gram(Ja), gram(Jb), Ja.T @ Jb, Ja.T @ rw, Jb.T @ rw, ca.sumsqr(rw)]
+        self._trans_parts = ca.Function("trans_parts", targs + [dx, db], outs + [rw])
+        at0 = at0 * 2
+        self.trans = ca.Function("trans", targs, ca.substitute(outs, [dx, db], at0))
+        self.trans_cost = ca.Function("trans_cost", targs,
+                                      ca.substitute([outs[-1]], [dx, db], at0))
+        # (no roll: a step through the dynamics is taken on vector states only)
 
     @cached_property
     def meas_newton(self) -> ca.Function:
@@ -130,6 +186,10 @@ class StageFunctions:
         first use)."""
         args = self._meas_parts.sx_in()
         gn, A0a, gy, c, ry = self._meas_parts.call(args)
+        if self.tangent:  # the Hessian along the retraction, at delta = 0
+            H = ca.hessian(0.5 * c, args[-1])[0] + self._pad
+            outs = ca.substitute([gn, H, gy, c], [args[-1]], [ca.DM.zeros(self.nx)])
+            return ca.Function("meas_newton", args[:-1], outs)
         H = ca.hessian(0.5 * ca.sumsqr(ry), args[0])[0]
         return ca.Function("meas_newton", args, [gn, A0a + H, gy, c])
 
@@ -139,9 +199,13 @@ class StageFunctions:
         on first use)."""
         nx, args = self.nx, self._trans_parts.sx_in()
         *blocks, rw = self._trans_parts.call(args)
-        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(args[0], args[1]))[0]
-        return ca.Function("trans_newton", args, blocks[:3] + [
-            Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + blocks[3:])
+        at = args[-2:] if self.tangent else args[:2]  # along the retraction, or x itself
+        Hw = ca.hessian(0.5 * ca.sumsqr(rw), ca.vertcat(*at))[0]
+        outs = blocks[:3] + [Hw[:nx, :nx], Hw[nx:, nx:], Hw[:nx, nx:]] + blocks[3:]
+        if self.tangent:
+            outs = ca.substitute(outs, at, [ca.DM.zeros(nx)] * 2)
+            args = args[:-2]
+        return ca.Function("trans_newton", args, outs)
 
     @cached_property
     def inverse(self) -> ca.Function:

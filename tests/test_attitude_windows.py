@@ -1,0 +1,191 @@
+"""Moving horizon and full-information estimation on manifold states: the windows are
+optima of the intrinsic cost (tangent residuals, the quaternion moved by retraction),
+checked against scipy's least_squares on residuals written here with numpy, and the
+covariances against the inverse Gauss-Newton matrix of those residuals; the estimates on
+the unit sphere, wrapped angles through the windows, and what is refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from test_attitude import (
+    DT,
+    MAG,
+    Q_GYRO,
+    R_VEC,
+    SUN,
+    bearing_model,
+    qexp,
+    qmul,
+    rotation,
+    scenario,
+)
+
+import estim
+
+#: Both solvers stop on steps below 1e-8 relative to 1 + max|x| (estim's default xtol,
+#: least_squares' xtol here): their optima may differ by a few of those steps.
+STEP_TOL = 1e-7
+
+
+def qlog(q):
+    """The rotation vector phi with Exp(phi) = q (the hemisphere q_w >= 0)."""
+    q = q if q[0] >= 0 else -q
+    s = np.linalg.norm(q[1:])
+    return 2.0 * np.arctan2(s, q[0]) * q[1:] / s if s > 1e-12 else 2.0 * q[1:]
+
+
+def qinv(q):
+    return np.r_[q[0], -q[1:]]
+
+
+def whitened(P):
+    """W with W^T W = P^-1."""
+    return np.linalg.cholesky(np.linalg.inv(P)).T
+
+
+def residuals(Q, Y, U, xbar, Pbar):
+    """The window's residuals at the trajectory ``Q (n, 4)``: the arrival
+    Log(xbar^-1 q_0), the process Log(F(q_k)^-1 q_{k+1}) with F(q) = q Exp(omega dt),
+    and the measurements y - R(q)^T r, each whitened."""
+    W0, wq, wr = whitened(Pbar), 1 / np.sqrt(Q_GYRO), 1 / np.sqrt(R_VEC)
+    out = [W0 @ qlog(qmul(qinv(xbar), Q[0]))]
+    for k in range(len(Q)):
+        A = rotation(Q[k]).T
+        out.append(wr * (Y[k] - np.r_[A @ SUN, A @ MAG]))
+        if k + 1 < len(Q):
+            pred = qmul(Q[k], qexp(U[k] * DT))
+            out.append(wq * qlog(qmul(qinv(pred), Q[k + 1])))
+    return np.concatenate(out)
+
+
+def moved(Q, delta):
+    return np.array([qmul(q, qexp(d)) for q, d in zip(Q, delta.reshape(-1, 3), strict=True)])
+
+
+def check_optimum(Q, Y, U, xbar, Pbar, cost, P):
+    """``Q`` minimises the residuals: least_squares from there (and from 0.05 rad away)
+    finds no better trajectory; the cost is theirs and the covariances ``P`` (the last
+    state's ``(3, 3)``, or every state's ``(n, 3, 3)``) the tangent blocks of the inverse
+    Gauss-Newton matrix."""
+    def fun(delta):
+        return residuals(moved(Q, delta), Y, U, xbar, Pbar)
+
+    n = 3 * len(Q)
+    start = np.random.default_rng(0).normal(0, 0.05, n)
+    for d0 in (np.zeros(n), start):
+        fit = least_squares(fun, d0, xtol=1e-12, ftol=1e-15, gtol=1e-15)
+        assert np.abs(fit.x).max() < STEP_TOL
+        np.testing.assert_allclose(np.sum(fit.fun ** 2), cost, rtol=1e-9)
+    np.testing.assert_allclose(np.sum(fun(np.zeros(n)) ** 2), cost, rtol=1e-12)
+    # the Gauss-Newton matrix of the residuals along the retraction, by central
+    # differences (their error ~ h^2 of the residuals' curvature)
+    h = 1e-6
+    J = np.column_stack([(fun(h * e) - fun(-h * e)) / (2 * h) for e in np.eye(n)])
+    cov = np.linalg.inv(J.T @ J)
+    blocks = np.array([cov[i:i + 3, i:i + 3] for i in range(0, n, 3)])
+    np.testing.assert_allclose(P, blocks if P.ndim == 3 else blocks[-1], rtol=1e-6)
+
+
+def test_full_information_is_the_intrinsic_optimum():
+    sc = scenario(T=40, guess_angle=0.3)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=3)
+    U = sc.inputs[:-1]
+    fie = estim.FullInformation(sc.model, **sc.tuning)
+    res = fie.fit(log.y, U)
+    assert res.success and res.P.shape == (40, 3, 3) and res.w.shape == (39, 3)
+    assert np.abs(np.linalg.norm(res.x, axis=1) - 1).max() < 1e-12
+    P0 = sc.tuning["P0"] * np.eye(3)
+    check_optimum(res.x, log.y, U, np.asarray(sc.tuning["x0"]), P0, res.cost, res.P)
+    # the process residuals reported are the tangent ones
+    w = np.array([qlog(qmul(qinv(qmul(res.x[k], qexp(U[k] * DT))), res.x[k + 1]))
+                  for k in range(39)])
+    np.testing.assert_allclose(res.w, w, atol=1e-12)
+    # the recursive form ends where the fit does
+    ends = estim.replay(fie, log.y, sc.inputs).x_hat[-1]
+    np.testing.assert_allclose(ends, res.x[-1], atol=STEP_TOL)
+
+
+@pytest.mark.parametrize("arrival_cost", ["filtering", "smoothing"])
+def test_each_mhe_window_is_the_intrinsic_optimum(arrival_cost):
+    """Every window of a full MHE (its arrival mean and covariance as the estimator
+    reports them) is the optimum of its own intrinsic cost."""
+    sc = scenario(T=30, guess_angle=0.3)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=4)
+    U, N = sc.inputs[:-1], 8
+    run = estim.replay(estim.MHE(sc.model, horizon=N, arrival_cost=arrival_cost,
+                                 **sc.tuning), log.y, sc.inputs)
+    assert np.all(run.success) and run.P.shape == (30, 3, 3)
+    assert np.abs(np.linalg.norm(run.x_hat, axis=1) - 1).max() < 1e-12
+    for k in (N - 1, 15, 29):
+        extra = run.diagnostics[k]
+        window = extra["window"]
+        Pbar = extra["arrival_covariance"]
+        assert window.shape == (N, 4) and Pbar.shape == (3, 3)
+        check_optimum(window, log.y[k - N + 1:k + 1], U[k - N + 1:k], extra["arrival_mean"],
+                      Pbar, run.cost[k], run.P[k])
+
+
+def test_windows_track_as_the_multiplicative_ekf():
+    """Accuracy and consistency on the gyro-driven attitude problem: the MHE's errors
+    are the multiplicative EKF's to within a tenth, full information's smoothed ones
+    smaller; NEES/3 of the MHE in the 99 % band of its mean over the record."""
+    sc = scenario(T=100)
+    M = sc.model.manifold
+    ekf = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=2)
+    mhe = estim.simulate(sc, estim.MHE(sc.model, horizon=10, **sc.tuning), seed=2)
+    res = estim.FullInformation(sc.model, **sc.tuning).fit(mhe.y, sc.inputs[:-1])
+
+    def angle(x_hat, x):
+        return np.linalg.norm(M.errors(x_hat, x), axis=1)[20:].mean()
+
+    a_ekf, a_mhe = angle(ekf.x_hat, ekf.x), angle(mhe.x_hat, mhe.x)
+    assert abs(a_mhe - a_ekf) < 0.1 * a_ekf
+    assert angle(res.x, mhe.x) < a_mhe
+    nees = estim.nees(mhe, burn_in=20)
+    from scipy.stats import chi2
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * len(nees)) / len(nees)
+    assert lo < nees.sum() / len(nees) < hi
+
+
+def test_wrapped_angles_through_the_windows():
+    """The circling target whose bearing crosses +-pi every lap: the MHE and full
+    information on the model that declares the heading and the bearing as angles track
+    it with every heading in (-pi, pi]."""
+    T = 250
+    x0 = [10.0, 0.0, np.pi / 2, 2.0, 0.2]
+    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
+    m = bearing_model(True)
+    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
+                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
+    sc = estim.Scenario("bearing", m, x0=x0, n_steps=T, Q=Q, R=R, tuning=tuning)
+    log = estim.simulate(sc, estim.MHE(m, horizon=10, **tuning), seed=0, warn=False)
+    assert np.abs(np.diff(log.y[:, 0])).max() > 6 and np.all(log.success)
+    assert np.all(np.abs(log.x_hat[:, 2]) <= np.pi) and estim.rmse(log, burn_in=50) < 0.1
+    # (from the MHE's estimates: from x0 repeated, the fit may settle on the mirror
+    # trajectory, heading + pi with a negative speed, which moves the target alike)
+    res = estim.FullInformation(m, **tuning).fit(log.y, guess=log.x_hat)
+    assert res.success and np.all(np.abs(res.x[:, 2]) <= np.pi)
+    assert np.abs(res.v[:, 0]).max() < 0.1  # wrapped bearing residuals
+    assert np.sqrt(np.mean(m.manifold.errors(res.x, log.x)[50:] ** 2)) < \
+        estim.rmse(log, burn_in=50)
+
+
+def test_what_the_windows_refuse():
+    sc = scenario(T=5)
+    m, t = sc.model, sc.tuning
+    with pytest.raises(ValueError, match=r"rti=True \(the converged MHE does\) does not "
+                                         r"handle the quaternions"):
+        estim.MHE(m, horizon=3, rti=True, **t)
+    for cls, kw in ((estim.MHE, {"horizon": 3}), (estim.FullInformation, {})):
+        for solver in ("ipopt", "fatrop", "sqp"):
+            with pytest.raises(ValueError, match=rf"solver='{solver}' does not handle .* "
+                                                 r"solver='gauss-newton'"):
+                cls(m, solver=solver, **kw, **t)
+        with pytest.raises(ValueError, match=r"lower/upper: \['q1'\] are quaternion"):
+            cls(m, lower={"q1": -0.5}, **kw, **t)
+    bearing = bearing_model(True)
+    with pytest.raises(ValueError, match=r"lower/upper: \['psi'\]"):
+        estim.MHE(bearing, horizon=3, Q=1e-4, R=1e-2, x0=[10.0, 0, 0, 2.0, 0.2], P0=0.1,
+                  upper={"psi": 3.0})
