@@ -163,8 +163,8 @@ class Estimator:
         if not (self._manifold_aware or model.manifold.trivial):
             raise ValueError(
                 f"{type(self).__name__} does not handle the quaternions and angles "
-                f"declared in {model.name} yet (the EKF, the UKF, the EnKF and the particle "
-                f"filter do): give it "
+                f"declared in {model.name} yet (the EKF, the UKF, the EnKF, the particle "
+                f"filter, MHE and full information do): give it "
                 f"model.euclidean(), which treats them as ordinary states")
         self.model = model
         nd = model.ndx  # covariances live in the tangent space

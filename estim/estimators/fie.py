@@ -360,7 +360,6 @@ class FullInformation(Estimator):
                              "(the weights are Q^-1)")
         self.lower, self.upper = self._bounds(lower, upper)
         unit_bounds(model, self.lower, self.upper)
-        LeastSquaresNLP.check_solver(model, solver)
         self.solver = solver
         self.solver_options = solver_options
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}

@@ -32,7 +32,7 @@ from estim.solvers.options import (
     nlpsol,
 )
 
-__all__ = ["FatropLayout", "build_eliminated", "build_fatrop", "solve_fatrop"]
+__all__ = ["FatropLayout", "build_eliminated", "build_fatrop", "charted", "solve_fatrop"]
 
 
 @dataclass(frozen=True)
@@ -48,25 +48,49 @@ class FatropLayout:
     xsel: np.ndarray
 
 
+def charted(model: Model, Z, ref) -> list:
+    r"""The states of the slots from the variables ``Z (nx, N)``: ``Z`` itself on vector
+    states; on a manifold each slot's chart centre (the columns of ``ref``, parameters)
+    moved by its variables, a padded tangent step (:meth:`Manifold.padded
+    <estim._manifold.Manifold.padded>`): :math:`x_j = c_j \oplus z_j`. The NLP then moves
+    in the tangent space, and its optimum is the intrinsic one (a chart is a local
+    diffeomorphism)."""
+    M = model.manifold
+    if M.euclidean_states:
+        return [Z[:, j] for j in range(Z.shape[1])]
+    return [M.retract(ref[:, j], Z[M.slots, j]) for j in range(Z.shape[1])]
+
+
+def _difference(model: Model, x, x_to):
+    r"""``x_to - x``: on a manifold the padded tangent vector :math:`x_{to} \ominus x`."""
+    M = model.manifold
+    return x_to - x if M.euclidean_states else M.padded(M.local(x, x_to))
+
+
 def build_eliminated(model: Model, N: int, solver: str, options: dict, p, Y, U, Up, part, a,
                      xbar, W0, WQd, pm) -> ca.Function:
     """The NLP solver (``"ipopt"`` or ``"sqp"``) of the eliminated form over the states of
-    ``N`` slots, the user's ``options`` merged over the defaults; ``p`` is the parameter
-    symbol and the others its parts (see :class:`~estim.solvers.nlp.LeastSquaresNLP`)."""
+    ``N`` slots (on a manifold, their tangent steps from the chart centres
+    ``part["ref"]``: :func:`charted`), the user's ``options`` merged over the defaults;
+    ``p`` is the parameter symbol and the others its parts (see
+    :class:`~estim.solvers.nlp.LeastSquaresNLP`)."""
     nx, ny = model.nx, model.ny
-    X = ca.SX.sym("X", nx, N)
+    Z = ca.SX.sym("X", nx, N)
+    X = charted(model, Z, ca.reshape(part["ref"], nx, N) if "ref" in part else None)
+    out = model.manifold.output_difference
     # arrival on the first active slot, one residual block per slot (a_j in {0, 1}):
     # a single W0 (X a - xbar) would couple every slot and make the Hessian dense
-    res = [a[j] * (W0 @ (X[:, j] - xbar)) for j in range(N)]
+    res = [a[j] * (W0 @ _difference(model, xbar, X[j])) for j in range(N)]
     for j in range(N - 1):
         om = part["omega"][j]
-        xn = model.F(X[:, j], U[:, j], pm)
-        res.append(om * (WQd @ (X[:, j + 1] - xn)) + (1 - om) * (X[:, j + 1] - X[:, j]))
+        xn = model.F(X[j], U[:, j], pm)
+        res.append(om * (WQd @ _difference(model, xn, X[j + 1]))
+                   + (1 - om) * _difference(model, X[j], X[j + 1]))
     for j in range(N):
         Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
-        res.append(Wy @ (Y[:, j] - model.H(X[:, j], Up[:, j], pm)))
+        res.append(Wy @ out(Y[:, j], model.H(X[j], Up[:, j], pm)))
     r = ca.vertcat(*res)
-    x = ca.vec(X)
+    x = ca.vec(Z)
     f = ca.dot(r, r)
     nlp = {"x": x, "p": p, "f": f}
     if solver == "ipopt":
@@ -94,20 +118,28 @@ def build_fatrop(model: Model, N: int, lbx: np.ndarray, ubx: np.ndarray, options
     """
     m = model
     nx, ny = m.nx, m.ny
-    xs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
+    M = m.manifold
+    zs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
     ws = [ca.SX.sym(f"w{k}", nx) for k in range(N - 1)]
+    ref = ca.reshape(part["ref"], nx, N) if "ref" in part else None
+    xs = charted(m, ca.horzcat(*zs), ref)
     variables, g, lbg, ubg = [], [], [], []
-    cost = sum(a[k] * ca.sumsqr(W0 @ (xs[k] - xbar)) for k in range(N))
+    cost = sum(a[k] * ca.sumsqr(W0 @ _difference(m, xbar, xs[k])) for k in range(N))
     for k in range(N):
-        variables.append(xs[k])
+        variables.append(zs[k])
         Wy = ca.reshape(part["wy"][k * ny * ny:(k + 1) * ny * ny], ny, ny)
-        cost += ca.sumsqr(Wy @ (Y[:, k] - m.H(xs[k], Up[:, k], pm)))
+        cost += ca.sumsqr(Wy @ M.output_difference(Y[:, k], m.H(xs[k], Up[:, k], pm)))
         if k < N - 1:
             variables.append(ws[k])
             om = part["omega"][k]
             cost += om * ca.sumsqr(WQd @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
-            g.append(xs[k + 1] - (om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
-                                  + ws[k]))
+            G = om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
+            if M.euclidean_states:
+                g.append(xs[k + 1] - (G + ws[k]))
+            else:  # x_{k+1} = G (+) w_k, in the chart of slot k + 1
+                assert ref is not None
+                g.append(zs[k + 1] - M.padded(M.local(ref[:, k + 1],
+                                                       M.retract(G, ws[k][M.slots]))))
             lbg.append(np.zeros(nx))
             ubg.append(np.zeros(nx))
     x = ca.vertcat(*variables)
@@ -131,9 +163,12 @@ def build_fatrop(model: Model, N: int, lbx: np.ndarray, ubx: np.ndarray, options
 
 def solve_fatrop(solver: ca.Function, layout: FatropLayout, X0: np.ndarray, p: np.ndarray,
                  lbx: np.ndarray, ubx: np.ndarray, N: int, nx: int) -> dict:
-    """One fatrop solve from the states ``X0 (N, nx)``, projected on the bounds ``lbx``,
-    ``ubx`` ``(N * nx,)``; the process noise starts at zero."""
+    """One fatrop solve from the states ``X0 (N, nx)`` (on a manifold, the steps from the
+    chart centres), projected on the bounds ``lbx``, ``ubx`` ``(N * nx,)``; the process
+    noise starts at zero."""
     z0 = np.zeros(layout.lbz.size)
     X0 = np.clip(np.asarray(X0, float), lbx.reshape(N, nx), ubx.reshape(N, nx))
     z0[layout.xsel] = X0.ravel()
-    return solver(x0=z0, p=p, lbx=layout.lbz, ubx=layout.ubz, lbg=layout.lbg, ubg=layout.ubg)
+    lbz, ubz = layout.lbz.copy(), layout.ubz.copy()
+    lbz[layout.xsel], ubz[layout.xsel] = lbx, ubx  # (on a manifold: the steps' bounds)
+    return solver(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=layout.lbg, ubg=layout.ubg)

@@ -30,6 +30,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from estim._manifold import NP
 from estim.consistency import chi2_limit
 from estim.model import Model
 from estim.solvers.builders import build_eliminated, build_fatrop, solve_fatrop
@@ -76,7 +77,6 @@ class LeastSquaresNLP(Reweighted):
                  diagonal_R: bool = False, full: bool = False, loss: RobustLoss | None = None):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
-        self.check_solver(model, solver)
         self.model, self.N, self.solver_name = model, N, solver
         nx, nu, ny = model.nx, model.nu, model.ny
         self.lbx = np.tile(lower, N)
@@ -86,6 +86,11 @@ class LeastSquaresNLP(Reweighted):
         sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * model.nw, "up": N * nu,
                  "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx, "wq": nx * nx,
                  "wr": ny * ny}
+        #: the NLP solvers on a manifold: their variables are tangent steps from chart
+        #: centres, the start of each solve (builders.charted)
+        self._charts = solver != "gauss-newton" and not model.manifold.euclidean_states
+        if self._charts:
+            sizes["ref"] = N * nx
         self._slices, start = {}, 0
         for key, size in sizes.items():
             self._slices[key] = slice(start, start + size)
@@ -130,16 +135,17 @@ class LeastSquaresNLP(Reweighted):
                                         W0, WQd, pm)
         self.reset()
 
-    @staticmethod
-    def check_solver(model: Model, solver: str) -> None:
-        """A ``ValueError`` if ``solver`` cannot solve ``model``'s problem: only the
-        structured Gauss-Newton solver handles quaternions and angles (its steps move in
-        the tangent space, its residuals wrap)."""
-        if solver != "gauss-newton" and not model.manifold.trivial:
-            raise ValueError(f"solver={solver!r} does not handle the quaternions and angles "
-                             f"of {model.name} yet: give solver='gauss-newton' (the "
-                             f"default), whose steps move in the tangent space, or "
-                             f"model.euclidean()")
+    def _chart_bounds(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The bounds of the tangent steps from ``centres`` (flat): ``lbx - c``, ``ubx - c``
+        on vector states (quaternions and angles have none), 0 on the pads; and the
+        start, zero steps."""
+        pads = np.zeros(self.model.nx, dtype=bool)
+        pads[self.model.manifold.pads] = True
+        pads = np.tile(pads, self.N)
+        with np.errstate(invalid="ignore"):  # inf - c
+            lo, hi = self.lbx - centres, self.ubx - centres
+        lo[pads] = hi[pads] = 0.0
+        return lo, hi, np.zeros_like(centres)
 
     def reset(self) -> None:
         """Forget the warm-start multipliers and the solver's adaptive state."""
@@ -219,6 +225,9 @@ class LeastSquaresNLP(Reweighted):
         window of the previous solve: its multipliers are not shifted)."""
         if self.solver_name != "gauss-newton" and not robust:
             x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+            if self._charts:  # the charts' centres: the start, on the manifold
+                x0 = self.model.manifold.normalise(x0.reshape(self.N, -1), NP).ravel()
+                p[self._slices["ref"]] = x0
         if self.solver_name == "fatrop" and not robust:
             # fatrop can stall and never return where the data contradict the start (an
             # outlier in the window, a start in an overflowing region of the model):
@@ -239,11 +248,14 @@ class LeastSquaresNLP(Reweighted):
         written = io.StringIO()  # CasADi's warnings (e.g. on the multipliers) kept
         try:
             with contextlib.redirect_stderr(written):
+                lbx, ubx, z0 = self.lbx, self.ubx, x0
+                if self._charts:  # steps from the centres: x = c + z on vector states
+                    lbx, ubx, z0 = self._chart_bounds(x0)
                 if self.solver_name == "fatrop":
-                    sol = solve_fatrop(self._solver, self._fatrop, X0, p, self.lbx, self.ubx,
-                                       self.N, self.model.nx)
+                    sol = solve_fatrop(self._solver, self._fatrop, z0.reshape(self.N, -1), p,
+                                       lbx, ubx, self.N, self.model.nx)
                 else:
-                    args = {"x0": x0, "p": p, "lbx": self.lbx, "ubx": self.ubx}
+                    args = {"x0": z0, "p": p, "lbx": lbx, "ubx": ubx}
                     if self._lam_x is not None and self.bounded:
                         args["lam_x0"] = (self._lam_x if same_window else
                                           self._shifted(self._lam_x))
@@ -258,6 +270,9 @@ class LeastSquaresNLP(Reweighted):
         iters = int(stats.get("iter_count", 0))
         z = np.asarray(sol["x"]).ravel()
         X = (z[self._fatrop.xsel] if self.solver_name == "fatrop" else z).reshape(self.N, -1)
+        if self._charts:
+            M = self.model.manifold
+            X = M.retract(x0.reshape(self.N, -1), X[:, M.slots], NP)
         cost = float(sol["f"])
         # sqpmethod stops on a step below min_step_size when Gauss-Newton's linear
         # convergence has reached the stationary point to rounding: a converged solve
