@@ -59,6 +59,10 @@ def check(estimator: MHE) -> None:
                          "(the converged solve has no C counterpart): build it with "
                          "rti=True")
     check_model(estimator.model)
+    if not estimator.model.manifold.euclidean_states:
+        raise ValueError(f"estimator: the exported real-time MHE does not handle the "
+                         f"quaternions and angles of {estimator.model.name} yet (the "
+                         f"exported EKF and UKF do)")
     if estimator.horizon < 2:
         raise ValueError(f"horizon must be at least 2 to export the MHE, got "
                          f"{estimator.horizon}")

@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 from estim._fast import FastFunction
 from estim._validate import as_bool, as_choice, as_int
 from estim.estimators.base import StepInfo
-from estim.estimators.manifold_steps import refuse_manifold, unit_bounds
+from estim.estimators.manifold_steps import unit_bounds
 from estim.estimators.mhe_rti import (
     RTI_STARTUP_ITERATIONS,
     RTI_STARTUP_XTOL,
@@ -186,8 +186,6 @@ class MHE(RealTimeIteration):
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
-        if self.rti:
-            refuse_manifold(model, "rti=True (the converged MHE does)")
         unit_bounds(model, self.lower, self.upper)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlp = LeastSquaresNLP(model, self.horizon, self.lower, self.upper, solver,
@@ -207,7 +205,10 @@ class MHE(RealTimeIteration):
 
     def _tuning_changed(self) -> None:
         if self.rti:
-            self._rti_Qinv[:] = np.linalg.inv(self.Q).ravel(order="F")
+            Qinv = np.linalg.inv(self.Q)
+            M = self.model.manifold
+            self._rti_Qinv[:] = (Qinv if M.euclidean_states else
+                                 M.padded_matrix(Qinv)).ravel(order="F")
             self._rti_R[:] = self.R.ravel(order="F")
         self._WQ = self._weight_factor(self.Q)
         self._WR = weight_factor(self.R)

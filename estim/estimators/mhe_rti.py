@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estim._fast import FastFunction, jitted
+from estim._manifold import NP
 from estim.consistency import consistency_status
 from estim.estimators.base import StepInfo
 from estim.estimators.mhe_window import MovingWindow
@@ -149,6 +150,8 @@ class RealTimeIteration(MovingWindow):
             assert Pbar is not None  # an arrival cost needs P0
         else:
             Pbar = np.eye(nx)
+        if not self.model.manifold.euclidean_states and arrival:  # padded to nx x nx
+            Pbar = self.model.manifold.padded_matrix(Pbar)
         args[8][:] = Pbar.ravel(order="F")
         args[9][:] = float(arrival)
         args[12][:] = 1.0 if free is None else free.ravel()
@@ -256,12 +259,12 @@ class RealTimeIteration(MovingWindow):
             before = cost.evaluate()[0][0]
             t = 1.0
             for _ in range(31):
-                trial = np.clip(X + t * dX, self.lower, self.upper)
+                trial = np.clip(self._moved(X, t * dX), self.lower, self.upper)
                 cost.args[0][:] = trial.ravel()
                 if cost.evaluate()[0][0] <= before:
                     break
                 t *= 0.5
-            step, X = trial - X, trial
+            step, X = self._rti_delta(trial, X), trial
             if not (np.isfinite(X).all() and np.isfinite(P).all()):
                 return None
             if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
@@ -285,7 +288,7 @@ class RealTimeIteration(MovingWindow):
         t0 = time.perf_counter()
         self._rti_measurement(y)
         dX, P, _ = self._rti_feedback.evaluate()
-        X = self._X + dX.reshape(N, -1)
+        X = self._moved(self._X, dX.reshape(N, -1))
         if self._bounded:
             np.clip(X, self.lower, self.upper, out=X)
         solver = "gauss-newton (rti)"
@@ -304,6 +307,17 @@ class RealTimeIteration(MovingWindow):
         return out
 
     # ---------------------------------------------------------------- helpers
+    def _moved(self, X: np.ndarray, D: np.ndarray) -> np.ndarray:
+        """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold
+        the retraction of each slot by its padded tangent step."""
+        M = self.model.manifold
+        return X + D if M.euclidean_states else M.retract(X, D[:, M.slots], NP)
+
+    def _rti_delta(self, X_to: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """The step from ``X`` to ``X_to``: ``X_to - X``, on a manifold in the tangent space."""
+        M = self.model.manifold
+        return X_to - X if M.euclidean_states else M.local(X, X_to, NP)
+
     def _rti_check(self, X: np.ndarray) -> tuple[float, str]:
         """The window's cost at ``X`` (the sum of its squared weighted residuals, the
         newest measurement included) and its consistency: ``"suspect: ..."`` beyond the
@@ -313,7 +327,7 @@ class RealTimeIteration(MovingWindow):
         cost.args[0][:] = X.ravel()
         value = 2.0 * float(cost.evaluate()[0][0])
         measured = int(self._rti_prepare.args[2].sum() + self._rti_mask.sum())
-        dof = measured + (self.model.nx if self.arrival_cost != "none" else 0)
+        dof = measured + (self.model.ndx if self.arrival_cost != "none" else 0)
         return value, consistency_status(value, dof, "cost")
 
     def _rti_measurement(self, y: np.ndarray) -> None:
@@ -335,6 +349,8 @@ class RealTimeIteration(MovingWindow):
         self._n += 1
         x_hat = X[-1].copy()
         P = P.reshape(m.nx, m.nx, order="F").copy()
+        if not m.manifold.euclidean_states:  # the tangent block
+            P = m.manifold.unpadded_matrix(P)
         if trust:
             self._trusted = (x_hat.copy(), P)
         self._history.append(x_hat.copy())

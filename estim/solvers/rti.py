@@ -98,24 +98,40 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     Qinv, R = ca.SX.sym("Qinv", nx, nx), ca.SX.sym("R", ny, ny)
     eye = ca.DM.eye(nx)
     P0inv = arrival * ca.solve(Pbar, eye)
-    Hd = [a[k] * P0inv + RIDGE * eye for k in range(N)]
-    g = [a[k] * (P0inv @ (X[:, k] - xbar)) for k in range(N)]
+    tangent = _TangentTerms(model) if not model.manifold.euclidean_states else None
+    if tangent is None:
+        Hd = [a[k] * P0inv + RIDGE * eye for k in range(N)]
+        g = [a[k] * (P0inv @ (X[:, k] - xbar)) for k in range(N)]
+    else:  # the arrival residual x - xbar on the manifold; a unit diagonal on the pads
+        Hd, g = [], []
+        for k in range(N):
+            e0, J0 = tangent.arrival(X[:, k], xbar)
+            Hd.append(a[k] * (J0.T @ P0inv @ J0) + RIDGE * eye + tangent.pads)
+            g.append(a[k] * (J0.T @ (P0inv @ e0)))
     Hoff = []
     for k in range(N - 1):
         x, xn = X[:, k], X[:, k + 1]
-        A = model.F_x(x, U[:, k], p)
-        e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x)
         W = om[k] * Qinv + (1 - om[k]) * eye
-        B = om[k] * A + (1 - om[k]) * eye  # -de/dx_k
-        Hd[k] += B.T @ W @ B
-        Hd[k + 1] += W
-        Hoff.append(-B.T @ W)
-        g[k] -= B.T @ (W @ e)
-        g[k + 1] += W @ e
+        if tangent is None:
+            A = model.F_x(x, U[:, k], p)
+            e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x)
+            B = om[k] * A + (1 - om[k]) * eye  # -de/dx_k
+            Hd[k] += B.T @ W @ B
+            Hd[k + 1] += W
+            Hoff.append(-B.T @ W)
+            g[k] -= B.T @ (W @ e)
+            g[k + 1] += W @ e
+        else:  # e = x_{k+1} - F(x_k) on the manifold, derivatives along the retraction
+            e, Ja, Jb = tangent.transition(x, xn, U[:, k], om[k])
+            Hd[k] += Ja.T @ W @ Ja
+            Hd[k + 1] += Jb.T @ W @ Jb
+            Hoff.append(Ja.T @ W @ Jb)
+            g[k] += Ja.T @ (W @ e)
+            g[k + 1] += Jb.T @ (W @ e)
         Rinv = _masked_inverse(R, mask[:, k])
-        C = model.H_x(x, Up[:, k], p)
+        h, C = _measurement(model, tangent, x, Up[:, k], p)
         Hd[k] += C.T @ Rinv @ C
-        g[k] -= C.T @ (Rinv @ (Y[:, k] - model.H(x, Up[:, k], p)))
+        g[k] -= C.T @ (Rinv @ model.manifold.output_difference(Y[:, k], h))
     # the free set: a variable held at its bound has its row and column of the
     # Gauss-Newton matrix replaced by the identity's and its gradient by 0 (step 0)
     free = ca.SX.sym("free", nx, N)
@@ -133,24 +149,30 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
         S = Hd[k] - Hoff[k - 1].T @ Z[:, :nx]
         gt = g[k] - Hoff[k - 1].T @ Z[:, nx]
     xN, upN = X[:, N - 1], Up[:, N - 1]
+    hN, CN = _measurement(model, tangent, xN, upN, p)
     names = ["X", "Y", "mask", "U", "Up", "a", "om", "xbar", "Pbar", "arrival", "Qinv", "R"]
     inputs = [X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R]
     prepare = ca.Function(
         "mhe_rti_prepare", inputs + [free],
-        [0.5 * (S + S.T), gt, model.H_x(xN, upN, p), model.H(xN, upN, p),
+        [0.5 * (S + S.T), gt, CN, hN,
          ca.horzcat(*v) if v else ca.SX(nx, 0), ca.horzcat(*M) if M else ca.SX(nx * nx, 0),
          grad],
         names + ["free"], ["S0", "g0", "C", "h", "v", "M", "grad"])
     # the cost of the window with the newest slot's measurement (the start-up's line search)
     yN, mN = ca.SX.sym("yN", ny), ca.SX.sym("maskN", ny)
-    terms = [a[k] * ca.dot(X[:, k] - xbar, P0inv @ (X[:, k] - xbar)) for k in range(N)]
+    man = model.manifold
+    terms = []
+    for k in range(N):
+        e0 = X[:, k] - xbar if tangent is None else tangent.arrival(X[:, k], xbar)[0]
+        terms.append(a[k] * ca.dot(e0, P0inv @ e0))
     for k in range(N):
         yk, mk = (Y[:, k], mask[:, k]) if k < N - 1 else (yN, mN)
-        r = yk - model.H(X[:, k], Up[:, k], p)
+        r = man.output_difference(yk, model.H(X[:, k], Up[:, k], p))
         terms.append(ca.dot(r, _masked_inverse(R, mk) @ r))
         if k < N - 1:
             x, xn = X[:, k], X[:, k + 1]
-            e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x)
+            e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x) \
+                if tangent is None else tangent.transition(x, xn, U[:, k], om[k])[0]
             terms.append(ca.dot(e, (om[k] * Qinv + (1 - om[k]) * eye) @ e))
     cost = ca.Function("mhe_rti_cost", inputs + [yN, mN],
                        [0.5 * ca.sum1(ca.vertcat(*terms))], names + ["y", "mask_y"], ["cost"])
@@ -163,7 +185,7 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     fN = ca.SX.sym("free", nx)
     FN = ca.diag(fN)
     Rinv = _masked_inverse(Rs, ym)
-    g_meas = -Cs.T @ (Rinv @ (y - hs))  # the newest measurement's gradient
+    g_meas = -Cs.T @ (Rinv @ man.output_difference(y, hs))  # the newest measurement's gradient
     S = S0s + FN @ (Cs.T @ Rinv @ Cs) @ FN
     S = 0.5 * (S + S.T)
     d: list[Any] = [None] * N
@@ -176,6 +198,42 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
                            ["S0", "g0", "C", "h", "y", "mask", "R", "v", "M", "free"],
                            ["dX", "P", "grad_y"])
     return prepare, feedback, cost
+
+
+def _measurement(model: Model, tangent: _TangentTerms | None, x, up, p) -> tuple:
+    """``(h(x), dh/dx)``; on a manifold the derivative along the retraction."""
+    if tangent is None:
+        return model.H(x, up, p), model.H_x(x, up, p)
+    return tangent.measurement(x, up)
+
+
+class _TangentTerms:
+    """The window's residuals on a manifold as Functions of the stored states, with their
+    derivatives along the retraction at zero, padded to ``nx`` (see
+    :class:`~estim.solvers.stages.StageFunctions`): the arrival ``x - xbar``, the
+    transition ``x_{k+1} - (om F(x_k) + (1 - om) x_k)`` and the output map."""
+
+    def __init__(self, model: Model):
+        M, nx = model.manifold, model.nx
+        p = ca.DM(model.p)
+        x, xn, xbar = ca.SX.sym("x", nx), ca.SX.sym("xn", nx), ca.SX.sym("xbar", nx)
+        u, up, om = ca.SX.sym("u", model.nw), ca.SX.sym("up", model.nu), ca.SX.sym("om")
+        d, dn = ca.SX.sym("d", nx), ca.SX.sym("dn", nx)
+        zero = [ca.DM.zeros(nx)] * 2
+        xr, xnr = M.retract(x, d[M.slots]), M.retract(xn, dn[M.slots])
+
+        def at_zero(name, ins, outs, ds):
+            return ca.Function(name, ins, ca.substitute(outs, ds, zero[:len(ds)]))
+
+        e0 = M.padded(M.local(xbar, xr))
+        self.arrival = at_zero("arrival", [x, xbar], [e0, ca.jacobian(e0, d)], [d])
+        G = om * model.F(xr, u, p) + (1 - om) * xr
+        e = M.padded(M.local(G, xnr))
+        self.transition = at_zero("transition", [x, xn, u, om],
+                                  [e, ca.jacobian(e, d), ca.jacobian(e, dn)], [d, dn])
+        h = model.H(xr, up, p)
+        self.measurement = at_zero("measurement", [x, up], [h, ca.jacobian(h, d)], [d])
+        self.pads = ca.diag(ca.DM([float(i in M.pads) for i in range(nx)]))
 
 
 def _masked_inverse(R, mask):
