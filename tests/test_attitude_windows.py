@@ -250,3 +250,26 @@ def test_what_the_windows_refuse():
     with pytest.raises(ValueError, match=r"lower/upper: \['psi'\]"):
         estim.MHE(bearing, horizon=3, Q=1e-4, R=1e-2, x0=[10.0, 0, 0, 2.0, 0.2], P0=0.1,
                   upper={"psi": 3.0})
+
+
+@pytest.mark.parametrize("cls", [estim.EKF, estim.UKF])
+def test_smoothers_on_the_manifold(cls):
+    """The extended and unscented RTS smoothers with tangent corrections,
+    x_s = x (+) G (x_s+ (-) x_pred): on the sphere, 3 x 3 covariances, and as accurate
+    as full information (the MAP trajectory) to 2 %, averaged over three seeds; better
+    than the filter."""
+    sc = scenario(T=100)
+    M = sc.model.manifold
+    errors = {"smoothed": [], "filtered": [], "map": []}
+    for seed in range(3):
+        log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=seed)
+        U = sc.inputs[:-1]
+        res = cls(sc.model, **sc.tuning).smooth(log.y, U)
+        fit = estim.FullInformation(sc.model, **sc.tuning).fit(log.y, U)
+        assert res.P.shape == (100, 3, 3) and res.gain.shape == (99, 3, 3)
+        assert np.abs(np.linalg.norm(res.x, axis=1) - 1).max() < 1e-12
+        for name, x in (("smoothed", res.x), ("filtered", res.x_filtered), ("map", fit.x)):
+            errors[name].append(np.linalg.norm(M.errors(x, log.x), axis=1).mean())
+    mean = {name: np.mean(v) for name, v in errors.items()}
+    assert mean["smoothed"] <= 1.02 * mean["map"]
+    assert mean["smoothed"] < 0.9 * mean["filtered"]

@@ -8,7 +8,11 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool
 from estim.estimators.fused import FusedKalman
-from estim.estimators.manifold_steps import check_manifold_options, mekf_step, refuse_manifold
+from estim.estimators.manifold_steps import (
+    check_manifold_options,
+    mekf_step,
+    tangent_transition_jacobian,
+)
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariances, ekf_step
 from estim.model import Model
@@ -189,10 +193,12 @@ class EKF(FusedKalman):
         S. Särkkä, *Bayesian Filtering and Smoothing*, 2013, sec. 9.1.
         """
         m, Q = self.model, self.Q
-        refuse_manifold(m, "smooth (the filter does)")
+        jacobian = None if m.manifold.euclidean_states else tangent_transition_jacobian(m)
 
         def predict(X, P, W):
-            A = transitions(m, X, W, jacobian=True)
+            A = transitions(m, X, W, jacobian=True) if jacobian is None else \
+                np.asarray(jacobian.map(len(X))(X.T, W.T, ca.DM(m.p))).reshape(
+                    m.ndx, len(X), m.ndx).transpose(1, 0, 2)
             D = P @ A.transpose(0, 2, 1)  # P_k A_k^T
             Pb = A @ D + Q
             return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D

@@ -46,7 +46,7 @@ import numpy as np
 from estim.solvers.kalman import ekf_checks
 
 __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
-           "unit_bounds", "usque_step"]
+           "tangent_transition_jacobian", "unit_bounds", "usque_step"]
 
 
 def check_manifold_options(model: Any, form: str, clip: bool) -> None:
@@ -88,6 +88,17 @@ def tangent_jacobian(fun: Any, n: int) -> Any:
     vector of size ``n``."""
     d = ca.SX.sym("d", n)
     return ca.substitute(ca.jacobian(fun(d), d), d, ca.DM.zeros(n))
+
+
+def tangent_transition_jacobian(model: Any) -> ca.Function:
+    r"""``A(x, w, p)``: the transition's Jacobian in the tangent space,
+    :math:`\partial [F(x \oplus \delta) \ominus F(x)] / \partial \delta` at 0 (ndx x ndx)."""
+    M, nd = model.manifold, model.ndx
+    x, w = ca.SX.sym("x", model.nx), ca.SX.sym("w", model.nw)
+    p = ca.SX.sym("p", model.F.size1_in(2))
+    xn = model.F(x, w, p)
+    A = tangent_jacobian(lambda d: M.local(xn, model.F(M.retract(x, d), w, p)), nd)
+    return ca.Function("A_tangent", [x, w, p], [A])
 
 
 def _updated(M: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: Any

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 
 from estim._fast import FastFunction, jitted
-from estim._manifold import NP
+from estim._manifold import NP, Manifold
 from estim.consistency import consistency_status
 from estim.estimators.base import StepInfo
 from estim.estimators.mhe_window import MovingWindow
@@ -44,6 +44,17 @@ class WindowSolve(NamedTuple):
     converged: bool
     cost: float  #: the window's weighted sum of squares (its chi-square statistic)
     check: str  #: ``"ok"`` or ``"suspect: ..."``
+
+
+def _moved(M: Manifold, X: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold ``M``
+    the retraction of each slot by its padded tangent step."""
+    return X + D if M.euclidean_states else M.retract(X, D[:, M.slots], NP)
+
+
+def _delta(M: Manifold, X_to: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """The step from ``X`` to ``X_to``: ``X_to - X``, on a manifold in the tangent space."""
+    return X_to - X if M.euclidean_states else M.local(X, X_to, NP)
 
 
 class RealTimeIteration(MovingWindow):
@@ -224,16 +235,13 @@ class RealTimeIteration(MovingWindow):
 
     def _converge(self, y: np.ndarray, u: np.ndarray) -> WindowSolve | None:
         """The window (its data shifted, the sample ``(y, u)`` arriving) solved by
-        projected Gauss-Newton with the preparation and feedback Functions: ``(X, P,
-        iterations, converged, cost, check)`` (:class:`WindowSolve`), or None if a step
-        is not finite.
-
-        Each iteration linearises at ``X``; the variables at a bound whose gradient
-        points out of the box are held (their step 0) and the step of the others is
-        halved (at most 30 times) until the projected point does not raise the cost.
-        Stops when the step is below ``xtol`` relative to ``1 + max|X|``, or after
-        ``max_iter`` iterations (not converged); the covariance is the one of the window
-        found (its last state's block of the inverse Gauss-Newton matrix)."""
+        projected Gauss-Newton with the preparation and feedback Functions
+        (:class:`WindowSolve`), or None if a step is not finite. Each iteration
+        linearises at ``X``; the variables at a bound whose gradient points out of the
+        box are held (step 0), the others' step halved (at most 30 times) until the
+        projected point does not raise the cost. Stops on a step below ``xtol``
+        relative to ``1 + max|X|``, or after ``max_iter`` iterations (not converged);
+        ``P``: the last state's block of the inverse Gauss-Newton matrix."""
         m, N = self.model, self.horizon
         s0 = N - (self._n + 1)
         self._X[:s0] = self._X[s0]
@@ -259,12 +267,12 @@ class RealTimeIteration(MovingWindow):
             before = cost.evaluate()[0][0]
             t = 1.0
             for _ in range(31):
-                trial = np.clip(self._moved(X, t * dX), self.lower, self.upper)
+                trial = np.clip(_moved(self.model.manifold, X, t * dX), self.lower, self.upper)
                 cost.args[0][:] = trial.ravel()
                 if cost.evaluate()[0][0] <= before:
                     break
                 t *= 0.5
-            step, X = self._rti_delta(trial, X), trial
+            step, X = _delta(self.model.manifold, trial, X), trial
             if not (np.isfinite(X).all() and np.isfinite(P).all()):
                 return None
             if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
@@ -288,7 +296,7 @@ class RealTimeIteration(MovingWindow):
         t0 = time.perf_counter()
         self._rti_measurement(y)
         dX, P, _ = self._rti_feedback.evaluate()
-        X = self._moved(self._X, dX.reshape(N, -1))
+        X = _moved(self.model.manifold, self._X, dX.reshape(N, -1))
         if self._bounded:
             np.clip(X, self.lower, self.upper, out=X)
         solver = "gauss-newton (rti)"
@@ -307,17 +315,6 @@ class RealTimeIteration(MovingWindow):
         return out
 
     # ---------------------------------------------------------------- helpers
-    def _moved(self, X: np.ndarray, D: np.ndarray) -> np.ndarray:
-        """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold
-        the retraction of each slot by its padded tangent step."""
-        M = self.model.manifold
-        return X + D if M.euclidean_states else M.retract(X, D[:, M.slots], NP)
-
-    def _rti_delta(self, X_to: np.ndarray, X: np.ndarray) -> np.ndarray:
-        """The step from ``X`` to ``X_to``: ``X_to - X``, on a manifold in the tangent space."""
-        M = self.model.manifold
-        return X_to - X if M.euclidean_states else M.local(X, X_to, NP)
-
     def _rti_check(self, X: np.ndarray) -> tuple[float, str]:
         """The window's cost at ``X`` (the sum of its squared weighted residuals, the
         newest measurement included) and its consistency: ``"suspect: ..."`` beyond the

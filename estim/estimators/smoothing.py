@@ -127,12 +127,12 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
     """
     m = estimator.model
     Y, steps, W = record(m, Y, U, t)
-    T, nx = Y.shape[0], m.nx
+    T, nx, nd = Y.shape[0], m.nx, m.ndx
     if hasattr(estimator, "filter"):  # the whole record in one compiled call
         res = estimator.filter(Y, U, t=t)
         Xf, Pf, status, success = res.x, res.P, list(res.status), res.success
     else:
-        Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
+        Xf, Pf = np.empty((T, nx)), np.empty((T, nd, nd))
         status, success = [], True
         estimator.reset()
         for k in range(T):
@@ -143,8 +143,9 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
             status.append(info.status)
             success = success and info.success
     xb, Pb, D = predict(Xf[:-1], Pf[:-1], W) if T > 1 else \
-        (np.empty((0, nx)), np.empty((0, nx, nx)), np.empty((0, nx, nx)))
-    Xs, Ps, G = backward(Xf, Pf, xb, Pb, D, clip)
+        (np.empty((0, nx)), np.empty((0, nd, nd)), np.empty((0, nd, nd)))
+    M = m.manifold
+    Xs, Ps, G = backward(Xf, Pf, xb, Pb, D, clip, None if M.euclidean_states else M)
     return SmoothResult(x=Xs, P=Ps, x_filtered=Xf, P_filtered=Pf, x_predicted=xb,
                         P_predicted=Pb, gain=G, status=tuple(status),
                         success=success)

@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_float
 from estim.estimators.fused import FusedKalman
-from estim.estimators.manifold_steps import check_manifold_options, refuse_manifold, usque_step
+from estim.estimators.manifold_steps import check_manifold_options, usque_step
 from estim.estimators.smoothing import SmoothResult, rts
 from estim.estimators.square_root import check_form, covariance, ukf_step
 from estim.model import Model
@@ -265,15 +265,21 @@ class UKF(FusedKalman):
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
         m, Q = self.model, self.Q
-        refuse_manifold(m, "smooth (the filter does)")
+        M = m.manifold
 
         def predict(X, P, W):
             n, ns, nx = len(X), len(self._Wm), m.nx
             sig = self.sigma_points(X, P)  # (n, ns, nx)
             Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
                              ).reshape(n, ns, nx)
-            xb = np.einsum("i,kij->kj", self._Wm, Fs)
-            dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
+            if M.euclidean_states:
+                xb = np.einsum("i,kij->kj", self._Wm, Fs)
+                dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
+            else:  # tangent deviations: the mean about F(x), as the filter's prediction
+                ref = transitions(m, X, W)[:, None, :]
+                xb = M.retract(ref[:, 0], np.einsum("i,kij->kj", self._Wm,
+                                                    M.local(ref, Fs, NP)), NP)
+                dF, dX = M.local(xb[:, None, :], Fs, NP), M.local(X[:, None, :], sig, NP)
             Pb = np.einsum("i,kia,kib->kab", self._Wc, dF, dF) + Q
             D = np.einsum("i,kia,kib->kab", self._Wc, dX, dF)
             return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D

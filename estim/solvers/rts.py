@@ -27,23 +27,31 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from estim._manifold import NP
+
 __all__ = ["backward", "transitions"]
 
 
 def backward(Xf: np.ndarray, Pf: np.ndarray, xb: np.ndarray, Pb: np.ndarray, D: np.ndarray,
-             clip: Callable[[np.ndarray], np.ndarray] | None = None
+             clip: Callable[[np.ndarray], np.ndarray] | None = None, manifold=None
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The smoothed means ``(T, nx)``, covariances ``(T, nx, nx)`` and gains
-    ``(T-1, nx, nx)`` from the filtered ``Xf (T, nx)``, ``Pf (T, nx, nx)`` and the
-    predictions ``xb (T-1, nx)``, ``Pb (T-1, nx, nx)``, ``D (T-1, nx, nx)``; ``clip``
-    projects each smoothed mean (the filter's clipping)."""
-    T, nx = Xf.shape
+    r"""The smoothed means ``(T, nx)``, covariances ``(T, nd, nd)`` and gains
+    ``(T-1, nd, nd)`` from the filtered ``Xf (T, nx)``, ``Pf (T, nd, nd)`` and the
+    predictions ``xb (T-1, nx)``, ``Pb (T-1, nd, nd)``, ``D (T-1, nd, nd)``; ``clip``
+    projects each smoothed mean (the filter's clipping). On a ``manifold`` (covariances
+    in its tangent space, ``nd = ndx``) the correction is a tangent step:
+    :math:`x^s_k = \hat x_k \oplus G_k (x^s_{k+1} \ominus \bar x_{k+1})`."""
+    T, nd = len(Xf), Pf.shape[-1]
     Xs, Ps = Xf.copy(), Pf.copy()
     # G = D Pb^{-1} by a solve (Pb and so Pb^{-T} symmetric), all transitions at once
     G = np.linalg.solve(Pb, D.transpose(0, 2, 1)).transpose(0, 2, 1) if T > 1 else \
-        np.empty((0, nx, nx))
+        np.empty((0, nd, nd))
     for k in range(T - 2, -1, -1):
-        Xs[k] = Xf[k] + G[k] @ (Xs[k + 1] - xb[k])
+        if manifold is None:
+            Xs[k] = Xf[k] + G[k] @ (Xs[k + 1] - xb[k])
+        else:
+            step = G[k] @ manifold.local(xb[k], Xs[k + 1], NP)
+            Xs[k] = manifold.retract(Xf[k], step, NP)
         if clip is not None:
             Xs[k] = clip(Xs[k])
         Pk = Pf[k] + G[k] @ (Ps[k + 1] - Pb[k]) @ G[k].T
