@@ -273,3 +273,30 @@ def test_smoothers_on_the_manifold(cls):
     mean = {name: np.mean(v) for name, v in errors.items()}
     assert mean["smoothed"] <= 1.02 * mean["map"]
     assert mean["smoothed"] < 0.9 * mean["filtered"]
+
+
+@pytest.mark.parametrize("kind", [estim.EKF, estim.UKF])
+def test_imm_on_the_manifold(kind):
+    """The IMM mixes its modes on the manifold (weighted Karcher means, tangent spreads):
+    two identical modes give the filter itself; a quiet and an agile mode keep the
+    estimate on the sphere, the covariance 3 x 3 and the error at the filter's."""
+    sc = scenario(T=80)
+    M = sc.model.manifold
+    log = estim.simulate(sc, kind(sc.model, **sc.tuning), seed=5)
+    same = estim.IMM({"a": kind(sc.model, **sc.tuning), "b": kind(sc.model, **sc.tuning)},
+                     transition=[[0.9, 0.1], [0.2, 0.8]])
+    twin = estim.replay(same, log.y, sc.inputs)
+    assert np.abs(M.errors(twin.x_hat, log.x_hat)).max() < 1e-12
+    np.testing.assert_allclose(twin.P, log.P, rtol=1e-9, atol=1e-18)
+    agile = dict(sc.tuning, Q=100 * Q_GYRO)
+    imm = estim.IMM({"quiet": kind(sc.model, **sc.tuning), "agile": kind(sc.model, **agile)},
+                    transition=[[0.95, 0.05], [0.05, 0.95]])
+    run = estim.replay(imm, log.y, sc.inputs)
+    assert run.P.shape == (80, 3, 3) and np.all(run.success)
+    assert np.abs(np.linalg.norm(run.x_hat, axis=1) - 1).max() < 1e-12
+    error = [np.linalg.norm(M.errors(x, log.x), axis=1)[20:].mean()
+             for x in (run.x_hat, log.x_hat)]
+    assert error[0] < 1.3 * error[1]
+    mu = np.array([list(d["mode_probabilities"].values()) for d in run.diagnostics])
+    np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=1e-12)
+    assert mu[20:, 0].mean() > 0.5  # the data are quiet

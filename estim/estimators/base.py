@@ -164,7 +164,7 @@ class Estimator:
             raise ValueError(
                 f"{type(self).__name__} does not handle the quaternions and angles "
                 f"declared in {model.name} yet (the EKF, the UKF, the EnKF, the particle "
-                f"filter, MHE and full information do): give it "
+                f"filter, the IMM, MHE and full information do): give it "
                 f"model.euclidean(), which treats them as ordinary states")
         self.model = model
         nd = model.ndx  # covariances live in the tangent space

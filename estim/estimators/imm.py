@@ -47,8 +47,9 @@ from estim._validate import as_choice, as_float
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ekf import EKF
 from estim.estimators.fused import FusedKalman
+from estim.estimators.manifold_steps import tangent_jacobian, unscented_innovation
 from estim.estimators.square_root import P0_data, covariance
-from estim.estimators.ukf import UKF
+from estim.estimators.ukf import UKF, _cholesky
 from estim.model import Model
 
 __all__ = ["IMM"]
@@ -59,15 +60,22 @@ def _likelihood(est: FusedKalman) -> ca.Function:
     and its covariance from the filter's prediction ``s_prior`` (its factor in the
     square-root form), over the measured outputs."""
     m = est.model
-    nx, ny = m.nx, m.ny
+    nx, ny, nd, M = m.nx, m.ny, m.ndx, m.manifold
     s, _, _, u, y, tun, _, R, p, mask, _ = est._symbols()
-    xb, Pb = s[:nx], ca.reshape(s[nx:], nx, nx)
+    xb, Pb = s[:nx], ca.reshape(s[nx:], nd, nd)
     if est._sqrt:
         Pb, R = Pb @ Pb.T, R @ R.T
     uy = m.measurement_input(u)
     D = ca.diag(mask)
     Rm = D @ R @ D + ca.diag(1 - mask)  # missing rows: identity, no contribution
-    if isinstance(est, UKF):  # the sigma points of the prediction
+    if not M.trivial:  # quaternions, angles: as the mode's own update on the manifold
+        if isinstance(est, UKF):
+            _, _, S, e, _ = unscented_innovation(est, xb, Pb, u, y, R, p, mask, _cholesky)
+        else:
+            C = D @ tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nd)
+            S = C @ Pb @ C.T + Rm
+            e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
+    elif isinstance(est, UKF):  # the sigma points of the prediction
         sig, _ = est._sigma_points(xb, Pb)
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
         zp = sum((float(w) * z for w, z in zip(est._Wm, Z, strict=True)), ca.SX.zeros(ny))
@@ -110,6 +118,7 @@ class IMM(Estimator):
     """
 
     name = "imm"
+    _manifold_aware = True  # as its modes: the mixtures are Karcher means
 
     def __init__(self, estimators: Mapping[str, FusedKalman], *, transition: ArrayLike,
                  mu0: ArrayLike | None = None):
@@ -186,16 +195,25 @@ class IMM(Estimator):
             est.reset()
         self.mu = self.mu0.copy()
 
+    def _mixture(self, xs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The weighted mean of the modes' estimates ``xs`` and their deviations from it
+        (on a manifold the weighted Karcher mean and tangent deviations)."""
+        M = self.model.manifold
+        if M.euclidean_states:
+            mean = weights @ xs
+            return mean, xs - mean
+        return M.mean(xs, weights)
+
     def _step(self, y, u, first):
-        nx, T = self.model.nx, self.transition
+        nx, nd, T = self.model.nx, self.model.ndx, self.transition
         cbar = self.mu @ T
         if not first:  # mix the modes' estimates into each mode's starting point
             omega = T * self.mu[:, None] / np.where(cbar > 0, cbar, 1.0)[None, :]
             xs = np.array([est._s[:nx] for est in self._modes])
-            Ps = [covariance(est._s[nx:], nx, est._sqrt) for est in self._modes]
+            Ps = [covariance(est._s[nx:], nd, est._sqrt) for est in self._modes]
             for j, est in enumerate(self._modes):
-                x0 = omega[:, j] @ xs
-                P0 = sum(omega[i, j] * (Ps[i] + np.outer(xs[i] - x0, xs[i] - x0))
+                x0, dev = self._mixture(xs, omega[:, j])
+                P0 = sum(omega[i, j] * (Ps[i] + np.outer(dev[i], dev[i]))
                          for i in range(len(xs)))
                 est._s[:nx] = x0
                 est._s[nx:] = P0_data(0.5 * (P0 + P0.T), est._sqrt)
@@ -211,9 +229,9 @@ class IMM(Estimator):
             mu = np.exp(a - a.max())
             self.mu = mu / mu.sum()
         xs = np.array([est._s[:nx] for est in self._modes])
-        x_hat = self.mu @ xs
-        P = sum(mu_j * (covariance(est._s[nx:], nx, est._sqrt) + np.outer(x - x_hat, x - x_hat))
-                for mu_j, est, x in zip(self.mu, self._modes, xs, strict=True))
+        x_hat, dev = self._mixture(xs, self.mu)
+        P = sum(mu_j * (covariance(est._s[nx:], nd, est._sqrt) + np.outer(d, d))
+                for mu_j, est, d in zip(self.mu, self._modes, dev, strict=True))
         status, success = "ok", any(info.success for info in infos)
         for name, info in zip(self._names, infos, strict=True):
             if info.status != "ok":

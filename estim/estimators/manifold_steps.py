@@ -46,7 +46,8 @@ import numpy as np
 from estim.solvers.kalman import ekf_checks
 
 __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
-           "tangent_transition_jacobian", "unit_bounds", "usque_step"]
+           "tangent_offsets", "tangent_transition_jacobian", "unit_bounds",
+           "unscented_innovation", "usque_step"]
 
 
 def check_manifold_options(model: Any, form: str, clip: bool) -> None:
@@ -143,31 +144,61 @@ def mekf_step(est: Any, predict: bool) -> ca.Function:
                                ok_mean, mask, s_prior)
 
 
+def _weighted(weights: Any, vs: list) -> Any:
+    """The weighted sum of the expressions ``vs``."""
+    return sum((float(w) * v for w, v in zip(weights, vs, strict=True)),
+               ca.SX.zeros(*vs[0].shape))
+
+
+def tangent_offsets(est: Any, P: Any, cholesky: Any) -> tuple[list, Any]:
+    """The tangent offsets of a UKF's sigma points about their centre (the columns of the
+    lower Cholesky factor of :math:`cP`, both signs, and 0 for merwe points) and whether
+    ``P`` is positive definite."""
+    L, definite = cholesky(est._scale * P)
+    cols = [L[:, k] for k in range(P.shape[0])]
+    centre = [] if est.points == "cubature" else [ca.SX.zeros(P.shape[0])]
+    return centre + cols + [-c for c in cols], definite
+
+
+def unscented_innovation(est: Any, xb: Any, Pb: Any, u: Any, y: Any, R: Any, p: Any,
+                         mask: Any, cholesky: Any) -> tuple[list, list, Any, Any, Any]:
+    """A UKF's update on a manifold from the prediction ``(xb, Pb)``: the sigma points'
+    tangent offsets, the deviations of their outputs from their mean (from ``h(xb)``,
+    wrapped), the innovation covariance ``S`` and the innovation ``e`` over the measured
+    outputs (``mask``), and whether ``Pb`` is positive definite."""
+    m = est.model
+    M = m.manifold
+    sig, definite = tangent_offsets(est, Pb, cholesky)
+    uy = m.measurement_input(u)
+    zr = m.H(xb, uy, p)  # the outputs' centre: deviations from it wrapped
+    dz = [ca.if_else(mask, M.output_difference(m.H(M.retract(xb, d), uy, p), zr), 0)
+          for d in sig]
+    dzbar = _weighted(est._Wm, dz)
+    dZ = [v - dzbar for v in dz]
+    D = ca.diag(mask)
+    S = _weighted(est._Wc, [v @ v.T for v in dZ]) + D @ R @ D + ca.diag(1 - mask)
+    e = ca.if_else(mask, M.output_difference(y, zr + dzbar), 0)
+    return sig, dZ, 0.5 * (S + S.T), e, definite
+
+
 def usque_step(est: Any, predict: bool, cholesky: Any) -> ca.Function:
     """The UKF's fused step on a manifold (see the module): sigma points
     :math:`\\hat x \\oplus \\sigma_i` with the offsets :math:`\\sigma_i` the columns of
     the lower Cholesky factor (``cholesky``) of :math:`cP`, means and covariances of
     tangent vectors, output angles wrapped, the covariance reset as the EKF's."""
     m = est.model
-    M, nd = m.manifold, m.ndx
-    Wm, Wc = [float(w) for w in est._Wm], [float(w) for w in est._Wc]
+    M = m.manifold
+    Wm, Wc = est._Wm, est._Wc
     s, x, P, u, y, tun, Q, R, p, mask, y_inf = est._symbols()
 
-    def offsets(P):  # the tangent offsets of the sigma points, and whether P is definite
-        L, definite = cholesky(est._scale * P)
-        cols = [L[:, k] for k in range(nd)]
-        centre = [] if est.points == "cubature" else [ca.SX.zeros(nd)]
-        return centre + cols + [-c for c in cols], definite
-
     def mean(vs):
-        return sum((w * v for w, v in zip(Wm, vs, strict=True)), ca.SX.zeros(vs[0].numel()))
+        return _weighted(Wm, vs)
 
     def cov(a, b):
-        return sum((w * (da @ db.T) for w, da, db in zip(Wc, a, b, strict=True)),
-                   ca.SX.zeros(a[0].numel(), b[0].numel()))
+        return _weighted(Wc, [da @ db.T for da, db in zip(a, b, strict=True)])
 
     if predict:
-        sig, definite = offsets(P)
+        sig, definite = tangent_offsets(est, P, cholesky)
         ref = m.F(x, u, p)  # the propagated estimate: the centre of the tangent vectors
         FX = [m.F(M.retract(x, d), u, p) for d in sig]
         dF = [M.local(ref, v) for v in FX]
@@ -179,20 +210,11 @@ def usque_step(est: Any, predict: bool, cholesky: Any) -> ca.Function:
     else:
         xb, Pb = x, P
         ok_mean = ca.SX(1)
-    sig, definite = offsets(Pb)  # the update draws the sigma points of the prediction
+    # the update draws the sigma points of the prediction
+    sig, dZ, S, e, definite = unscented_innovation(est, xb, Pb, u, y, R, p, mask, cholesky)
     ok_prior = ca.logic_and(ca.logic_and(ok_mean, definite),
                             ca.fabs(ca.sum1(ca.vertcat(xb, ca.vec(Pb)))) < ca.inf)
-    uy = m.measurement_input(u)
-    zr = m.H(xb, uy, p)  # the outputs' centre: deviations from it wrapped
-    dz = [ca.if_else(mask, M.output_difference(m.H(M.retract(xb, d), uy, p), zr), 0)
-          for d in sig]
-    dzbar = mean(dz)
-    dZ = [v - dzbar for v in dz]
-    D = ca.diag(mask)
-    S = cov(dZ, dZ) + D @ R @ D + ca.diag(1 - mask)
-    S = 0.5 * (S + S.T)
     Pxz = cov(sig, dZ)
-    e = ca.if_else(mask, M.output_difference(y, zr + dzbar), 0)
     K = ca.solve(S, Pxz.T).T
     s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e, Pb - K @ S @ K.T, e, S)
     ok = ca.logic_and(ca.fabs(ca.sum1(ca.vertcat(s_new, nis))) < ca.inf, cholesky(Ph)[1])
