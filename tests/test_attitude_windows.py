@@ -300,3 +300,24 @@ def test_imm_on_the_manifold(kind):
     mu = np.array([list(d["mode_probabilities"].values()) for d in run.diagnostics])
     np.testing.assert_allclose(mu.sum(axis=1), 1.0, rtol=1e-12)
     assert mu[20:, 0].mean() > 0.5  # the data are quiet
+
+
+def test_clipping_on_the_other_states():
+    """clip=True on a model with angles clips the vector states (here the speed, against
+    a lower bound above the truth) and leaves the heading wrapped; a bound on the angle
+    itself is refused."""
+    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
+    m = bearing_model(True)
+    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
+                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
+    sc = estim.Scenario("bearing", m, x0=[10.0, 0.0, np.pi / 2, 2.0, 0.2], n_steps=120,
+                        Q=Q, R=R, tuning=tuning)
+    y = estim.simulate(sc, estim.EKF(m, **tuning), seed=0, warn=False).y
+    free = estim.replay(estim.EKF(m, **tuning), y, warn=False)
+    clipped = estim.replay(estim.EKF(m, clip=True, lower={"speed": 2.005}, **tuning), y,
+                           warn=False)
+    assert (free.x_hat[:, 3] < 2.005).sum() > 10  # the bound binds
+    assert clipped.x_hat[:, 3].min() >= 2.005 and np.all(clipped.success)
+    assert np.all(np.abs(clipped.x_hat[:, 2]) <= np.pi)
+    with pytest.raises(ValueError, match=r"lower/upper: \['psi'\]"):
+        estim.EKF(m, clip=True, lower={"psi": -1.0}, **tuning)

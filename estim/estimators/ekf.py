@@ -106,9 +106,9 @@ class EKF(FusedKalman):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.clip = as_bool(clip, "clip")
-        check_manifold_options(model, self.form, self.clip)
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
+        check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
         self.jit = as_bool(jit, "jit")
         self._compile()
 

@@ -50,9 +50,11 @@ __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_ja
            "unscented_innovation", "usque_step"]
 
 
-def check_manifold_options(model: Any, form: str, clip: bool) -> None:
-    """Refuse what the filters do not do on a manifold yet: the square-root form and
-    clipping (a projection of a quaternion on bounds)."""
+def check_manifold_options(model: Any, form: str, clip: bool, lower: Any, upper: Any
+                           ) -> None:
+    """Refuse what the filters do not do on a manifold yet, the square-root form, and
+    clipping with bounds on a quaternion component or an angle (:func:`unit_bounds`;
+    the other states are clipped as on vector states)."""
     if model.manifold.trivial:
         return
     if form != "covariance":
@@ -60,8 +62,7 @@ def check_manifold_options(model: Any, form: str, clip: bool) -> None:
                          f"quaternions and angles of {model.name} yet; use "
                          f"form='covariance'")
     if clip:
-        raise ValueError(f"clip=True: clipping does not handle the quaternions and angles "
-                         f"of {model.name}; give bounds to an MHE instead")
+        unit_bounds(model, lower, upper)
 
 
 def unit_bounds(model: Any, lower: Any, upper: Any) -> None:
@@ -102,15 +103,19 @@ def tangent_transition_jacobian(model: Any) -> ca.Function:
     return ca.Function("A_tangent", [x, w, p], [A])
 
 
-def _updated(M: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: Any
+def _updated(est: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: Any
              ) -> tuple[Any, Any, Any, Any]:
     """``(s_new, s_prior, nis, P)`` after an update by the tangent step ``delta`` of the
-    prediction ``(xb, Pb)``: the retraction, and the update's covariance ``P_update``
-    carried to the new estimate by the reset Jacobian (see the module)."""
+    prediction ``(xb, Pb)``: the retraction (clipped on the vector states' bounds with
+    ``est.clip``), and the update's covariance ``P_update`` carried to the new estimate
+    by the reset Jacobian (see the module)."""
+    M = est.model.manifold
     xh = M.retract(xb, delta)
     J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), delta.numel())
     Ph = J @ P_update @ J.T
     Ph = 0.5 * (Ph + Ph.T)
+    if est.clip:  # (quaternions and angles have no bounds: unit_bounds)
+        xh = ca.fmin(ca.fmax(xh, ca.DM(est.lower)), ca.DM(est.upper))
     return (ca.vertcat(xh, ca.vec(Ph)), ca.vertcat(xb, ca.vec(Pb)),
             ca.dot(e, ca.solve(S, e)), Ph)
 
@@ -136,7 +141,7 @@ def mekf_step(est: Any, predict: bool) -> ca.Function:
     S = 0.5 * (S + S.T)
     K = ca.solve(S, C @ Pb).T
     IKC = ca.DM.eye(nd) - K @ C
-    s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e,
+    s_new, s_prior, nis, Ph = _updated(est, xb, Pb, K @ e,
                                        IKC @ Pb @ IKC.T + K @ Rm @ K.T, e, S)
     ok, ok_mean, ok_prior = ekf_checks(s_new, nis, Ph, xb, Pb)
     name = "mekf_predict_update" if predict else "mekf_update"
@@ -216,7 +221,7 @@ def usque_step(est: Any, predict: bool, cholesky: Any) -> ca.Function:
                             ca.fabs(ca.sum1(ca.vertcat(xb, ca.vec(Pb)))) < ca.inf)
     Pxz = cov(sig, dZ)
     K = ca.solve(S, Pxz.T).T
-    s_new, s_prior, nis, Ph = _updated(M, xb, Pb, K @ e, Pb - K @ S @ K.T, e, S)
+    s_new, s_prior, nis, Ph = _updated(est, xb, Pb, K @ e, Pb - K @ S @ K.T, e, S)
     ok = ca.logic_and(ca.fabs(ca.sum1(ca.vertcat(s_new, nis))) < ca.inf, cholesky(Ph)[1])
     name = "usque_predict_update" if predict else "usque_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,

@@ -118,8 +118,8 @@ class UKF(FusedKalman):
         self.alpha = as_float(alpha, "alpha", positive=True)
         self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
         self.clip = as_bool(clip, "clip")
-        check_manifold_options(model, self.form, self.clip)
         self.lower, self.upper = model.lower, model.upper
+        check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
         nx = model.ndx  # the sigma points spread in the tangent space
         if points != "cubature" and nx + self.kappa <= 0:
             raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
