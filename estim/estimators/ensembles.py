@@ -84,7 +84,7 @@ def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     ``Y (T, ny)`` (NaN where missing) and ``U`` as for :meth:`EKF.filter
     <estim.EKF.filter>` (``U[k]`` acts from sample k to k+1; ``(T, nu)`` for a held or
     sampled input at each sample). Returns the estimates ``(T, nx)``, their
-    covariances ``(T, nx, nx)`` and every step's :class:`~estim.StepInfo`."""
+    covariances ``(T, ndx, ndx)`` and every step's :class:`~estim.StepInfo`."""
     m = est.model
     Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
     T = Y.shape[0]
@@ -92,7 +92,7 @@ def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
     est.reset()
     est._dt = None
-    X, P, infos = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx)), []
+    X, P, infos = np.empty((T, m.nx)), np.empty((T, m.ndx, m.ndx)), []
     for k in range(T):  # (the record is checked: rows go to the step unchecked)
         X[k] = est._checked_step(Y[k], steps_u[k])
         infos.append(est.info)

@@ -567,7 +567,6 @@ class ParticleFilter(Estimator):
             ``P (T, nx, nx)``.
         """
         n_paths = as_int(n_paths, "n_paths", minimum=1)
-        refuse_manifold(self.model, "smooth (the filter does)")
         try:
             LQ = np.linalg.cholesky(self.Q)
         except np.linalg.LinAlgError:
@@ -579,5 +578,6 @@ class ParticleFilter(Estimator):
             trace = self._trace
         finally:
             self._trace = None
+        M = self.model.manifold
         return backward_simulation(self._transit, np.linalg.inv(LQ), trace, self._rng,
-                                   n_paths)
+                                   n_paths, None if M.euclidean_states else M)

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estim._manifold import NP, Manifold
 from estim.solvers.resampling import resample
 
 __all__ = ["ParticleSmoothResult", "backward_simulation"]
@@ -59,32 +60,47 @@ class ParticleSmoothResult:
 
 def backward_simulation(transit: Callable[..., list[np.ndarray]], LQ_inv: np.ndarray,
                         trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                        rng: np.random.Generator, n_paths: int) -> ParticleSmoothResult:
-    """``n_paths`` backward draws (see the module) from ``trace``: per sample the
+                        rng: np.random.Generator, n_paths: int,
+                        manifold: Manifold | None = None) -> ParticleSmoothResult:
+    r"""``n_paths`` backward draws (see the module) from ``trace``: per sample the
     particles ``(nx, N)``, their weights ``(N,)`` and the transition's input into that
     sample; ``transit(X, w, n=N)`` gives ``[F(X, w)]`` column by column, ``LQ_inv`` is
-    the inverse of the Cholesky factor of ``Q``."""
+    the inverse of the Cholesky factor of ``Q``. On a ``manifold`` the transition
+    density is that of the tangent vector :math:`\tilde x_{t+1} \ominus F(x^i_t)`, and
+    the smoothed estimates are the paths' Karcher means with their tangent spreads."""
     T = len(trace)
     nx, N = trace[-1][0].shape
     paths = np.empty((n_paths, T, nx))
     X, W, _ = trace[-1]
     paths[:, -1] = X[:, resample(W, "multinomial", rng, n=n_paths)].T
-    block = max(1, _BLOCK // N)
+    nd = LQ_inv.shape[0]
+    block = max(1, _BLOCK // (N * (1 if manifold is None else nd)))
     with np.errstate(divide="ignore"):
         for t in range(T - 2, -1, -1):
             X, W, _ = trace[t]
-            Z = LQ_inv @ transit(X, trace[t + 1][2], n=N)[0]  # whitened predictions
-            logW = np.log(W) - 0.5 * (Z * Z).sum(axis=0)
+            FX = transit(X, trace[t + 1][2], n=N)[0]  # (nx, N) the predictions
+            logW = np.log(W)
+            if manifold is None:  # whitened predictions
+                Z = LQ_inv @ FX
+                logW = logW - 0.5 * (Z * Z).sum(axis=0)
             for lo in range(0, n_paths, block):
-                z = LQ_inv @ paths[lo:lo + block, t + 1].T  # (nx, m) whitened successors
-                # log W_i - |z_j - Z_i|^2 / 2 up to a constant per path j
-                a = logW[None, :] + z.T @ Z
+                succ = paths[lo:lo + block, t + 1]  # (m, nx) the successors
+                if manifold is None:  # log W_i - |z_j - Z_i|^2 / 2 up to a constant
+                    a = logW[None, :] + (LQ_inv @ succ.T).T @ Z
+                else:
+                    d = manifold.local(FX.T[None, :, :], succ[:, None, :], NP) @ LQ_inv.T
+                    a = logW[None, :] - 0.5 * (d * d).sum(axis=-1)
                 a = np.exp(a - a.max(axis=1, keepdims=True))
                 c = np.cumsum(a, axis=1)
                 u = rng.random(len(c))[:, None] * c[:, -1:]
                 pick = np.minimum((c <= u).sum(axis=1), N - 1)
                 paths[lo:lo + block, t] = X[:, pick].T
-    x = paths.mean(axis=0)
-    D = paths - x[None]
+    if manifold is None:
+        x = paths.mean(axis=0)
+        D = paths - x[None]
+    else:
+        means = [manifold.mean(paths[:, t]) for t in range(T)]
+        x = np.array([m for m, _ in means])
+        D = np.stack([d for _, d in means], axis=1)  # (n_paths, T, ndx)
     P = np.einsum("pti,ptj->tij", D, D) / max(n_paths - 1, 1)
     return ParticleSmoothResult(paths=paths, x=x, P=P)
