@@ -57,7 +57,7 @@ from estim.estimators.ensembles import (
     run_record,
     square_root,
 )
-from estim.estimators.manifold_steps import refuse_manifold
+from estim.estimators.manifold_steps import tangent_jacobian
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -81,7 +81,7 @@ class ParticleFilterResult:
     ----------
     x : (T, nx) array
         Weighted means of the particles after each update.
-    P : (T, nx, nx) array
+    P : (T, ndx, ndx) array
         Their weighted covariances.
     ess : (T,) array
         Effective sample sizes after each update (before resampling).
@@ -215,7 +215,7 @@ def _graphs(model: Model, loglik: Callable | None, proposal: str
                               [xn, *measure(xn)])
         start = None
     else:  # "ekf", "ukf", tun: Q, L_Q^-1, R (identity rows where missing), L_Q
-        tun = ca.SX.sym("tun", 3 * nx * nx + ny * ny)
+        tun = ca.SX.sym("tun", 3 * nd * nd + ny * ny)
         advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss], list(
             _linearised(model, measure, xb, v, w, tun, y0, miss, proposal)))
         # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
@@ -236,11 +236,14 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
     updated covariance :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
     particle, its predicted output and its log-weight factor (measurement density
     times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel)."""
-    nx, ny, p = model.nx, model.ny, ca.DM(model.p)
+    M = model.manifold
+    nx, ny, p = model.ndx, model.ny, ca.DM(model.p)  # (on a manifold: the tangent space)
     n2 = nx * nx
     Qm, LQi = ca.reshape(tun[:n2], nx, nx), ca.reshape(tun[n2:2 * n2], nx, nx)
     Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
     uy = model.measurement_input(w)
+    if not M.trivial:  # the proposal in the tangent space at xb, output angles wrapped
+        return _linearised_tangent(model, measure, xb, v, uy, tun, y0, miss, kind)
     if kind == "ekf":
         Cm = ca.diag(1 - miss) @ model.H_x(xb, uy, p)
         e = (1 - miss) * (y0 - model.H(xb, uy, p))
@@ -266,6 +269,52 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
     xn = xb + K @ e + LS @ v
     yhat, ell = measure(xn)
     d = LQi @ (xn - xb)
+    ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
+        ca.sum1(ca.log(ca.diag(LS)))
+    return xn, yhat, ell
+
+
+def _linearised_tangent(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, uy: ca.SX,
+                        tun: ca.SX, y0: ca.SX, miss: ca.SX, kind: str
+                        ) -> tuple[ca.SX, ca.SX, ca.SX]:
+    r""":func:`_linearised` on a manifold: the proposal is a Gaussian of the tangent step
+    :math:`\delta` at :math:`\bar x` (the transition's noise :math:`N(0, Q)` updated by
+    the measurement, its output deviations wrapped), the particle :math:`\bar x \oplus
+    \delta`, and the density ratio that of :math:`\delta` (the transition's noise is
+    :math:`x \ominus \bar x = \delta`)."""
+    M, nd, ny, p = model.manifold, model.ndx, model.ny, ca.DM(model.p)
+    n2 = nd * nd
+    Qm, LQi = ca.reshape(tun[:n2], nd, nd), ca.reshape(tun[n2:2 * n2], nd, nd)
+    Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
+    h0 = model.H(xb, uy, p)
+    e = (1 - miss) * M.output_difference(y0, h0)
+    if kind == "ekf":
+        Cm = ca.diag(1 - miss) @ tangent_jacobian(
+            lambda d: model.H(M.retract(xb, d), uy, p), nd)
+        K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T
+        IKC = ca.DM.eye(nd) - K @ Cm
+        Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T
+    else:  # the spherical-cubature points of N(0, Q) in the tangent space
+        LQ = ca.reshape(tun[2 * n2 + ny * ny:], nd, nd)
+        offsets = [np.sqrt(nd) * LQ[:, j] for j in range(nd)]
+        offsets += [-d for d in offsets]
+        wt = 0.5 / nd
+        Ys = [(1 - miss) * M.output_difference(model.H(M.retract(xb, d), uy, p), h0)
+              for d in offsets]
+        yb = wt * sum(Ys[1:], Ys[0])
+        Pyy, Pxy = Rm, ca.SX.zeros(nd, ny)
+        for d, Yj in zip(offsets, Ys, strict=True):
+            dy = Yj - yb
+            Pyy = Pyy + wt * (dy @ dy.T)
+            Pxy = Pxy + wt * (d @ dy.T)
+        e = e - (1 - miss) * yb
+        K = ca.solve(Pyy, Pxy.T).T
+        Sig = Qm - K @ Pyy @ K.T
+    LS = ca.chol(0.5 * (Sig + Sig.T)).T
+    step = K @ e + LS @ v
+    xn = M.retract(xb, step)
+    yhat, ell = measure(xn)
+    d = LQi @ step
     ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
         ca.sum1(ca.log(ca.diag(LS)))
     return xn, yhat, ell
@@ -370,8 +419,6 @@ class ParticleFilter(Estimator):
             raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
                             f"or None, got {type(loglik).__name__}")
         self.proposal = as_choice(proposal, PROPOSALS, "proposal")
-        if self.proposal != "bootstrap":
-            refuse_manifold(model, f"proposal={proposal!r} (use the bootstrap proposal)")
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
@@ -425,7 +472,7 @@ class ParticleFilter(Estimator):
             if self.proposal != "bootstrap":  # Q, L_Q^-1, R (identity where missing), L_Q
                 Rm = np.eye(ny)
                 Rm[np.ix_(idx, idx)] = Ro
-                LQi = np.linalg.inv(self._LQ.reshape(self.model.nx, -1, order="F"))
+                LQi = np.linalg.inv(self._LQ.reshape(self.model.ndx, -1, order="F"))
                 tun = np.concatenate([self.Q.ravel(order="F"), LQi.ravel(order="F"),
                                       Rm.ravel(order="F"), self._LQ])
             self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun,
