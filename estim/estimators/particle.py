@@ -274,7 +274,7 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
     return xn, yhat, ell
 
 
-def _linearised_tangent(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, uy: ca.SX,
+def _linearised_tangent(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, uy: Any,
                         tun: ca.SX, y0: ca.SX, miss: ca.SX, kind: str
                         ) -> tuple[ca.SX, ca.SX, ca.SX]:
     r""":func:`_linearised` on a manifold: the proposal is a Gaussian of the tangent step
