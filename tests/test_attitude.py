@@ -271,8 +271,9 @@ def test_declarations_are_checked():
         estim.ShootingObserver(m, window=3, every=2, R=1e-2, x0=[1.0, 0, 0, 0, 1.0])
     mhe = estim.MHE(m.euclidean(), horizon=5, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1)
     assert mhe.model.ndx == 5
-    with pytest.raises(ValueError, match="square-root form"):
-        estim.EKF(m, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1, form="sqrt")
+    with pytest.raises(ValueError, match=r"lower/upper: \['q0'\] are quaternion"):
+        estim.EKF(m, Q=1e-4, R=1e-2, x0=[1.0, 0, 0, 0, 1.0], P0=0.1, clip=True,
+                  lower={"q0": 0.0})
 
 
 @pytest.mark.parametrize("make", [

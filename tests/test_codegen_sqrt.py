@@ -17,12 +17,13 @@ from estim.codegen.files import sections
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler on this machine")
 
-#: The covariance form's configurations, and van der Pol with a full Q, R and P0 (the
-#: generated Cholesky factors instead of the square roots of a diagonal).
+#: The covariance form's configurations (the multiplicative forms of the attitude records
+#: included), and van der Pol with a full Q, R and P0 (the generated Cholesky factors
+#: instead of the square roots of a diagonal).
 CONFIGURATIONS = ["ekf_reactor", "ekfclip_reactor", "merwe_reactor", "cubature_reactor",
                   "ekf_vdp", "ukf_vdp", "ekf_gated_vdp", "ukf_gated_vdp", "ekf_tanks",
                   "ukf_tanks", "ekf_gated_tanks", "ukf_foh_tanks", "ekf_root", "ukf_root",
-                  "ekf_full_vdp", "ukf_full_vdp"]
+                  "ekf_full_vdp", "ukf_full_vdp", "ekf_attitude", "ukf_attitude"]
 #: Statuses each record must show (beyond "ok").
 SHOWN = {"gated": {2}, "tanks": {4}, "root": {1, 3, 4}, "full": {2}}
 

@@ -86,7 +86,7 @@ def factor_functions(estimator: EKF | UKF, name: str) -> list[ca.Function]:
         ``vec(S) -> vec(S S^T)``, the covariance a step reports.
     """
     m = estimator.model
-    nx, ny = m.nx, m.ny
+    nx, ny = m.ndx, m.ny  # (the covariances' size: on a manifold the tangent space's)
     Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)
     diagonal = estimator._diagonal
 

@@ -52,15 +52,10 @@ __all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_ja
 
 def check_manifold_options(model: Any, form: str, clip: bool, lower: Any, upper: Any
                            ) -> None:
-    """Refuse what the filters do not do on a manifold yet, the square-root form, and
-    clipping with bounds on a quaternion component or an angle (:func:`unit_bounds`;
-    the other states are clipped as on vector states)."""
+    """Refuse clipping with bounds on a quaternion component or an angle
+    (:func:`unit_bounds`; the other states are clipped as on vector states)."""
     if model.manifold.trivial:
         return
-    if form != "covariance":
-        raise ValueError(f"form={form!r}: the square-root form does not handle the "
-                         f"quaternions and angles of {model.name} yet; use "
-                         f"form='covariance'")
     if clip:
         unit_bounds(model, lower, upper)
 

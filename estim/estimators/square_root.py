@@ -58,6 +58,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from estim.estimators.manifold_steps import tangent_jacobian
 from estim.solvers.kalman import finite
 from estim.solvers.triangular import (
     cholesky_downdate,
@@ -150,22 +151,31 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     """The square-root EKF's step Function (see the module), with the flags of the
     covariance form."""
     m = est.model
-    nx, ny = m.nx, m.ny
+    M, nx, ny = m.manifold, m.ndx, m.ny  # (on a manifold: the tangent space's size)
     s, x, S, u, y, tun, LQ, LR, p, mask, y_inf = est._symbols()
-    if predict:
-        xb = m.F(x, u, p)
-        Sb = tria(ca.horzcat(m.F_x(x, u, p) @ S, LQ))
-    else:
-        xb, Sb = x, S
     uy = m.measurement_input(u)
-    C = ca.diag(mask) @ m.H_x(xb, uy, p)
-    e = ca.if_else(mask, y - m.H(xb, uy, p), 0)
+    if M.trivial:
+        A = m.F_x(x, u, p) if predict else None
+        xb = m.F(x, u, p) if predict else x
+        C, h = m.H_x(xb, uy, p), m.H(xb, uy, p)
+    else:  # the multiplicative form: derivatives along the retraction
+        xb = m.F(x, u, p) if predict else x
+        A = tangent_jacobian(lambda d: M.local(xb, m.F(M.retract(x, d), u, p)), nx) \
+            if predict else None
+        h = m.H(xb, uy, p)
+        C = tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nx)
+    Sb = tria(ca.horzcat(A @ S, LQ)) if predict else S
+    C = ca.diag(mask) @ C
+    e = ca.if_else(mask, M.output_difference(y, h), 0)
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])
     pre = ca.vertcat(ca.horzcat(LRm, C @ Sb), ca.horzcat(ca.SX(nx, LRm.shape[1]), Sb))
     post = tria(pre)
     Sy, Kb, Sh = post[:ny, :ny], post[ny:, :ny], post[ny:, ny:]
     z = solve_lower(Sy, e)
-    xh = xb + Kb @ z
+    if M.euclidean_states:
+        xh = xb + Kb @ z
+    else:  # the retraction, and the factor carried by the reset Jacobian
+        xh, Sh = _reset(M, xb, Kb @ z, Sh)
     if est.clip:
         xh = ca.fmin(ca.fmax(xh, ca.DM(est.lower)), ca.DM(est.upper))
     nis = ca.sumsqr(z)
@@ -177,6 +187,15 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     name = "ekf_sqrt_predict_update" if predict else "ekf_sqrt_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
                                ok_mean, mask, s_prior)
+
+
+def _reset(M: Any, xb: ca.SX, delta: ca.SX, Sh: ca.SX) -> tuple[ca.SX, ca.SX]:
+    r"""The multiplicative update on a manifold: :math:`\hat x = \bar x \oplus \delta`
+    and the factor :math:`\operatorname{tria}(J S)` of the covariance carried to it by
+    the reset Jacobian (as the covariance form's, :mod:`estim.estimators.manifold_steps`)."""
+    xh = M.retract(xb, delta)
+    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), delta.numel())
+    return xh, tria(J @ Sh)
 
 
 def _factor(deviations: list, weights: np.ndarray, L: ca.SX) -> ca.SX:
@@ -195,14 +214,22 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
     """The square-root UKF's step Function (see the module), with the flags of the
     covariance form."""
     m = est.model
+    M = m.manifold
     Wm, Wc = est._Wm, est._Wc
     root = float(np.sqrt(est._scale))
     s, x, S, u, y, tun, LQ, LR, p, mask, y_inf = est._symbols()
 
-    def sigma(x, S):
-        offsets = [root * S[:, k] for k in range(x.numel())]
-        centre = [] if est.points == "cubature" else [x]
-        return centre + [x + d for d in offsets] + [x - d for d in offsets]
+    def offsets(S):
+        cols = [root * S[:, k] for k in range(S.shape[1])]
+        centre = [] if est.points == "cubature" else [ca.SX.zeros(S.shape[0])]
+        return centre + cols + [-d for d in cols]
+
+    def sigma(x, S):  # x (+) the offsets (x + the offsets on vector states)
+        if M.euclidean_states:
+            offs = [root * S[:, k] for k in range(x.numel())]
+            centre = [] if est.points == "cubature" else [x]
+            return centre + [x + d for d in offs] + [x - d for d in offs]
+        return [M.retract(x, d) for d in offsets(S)]
 
     def mean(points):
         return sum((float(w) * v for w, v in zip(Wm, points, strict=True)),
@@ -210,8 +237,15 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
 
     if predict:
         FX = [m.F(v, u, p) for v in sigma(x, S)]
-        xb = mean(FX)
-        Sb = _factor([v - xb for v in FX], Wc, LQ)
+        if M.euclidean_states:
+            xb = mean(FX)
+            Sb = _factor([v - xb for v in FX], Wc, LQ)
+        else:  # tangent vectors about F(x); their mean retracted
+            ref = m.F(x, u, p)
+            dF = [M.local(ref, v) for v in FX]
+            dbar = mean(dF)
+            xb = M.retract(ref, dbar)
+            Sb = _factor([v - dbar for v in dF], Wc, LQ)
         ok_mean = finite(ca.vertcat(*FX))
     else:
         xb, Sb = x, S
@@ -219,20 +253,31 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
     ok_prior = ca.logic_and(ok_mean, finite(ca.vertcat(xb, ca.vec(Sb))))
     sig = sigma(xb, Sb)
     uy = m.measurement_input(u)
-    Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
-    zp = mean(Z)
-    dZ = [v - zp for v in Z]
-    dX = [v - xb for v in sig]
+    if M.trivial:
+        Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
+        zp = mean(Z)
+        dZ = [v - zp for v in Z]
+        dX = [v - xb for v in sig]
+        e = ca.if_else(mask, y - zp, 0)
+    else:  # output deviations from h(xb), wrapped; the offsets are the tangent deviations
+        zr = m.H(xb, uy, p)
+        Z = [ca.if_else(mask, M.output_difference(m.H(v, uy, p), zr), 0) for v in sig]
+        zp = mean(Z)
+        dZ = [v - zp for v in Z]
+        dX = offsets(Sb) if not M.euclidean_states else [v - xb for v in sig]
+        e = ca.if_else(mask, M.output_difference(y, zr + zp), 0)
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])
     Sy = _factor(dZ, Wc, LRm)
     Pxz = sum((float(w) * (a @ b.T) for w, a, b in zip(Wc, dX, dZ, strict=True)),
-              ca.SX.zeros(m.nx, m.ny))
+              ca.SX.zeros(m.ndx, m.ny))
     K = solve_lower(Sy, solve_lower(Sy, Pxz.T), transpose=True).T
-    e = ca.if_else(mask, y - zp, 0)
-    xh = xb + K @ e
+    Sh = _factor([a - K @ b for a, b in zip(dX, dZ, strict=True)], Wc, K @ LRm)
+    if M.euclidean_states:
+        xh = xb + K @ e
+    else:  # the retraction, and the factor carried by the reset Jacobian
+        xh, Sh = _reset(M, xb, K @ e, Sh)
     if est.clip:
         xh = ca.fmin(ca.fmax(xh, ca.DM(est.lower)), ca.DM(est.upper))
-    Sh = _factor([a - K @ b for a, b in zip(dX, dZ, strict=True)], Wc, K @ LRm)
     nis = ca.sumsqr(solve_lower(Sy, e))
     s_new = ca.vertcat(xh, ca.vec(Sh))
     s_prior = ca.vertcat(xb, ca.vec(Sb))
