@@ -64,6 +64,17 @@ def moved(Q, delta):
     return np.array([qmul(q, qexp(d)) for q, d in zip(Q, delta.reshape(-1, 3), strict=True)])
 
 
+def circling(T):
+    """The target circling the sensor (tests/test_attitude.py), its bearing and heading
+    declared as angles: ``(model, tuning, scenario)`` of ``T`` samples."""
+    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
+    m = bearing_model(True)
+    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
+                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
+    return m, tuning, estim.Scenario("bearing", m, x0=[10.0, 0.0, np.pi / 2, 2.0, 0.2],
+                                     n_steps=T, Q=Q, R=R, tuning=tuning)
+
+
 def check_optimum(Q, Y, U, xbar, Pbar, cost, P, away=True):
     """``Q`` minimises the residuals: least_squares from there (and, with ``away``, from
     0.05 rad away) finds no better trajectory; the cost is theirs and the covariances
@@ -173,12 +184,7 @@ def test_the_real_time_iteration_on_the_manifold():
 def test_bounds_on_the_other_states():
     """A bound on a vector state of a model with angles: every solver keeps it (active
     on 20 of 120 samples) and finds the Gauss-Newton solver's estimates."""
-    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
-    m = bearing_model(True)
-    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
-                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
-    sc = estim.Scenario("bearing", m, x0=[10.0, 0.0, np.pi / 2, 2.0, 0.2], n_steps=120,
-                        Q=Q, R=R, tuning=tuning)
+    m, tuning, sc = circling(120)
     y = estim.simulate(sc, estim.EKF(m, **tuning), seed=0, warn=False).y
     runs = {solver: estim.replay(estim.MHE(m, horizon=10, solver=solver,
                                            lower={"speed": 1.995}, **tuning), y, warn=False)
@@ -216,13 +222,7 @@ def test_wrapped_angles_through_the_windows():
     """The circling target whose bearing crosses +-pi every lap: the MHE and full
     information on the model that declares the heading and the bearing as angles track
     it with every heading in (-pi, pi]."""
-    T = 250
-    x0 = [10.0, 0.0, np.pi / 2, 2.0, 0.2]
-    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
-    m = bearing_model(True)
-    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
-                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
-    sc = estim.Scenario("bearing", m, x0=x0, n_steps=T, Q=Q, R=R, tuning=tuning)
+    m, tuning, sc = circling(250)
     log = estim.simulate(sc, estim.MHE(m, horizon=10, **tuning), seed=0, warn=False)
     assert np.abs(np.diff(log.y[:, 0])).max() > 6 and np.all(log.success)
     assert np.all(np.abs(log.x_hat[:, 2]) <= np.pi) and estim.rmse(log, burn_in=50) < 0.1
@@ -309,12 +309,7 @@ def test_clipping_on_the_other_states():
     """clip=True on a model with angles clips the vector states (here the speed, against
     a lower bound above the truth) and leaves the heading wrapped; a bound on the angle
     itself is refused."""
-    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
-    m = bearing_model(True)
-    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
-                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
-    sc = estim.Scenario("bearing", m, x0=[10.0, 0.0, np.pi / 2, 2.0, 0.2], n_steps=120,
-                        Q=Q, R=R, tuning=tuning)
+    m, tuning, sc = circling(120)
     y = estim.simulate(sc, estim.EKF(m, **tuning), seed=0, warn=False).y
     free = estim.replay(estim.EKF(m, **tuning), y, warn=False)
     clipped = estim.replay(estim.EKF(m, clip=True, lower={"speed": 2.005}, **tuning), y,
@@ -388,12 +383,7 @@ def test_square_root_forms_on_the_manifold(cls):
     assert np.abs(sc.model.manifold.errors(b.x_hat, a.x_hat)).max() < 1e-10
     np.testing.assert_allclose(b.P, a.P, rtol=1e-10, atol=1e-10 * np.abs(a.P).max())
     assert np.abs(np.linalg.norm(b.x_hat, axis=1) - 1).max() < 1e-12
-    Q, R = np.diag([1e-4, 1e-4, 1e-6, 1e-6, 1e-8]), np.diag([1e-4, 0.01])
-    m = bearing_model(True)
-    tuning = dict(Q=Q, R=R, x0=[10.2, 0.2, 1.5, 2.0, 0.2],
-                  P0=np.diag([0.1, 0.1, 0.01, 0.01, 1e-4]))
-    bs = estim.Scenario("bearing", m, x0=[10.0, 0.0, np.pi / 2, 2.0, 0.2], n_steps=250,
-                        Q=Q, R=R, tuning=tuning)
+    m, tuning, bs = circling(250)
     y = estim.simulate(bs, estim.EKF(m, **tuning), seed=0, warn=False).y
     a = estim.replay(cls(m, **tuning), y, warn=False)
     b = estim.replay(cls(m, form="sqrt", **tuning), y, warn=False)

@@ -235,18 +235,28 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
     joint covariance of state and output is positive semi-definite, so that the
     updated covariance :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
     particle, its predicted output and its log-weight factor (measurement density
-    times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel)."""
+    times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel).
+
+    On a manifold the Gaussian is that of the tangent step :math:`\delta` at
+    :math:`\bar x`, the particle :math:`\bar x \oplus \delta` (the transition's noise
+    is :math:`x \ominus \bar x = \delta`), the output's derivative taken along the
+    retraction and its deviations wrapped."""
     M = model.manifold
     nx, ny, p = model.ndx, model.ny, ca.DM(model.p)  # (on a manifold: the tangent space)
     n2 = nx * nx
     Qm, LQi = ca.reshape(tun[:n2], nx, nx), ca.reshape(tun[n2:2 * n2], nx, nx)
     Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
     uy = model.measurement_input(w)
-    if not M.trivial:  # the proposal in the tangent space at xb, output angles wrapped
-        return _linearised_tangent(model, measure, xb, v, uy, tun, y0, miss, kind)
+
+    def moved(d):
+        return xb + d if M.trivial else M.retract(xb, d)
+
+    h0 = model.H(xb, uy, p)
+    e = (1 - miss) * M.output_difference(y0, h0)
     if kind == "ekf":
-        Cm = ca.diag(1 - miss) @ model.H_x(xb, uy, p)
-        e = (1 - miss) * (y0 - model.H(xb, uy, p))
+        C = model.H_x(xb, uy, p) if M.trivial else tangent_jacobian(
+            lambda d: model.H(moved(d), uy, p), nx)
+        Cm = ca.diag(1 - miss) @ C
         K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
         IKC = ca.DM.eye(nx) - K @ Cm
         Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
@@ -255,64 +265,21 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
         offsets = [np.sqrt(nx) * LQ[:, j] for j in range(nx)]
         offsets += [-d for d in offsets]
         wt = 0.5 / nx
-        Ys = [(1 - miss) * model.H(xb + d, uy, p) for d in offsets]  # missing rows: 0
+        # the outputs' deviations from h(x_bar) (wrapped); missing rows: 0
+        Ys = [(1 - miss) * M.output_difference(model.H(moved(d), uy, p), h0)
+              for d in offsets]
         yb = wt * sum(Ys[1:], Ys[0])
         Pyy, Pxy = Rm, ca.SX.zeros(nx, ny)
         for d, Yj in zip(offsets, Ys, strict=True):
             dy = Yj - yb
             Pyy = Pyy + wt * (dy @ dy.T)
             Pxy = Pxy + wt * (d @ dy.T)
-        e = (1 - miss) * y0 - yb
+        e = e - (1 - miss) * yb
         K = ca.solve(Pyy, Pxy.T).T  # P_xy P_yy^-1 (Pyy symmetric)
         Sig = Qm - K @ Pyy @ K.T
     LS = ca.chol(0.5 * (Sig + Sig.T)).T
-    xn = xb + K @ e + LS @ v
-    yhat, ell = measure(xn)
-    d = LQi @ (xn - xb)
-    ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
-        ca.sum1(ca.log(ca.diag(LS)))
-    return xn, yhat, ell
-
-
-def _linearised_tangent(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, uy: Any,
-                        tun: ca.SX, y0: ca.SX, miss: ca.SX, kind: str
-                        ) -> tuple[ca.SX, ca.SX, ca.SX]:
-    r""":func:`_linearised` on a manifold: the proposal is a Gaussian of the tangent step
-    :math:`\delta` at :math:`\bar x` (the transition's noise :math:`N(0, Q)` updated by
-    the measurement, its output deviations wrapped), the particle :math:`\bar x \oplus
-    \delta`, and the density ratio that of :math:`\delta` (the transition's noise is
-    :math:`x \ominus \bar x = \delta`)."""
-    M, nd, ny, p = model.manifold, model.ndx, model.ny, ca.DM(model.p)
-    n2 = nd * nd
-    Qm, LQi = ca.reshape(tun[:n2], nd, nd), ca.reshape(tun[n2:2 * n2], nd, nd)
-    Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
-    h0 = model.H(xb, uy, p)
-    e = (1 - miss) * M.output_difference(y0, h0)
-    if kind == "ekf":
-        Cm = ca.diag(1 - miss) @ tangent_jacobian(
-            lambda d: model.H(M.retract(xb, d), uy, p), nd)
-        K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T
-        IKC = ca.DM.eye(nd) - K @ Cm
-        Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T
-    else:  # the spherical-cubature points of N(0, Q) in the tangent space
-        LQ = ca.reshape(tun[2 * n2 + ny * ny:], nd, nd)
-        offsets = [np.sqrt(nd) * LQ[:, j] for j in range(nd)]
-        offsets += [-d for d in offsets]
-        wt = 0.5 / nd
-        Ys = [(1 - miss) * M.output_difference(model.H(M.retract(xb, d), uy, p), h0)
-              for d in offsets]
-        yb = wt * sum(Ys[1:], Ys[0])
-        Pyy, Pxy = Rm, ca.SX.zeros(nd, ny)
-        for d, Yj in zip(offsets, Ys, strict=True):
-            dy = Yj - yb
-            Pyy = Pyy + wt * (dy @ dy.T)
-            Pxy = Pxy + wt * (d @ dy.T)
-        e = e - (1 - miss) * yb
-        K = ca.solve(Pyy, Pxy.T).T
-        Sig = Qm - K @ Pyy @ K.T
-    LS = ca.chol(0.5 * (Sig + Sig.T)).T
     step = K @ e + LS @ v
-    xn = M.retract(xb, step)
+    xn = moved(step)
     yhat, ell = measure(xn)
     d = LQi @ step
     ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
