@@ -100,12 +100,12 @@ def check_optimum(Q, Y, U, xbar, Pbar, cost, P, away=True):
 
 
 def test_full_information_is_the_intrinsic_optimum():
-    sc = scenario(T=40, guess_angle=0.3)
+    sc = scenario(T=30, guess_angle=0.3)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=3)
     U = sc.inputs[:-1]
     fie = estim.FullInformation(sc.model, **sc.tuning)
     res = fie.fit(log.y, U)
-    assert res.success and res.P.shape == (40, 3, 3) and res.w.shape == (39, 3)
+    assert res.success and res.P.shape == (30, 3, 3) and res.w.shape == (29, 3)
     assert np.abs(np.linalg.norm(res.x, axis=1) - 1).max() < 1e-12
     P0 = sc.tuning["P0"] * np.eye(3)
     # (from 0.05 rad away least_squares comes back to within 4e-10 too: the windows
@@ -114,7 +114,7 @@ def test_full_information_is_the_intrinsic_optimum():
                   away=False)
     # the process residuals reported are the tangent ones
     w = np.array([qlog(qmul(qinv(qmul(res.x[k], qexp(U[k] * DT))), res.x[k + 1]))
-                  for k in range(39)])
+                  for k in range(29)])
     np.testing.assert_allclose(res.w, w, atol=1e-12)
     # the recursive form ends where the fit does
     ends = estim.replay(fie, log.y, sc.inputs).x_hat[-1]
@@ -345,7 +345,7 @@ def test_linearised_proposals_on_the_manifold():
     importance densities whose likelihood estimates are both unbiased, so the means of
     exp(log L) over 20 seeds agree within three standard errors; both far less
     variable than the bootstrap filter's, and on the sphere."""
-    sc = scenario(T=30)
+    sc = scenario(T=20)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=1)
     U = sc.inputs[:-1]
 
