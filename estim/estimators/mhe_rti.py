@@ -23,10 +23,10 @@ from typing import NamedTuple
 import numpy as np
 
 from estim._fast import FastFunction, jitted
-from estim._manifold import NP, Manifold
 from estim.consistency import consistency_status
 from estim.estimators.base import StepInfo
 from estim.estimators.mhe_window import MovingWindow
+from estim.model import Model
 from estim.solvers.robust import RobustLoss
 
 #: While the window fills, the real-time iteration's projected Gauss-Newton steps stop
@@ -46,15 +46,29 @@ class WindowSolve(NamedTuple):
     check: str  #: ``"ok"`` or ``"suspect: ..."``
 
 
-def _moved(M: Manifold, X: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold ``M``
-    the retraction of each slot by its padded tangent step."""
-    return X + D if M.euclidean_states else M.retract(X, D[:, M.slots], NP)
+def _moved(est: RealTimeIteration, X: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold the
+    retraction of each slot by its padded tangent step (the Function the C export
+    calls too: :func:`estim.solvers.rti.window_moves`)."""
+    if est.model.manifold.euclidean_states:
+        return X + D
+    return est._rti_retract(X.ravel(), D.ravel())[0].reshape(X.shape).copy()
 
 
-def _delta(M: Manifold, X_to: np.ndarray, X: np.ndarray) -> np.ndarray:
+def _delta(est: RealTimeIteration, X_to: np.ndarray, X: np.ndarray) -> np.ndarray:
     """The step from ``X`` to ``X_to``: ``X_to - X``, on a manifold in the tangent space."""
-    return X_to - X if M.euclidean_states else M.local(X, X_to, NP)
+    if est.model.manifold.euclidean_states:
+        return X_to - X
+    return est._rti_local(X.ravel(), X_to.ravel())[0].copy()
+
+
+def _arrival_matrix(model: Model, Pbar: np.ndarray | None) -> np.ndarray:
+    """The arrival covariance the preparation reads: ``Pbar`` (on a manifold padded to
+    ``nx x nx``, a unit diagonal on the pads), the identity without an arrival cost."""
+    if Pbar is None:
+        return np.eye(model.nx)
+    M = model.manifold
+    return Pbar if M.euclidean_states else M.padded_matrix(Pbar)
 
 
 class RealTimeIteration(MovingWindow):
@@ -70,9 +84,12 @@ class RealTimeIteration(MovingWindow):
     _rti_y: np.ndarray
     _rti_mask: np.ndarray
     _rti_free: np.ndarray
+    #: the phases' Functions; on a manifold also its moves (rti.window_moves)
     _rti_prepare: FastFunction
     _rti_feedback: FastFunction
     _rti_cost: FastFunction
+    _rti_retract: FastFunction
+    _rti_local: FastFunction
     #: The preparation of the next step: ``(u, its time)``, or None before it; and the
     #: interval it was prepared for (None: the model's).
     _prepared: tuple[np.ndarray, float] | None
@@ -93,8 +110,8 @@ class RealTimeIteration(MovingWindow):
         if self.max_lag:
             raise ValueError("rti=True does not keep the states that max_lag needs: "
                              "give max_lag=0")
-        m = self.model
-        prepare, feedback, cost = rti.build(m, self.horizon)
+        m, N = self.model, self.horizon
+        prepare, feedback, cost = rti.build(m, N)
         if options.get("jit"):
             prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
         # the tuning where every phase reads it (set by _tuning_changed), the feedback's
@@ -111,6 +128,8 @@ class RealTimeIteration(MovingWindow):
                                                      self._rti_free])
         bound = [None, *args[1:12], self._rti_y, self._rti_mask]
         self._rti_cost = FastFunction(cost, bound)
+        if not m.manifold.euclidean_states:
+            self._rti_retract, self._rti_local = map(FastFunction, rti.window_moves(m, N))
         self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
 
     def _reset(self) -> None:
@@ -136,7 +155,6 @@ class RealTimeIteration(MovingWindow):
         ones before them chained to the first used one; ``free`` (N, nx): the variables
         that may move (default all)."""
         m, N = self.model, self.horizon
-        nx = m.nx
         s0 = N - (self._n + 1)  # the first used slot
         mask = np.isfinite(self._Y[:N - 1])
         mask[:s0] = False
@@ -150,20 +168,12 @@ class RealTimeIteration(MovingWindow):
         args[2][:] = mask.ravel()
         args[3][:] = U.ravel()
         args[4][:] = Up.ravel()
-        args[5][:] = 0.0
-        args[5][s0] = 1.0
-        args[6][:] = 0.0
-        args[6][s0:] = 1.0
+        args[5][:], args[6][:] = 0.0, 0.0
+        args[5][s0], args[6][s0:] = 1.0, 1.0
         args[7][:] = self._xbar
         arrival = self.arrival_cost != "none"
-        if arrival:
-            Pbar = self.P0 if self.arrival_cost == "fixed" else self._Pbar
-            assert Pbar is not None  # an arrival cost needs P0
-        else:
-            Pbar = np.eye(nx)
-        if not self.model.manifold.euclidean_states and arrival:  # padded to nx x nx
-            Pbar = self.model.manifold.padded_matrix(Pbar)
-        args[8][:] = Pbar.ravel(order="F")
+        Pbar = (self.P0 if self.arrival_cost == "fixed" else self._Pbar) if arrival else None
+        args[8][:] = _arrival_matrix(m, Pbar).ravel(order="F")
         args[9][:] = float(arrival)
         args[12][:] = 1.0 if free is None else free.ravel()
         self._rti_free[:] = 1.0 if free is None else free[-1]
@@ -267,12 +277,12 @@ class RealTimeIteration(MovingWindow):
             before = cost.evaluate()[0][0]
             t = 1.0
             for _ in range(31):
-                trial = np.clip(_moved(self.model.manifold, X, t * dX), self.lower, self.upper)
+                trial = np.clip(_moved(self, X, t * dX), self.lower, self.upper)
                 cost.args[0][:] = trial.ravel()
                 if cost.evaluate()[0][0] <= before:
                     break
                 t *= 0.5
-            step, X = _delta(self.model.manifold, trial, X), trial
+            step, X = _delta(self, trial, X), trial
             if not (np.isfinite(X).all() and np.isfinite(P).all()):
                 return None
             if np.abs(step).max() <= RTI_STARTUP_XTOL * (1 + np.abs(X).max()):
@@ -296,7 +306,7 @@ class RealTimeIteration(MovingWindow):
         t0 = time.perf_counter()
         self._rti_measurement(y)
         dX, P, _ = self._rti_feedback.evaluate()
-        X = _moved(self.model.manifold, self._X, dX.reshape(N, -1))
+        X = _moved(self, self._X, dX.reshape(N, -1))
         if self._bounded:
             np.clip(X, self.lower, self.upper, out=X)
         solver = "gauss-newton (rti)"
@@ -329,9 +339,8 @@ class RealTimeIteration(MovingWindow):
 
     def _rti_measurement(self, y: np.ndarray) -> None:
         """The newest measurement where the feedback and cost Functions read it."""
-        mask = np.isfinite(y)
+        self._rti_mask[:] = mask = np.isfinite(y)
         self._rti_y[:] = np.where(mask, y, 0.0)
-        self._rti_mask[:] = mask
 
     def _rti_accept(self, X: np.ndarray, P: np.ndarray, y: np.ndarray, u: np.ndarray,
                     cost: float, status: str, trust: bool, iterations: int,
