@@ -244,8 +244,6 @@ def test_wrapped_angles_through_the_windows():
 def test_what_the_windows_refuse():
     sc = scenario(T=5)
     m, t = sc.model, sc.tuning
-    with pytest.raises(ValueError, match=r"the exported real-time MHE does not handle"):
-        estim.codegen.export(estim.MHE(m, horizon=3, rti=True, **t), "unused")
     for cls, kw in ((estim.MHE, {"horizon": 3}), (estim.FullInformation, {})):
         with pytest.raises(ValueError, match=r"lower/upper: \['q1'\] are quaternion"):
             cls(m, lower={"q1": -0.5}, **kw, **t)

@@ -13,6 +13,8 @@ import casadi as ca
 import numpy as np
 import pytest
 from codegen_build import build
+from test_attitude import scenario as attitude_scenario
+from test_attitude_windows import circling
 
 import estim
 from estim import codegen
@@ -63,6 +65,16 @@ def _configuration(key: str):
         sc = estim.scenarios.batch_reactor()
         Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0, warn=False).y.copy()
         return estim.MHE(sc.model, **sc.tuning, horizon=25, rti=True), Y, None
+    if key == "attitude":  # a unit quaternion: the moves are retractions
+        sc = attitude_scenario(T=60)
+        Y = estim.simulate(sc, None, seed=0).y.copy()
+        Y[12:14] = np.nan  # missing samples
+        Y[30, :3] += 0.5  # an outlier (50 sigma): a suspect step, solved to convergence
+        return estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning), Y, sc.inputs
+    if key == "circling":  # angles (the heading, the bearing) and a bound on the speed
+        m, tuning, sc = circling(120)
+        Y = estim.simulate(sc, estim.EKF(m, **tuning), seed=0, warn=False).y
+        return estim.MHE(m, horizon=8, rti=True, lower={"speed": 1.995}, **tuning), Y, None
     if key == "square":  # negative values of a square: windows that do not converge
         m = estim.Model(states=["x"], outputs=["y"], dynamics=lambda x, u, p: x,
                         output=lambda x, u, p: x[0] ** 2, name="square sensor")
@@ -92,7 +104,7 @@ class CMHE:
     """The exported MHE, stepped through ctypes."""
 
     def __init__(self, est, directory, name):
-        self.name, self.nx = name, est.model.nx
+        self.name, self.nx, self.nd = name, est.model.nx, est.model.ndx
         self.lib = _load(directory, name)
         size = int(getattr(self.lib, f"{name}_size")())
         self.memory = np.zeros(size // 8 + 1)  # 8-byte aligned
@@ -113,10 +125,10 @@ class CMHE:
     def step(self, y, u):
         y = np.ascontiguousarray(y, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
-        x, P = np.empty(self.nx), np.empty(self.nx * self.nx)
+        x, P = np.empty(self.nx), np.empty(self.nd * self.nd)
         status = getattr(self.lib, f"{self.name}_step")(self.e, self._ptr(y), self._ptr(u),
                                                         self._ptr(x), self._ptr(P))
-        return status, x, P.reshape(self.nx, self.nx, order="F")
+        return status, x, P.reshape(self.nd, self.nd, order="F")
 
     def run(self, Y, U, sampled=False, prepare=False):
         self.init()
@@ -155,7 +167,8 @@ def _python(est, Y, U, prepare=False):
 
 
 CONFIGURATIONS = ["vdp", "vdp_missing", "vdp_outlier", "reactor", "vdp_smoothing",
-                  "vdp_fixed", "vdp_none", "oscillator", "oscillator_foh", "square"]
+                  "vdp_fixed", "vdp_none", "oscillator", "oscillator_foh", "square",
+                  "attitude", "circling"]
 
 
 #: Configurations that differ from another one in their data only share its build.
@@ -196,6 +209,9 @@ def test_the_c_mhe_is_the_python_mhe(exports, key):
         assert {1, 2, 3} <= set(out["status"][:10].tolist())
     if key == "vdp_outlier":  # the outlier's window and the next are re-anchored
         assert out["status"][60:62].tolist() == [3, 3] and (out["status"][62:] == 0).all()
+    if key == "attitude":  # on the sphere; the outlier's step not taken as it is
+        assert np.abs(np.linalg.norm(out["x"], axis=1) - 1).max() < 1e-12
+        assert out["P"].shape == (60, 3, 3) and set(out["status"][30:32]) - {0}
     if key == "reactor":
         assert 2 in out["status"]  # windows whose cost is beyond the chi-square tail
     assert int(getattr(cm.lib, f"{cm.name}_size")()) == codegen.memory(est)

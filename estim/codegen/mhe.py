@@ -59,10 +59,6 @@ def check(estimator: MHE) -> None:
                          "(the converged solve has no C counterpart): build it with "
                          "rti=True")
     check_model(estimator.model)
-    if not estimator.model.manifold.euclidean_states:
-        raise ValueError(f"estimator: the exported real-time MHE does not handle the "
-                         f"quaternions and angles of {estimator.model.name} yet (the "
-                         f"exported EKF and UKF do)")
     if estimator.horizon < 2:
         raise ValueError(f"horizon must be at least 2 to export the MHE, got "
                          f"{estimator.horizon}")
@@ -76,42 +72,48 @@ def functions(estimator: MHE, name: str) -> list[ca.Function]:
 
     m = estimator.model
     prepare, feedback, cost = rti.build(m, estimator.horizon)
-    return [renamed(prepare, f"{name}_prepare_window"),
+    funs = [renamed(prepare, f"{name}_prepare_window"),
             renamed(feedback, f"{name}_feedback_window"),
             renamed(cost, f"{name}_window_cost"),
             renamed(estimator._build_cov_step(), f"{name}_cov_step"),
             renamed(m.F, f"{name}_transition")]
+    if not m.manifold.euclidean_states:  # the window's moves (retraction, tangent steps)
+        retract, local = rti.window_moves(m, estimator.horizon)
+        funs += [renamed(retract, f"{name}_retract_window"),
+                 renamed(local, f"{name}_local_window")]
+    return funs
 
 
 def layout(estimator: MHE, sizes: Mapping[str, int]) -> tuple[str, int, dict[str, int]]:
     """The struct's fields (C text), its size in bytes (8-byte doubles, pointers and
     ``casadi_int``, 4-byte ints, padded to 8 bytes) and the header's dimensions."""
     m, N = estimator.model, estimator.horizon
-    nx = m.nx
+    nx, nd = m.nx, m.ndx  # stored states; the covariances' (tangent) size
     ny, nu, nw = max(m.ny, 1), max(m.nu, 1), max(m.nw, 1)
     window = N * nx
     # (name, doubles, comment) of each array; a comment alone (None doubles) heads a group
     fields: list[tuple[str, int | None, str]] = [
         ("the tuning (the export's after init): the estimator reads Qinv, not Q, in "
          "the window's weights", None, ""),
-        ("Q", nx * nx, "process-noise covariance (the arrival covariance's step)"),
-        ("Qinv", nx * nx, "its inverse (numpy's, at export): set it with Q"),
+        ("Q", nd * nd, "process-noise covariance (the arrival covariance's step)"),
+        ("Qinv", nx * nx, "its inverse (numpy's, at export; on a manifold padded to NX "
+         "x NX, 1 on the pads): set it with Q"),
         ("R", ny * ny, "measurement-noise covariance"),
         ("x0", nx, "initial guess"),
-        ("P0", nx * nx, "its covariance (the arrival cost's at reset; 'fixed': always)"),
+        ("P0", nd * nd, "its covariance (the arrival cost's at reset; 'fixed': always)"),
         ("the window, oldest slot first (slot k: X + k*NX, ...)", None, ""),
         ("X", window, "the window's estimates"),
         ("Y", N * ny, "its measurements (NaN: not measured)"),
         ("U", N * nw, "U[k]: the transition's input from slot k to k + 1"),
         ("Uprev", N * nu, "the input the output function sees at slot k"),
         ("xbar", nx, "the arrival cost's mean"),
-        ("Pbar", nx * nx, "and covariance (filtering, smoothing)"),
+        ("Pbar", nd * nd, "and covariance (filtering, smoothing)"),
         ("history", window, "the estimates of the window's times, oldest first"),
         ("u_last", nu, "the previous input (sampled inputs)"),
         ("u_prepared", nu, "the input given to prepare"),
         ("cost_last", 1, "the window's cost at the last estimate (its chi-square statistic)"),
         ("trusted_x", nx, "the last estimate returned with status 0 (x0 at reset)"),
-        ("trusted_P", nx * nx, "and its covariance (P0 at reset)"),
+        ("trusted_P", nd * nd, "and its covariance (P0 at reset)"),
         ("work memory of prepare and step", None, ""),
         ("u_in", nu, ""), ("Xs", window, ""), ("trial", window, ""), ("dX", window, ""),
         ("P", nx * nx, ""), ("P_held", nx * nx, ""), ("grad_y", nx, ""), ("G", window, ""),
@@ -121,9 +123,11 @@ def layout(estimator: MHE, sizes: Mapping[str, int]) -> tuple[str, int, dict[str
         ("a_Pbar", nx * nx, ""), ("a_arrival", 1, ""), ("S0", nx * nx, ""), ("g0", nx, ""),
         ("C", ny * nx, ""), ("h", ny, ""), ("v", nx * (N - 1), ""),
         ("M", nx * nx * (N - 1), ""), ("grad", window, ""), ("cost", 1, ""),
-        ("mask_old", ny, ""), ("Pn", nx * nx, ""), ("Pu", nx * nx, ""), ("pred", nx, ""),
+        ("mask_old", ny, ""), ("Pn", nd * nd, ""), ("Pu", nd * nd, ""), ("pred", nx, ""),
         ("xbar_new", nx, ""), ("w", sizes["w"], "CasADi's work array"),
     ]
+    if not m.manifold.euclidean_states:  # the moves' work: the steps, the tangent ones
+        fields[-1:-1] = [("step", window, ""), ("tangent", N * nd, "")]
     lines, doubles = [], 0
     for fname, count, comment in fields:
         if count is None:
@@ -142,7 +146,8 @@ def layout(estimator: MHE, sizes: Mapping[str, int]) -> tuple[str, int, dict[str
     ints = 6
     size = 8 * (doubles + sizes["arg"] + sizes["res"] + sizes["iw"]) + 4 * ints
     size = -(-size // 8) * 8
-    dims = {"N": N, "NX": nx, "NY": m.ny, "NU": m.nu, "NW": m.nw, "NY1": ny, "NU1": nu,
+    dims = {"N": N, "NX": nx, "NDX": nd, "NY": m.ny, "NU": m.nu, "NW": m.nw, "NY1": ny,
+            "NU1": nu,
             "NW1": nw, "SAMPLED": int(m.sampled), "SZ_ARG": sizes["arg"],
             "SZ_RES": sizes["res"], "SZ_IW": sizes["iw"], "SZ_W": sizes["w"], "BYTES": size}
     return "\n".join(lines), size, dims
@@ -156,9 +161,14 @@ def values(estimator: MHE, fields: str) -> dict[str, str]:
     from estim.estimators.mhe import RTI_STARTUP_ITERATIONS, RTI_STARTUP_XTOL
 
     m = estimator.model
-    nx = m.nx
-    P0 = estimator.P0 if estimator.P0 is not None else np.zeros((nx, nx))
-    return {"Q": c_array(estimator.Q), "QINV": c_array(np.linalg.inv(estimator.Q)),
+    nx, M = m.nx, m.manifold
+    P0 = estimator.P0 if estimator.P0 is not None else np.zeros((m.ndx, m.ndx))
+    Qinv = np.linalg.inv(estimator.Q)
+    return {"Q": c_array(estimator.Q),
+            "QINV": c_array(Qinv if M.euclidean_states else M.padded_matrix(Qinv)),
+            "SLOTS": "{" + ", ".join(map(str, M.slots)) + "}",
+            "PADS": "{" + ", ".join(map(str, M.pads or [-1])) + "}",
+            "NPADS": str(len(M.pads)),
             "R": c_array(estimator.R), "X0": c_array(estimator.x0), "P0": c_array(P0),
             "LOWER": c_array(estimator.lower), "UPPER": c_array(estimator.upper),
             "PARAMS": c_array(m.p), "EYE": c_array(np.eye(nx)),
@@ -168,7 +178,7 @@ def values(estimator: MHE, fields: str) -> dict[str, str]:
                                     or np.isfinite(estimator.upper).any()))),
             "XTOL": c_double(RTI_STARTUP_XTOL), "ITERATIONS": str(RTI_STARTUP_ITERATIONS),
             "CHI2": c_array([chi2_limit(d)
-                             for d in range(estimator.horizon * m.ny + nx + 1)]),
+                             for d in range(estimator.horizon * m.ny + m.ndx + 1)]),
             "FIELDS": fields}
 
 
@@ -184,7 +194,8 @@ def write(estimator: MHE, directory: Path, name: str, paths: Mapping[str, Path])
     generate(funs, directory, name)
     fields, _, dims = layout(estimator, work_sizes(funs))
     write_driver(paths, "mhe", name, estimator.model, describe(estimator),
-                 values(estimator, fields), dims)
+                 values(estimator, fields), dims,
+                 {"manifold": not estimator.model.manifold.euclidean_states})
 
 
 def memory(estimator: MHE) -> int:
