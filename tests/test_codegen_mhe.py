@@ -70,11 +70,11 @@ def _configuration(key: str):
         Y = estim.simulate(sc, None, seed=0).y.copy()
         Y[12:14] = np.nan  # missing samples
         Y[30, :3] += 0.5  # an outlier (50 sigma): a suspect step, solved to convergence
-        return estim.MHE(sc.model, horizon=8, rti=True, **sc.tuning), Y, sc.inputs
+        return estim.MHE(sc.model, horizon=4, rti=True, **sc.tuning), Y, sc.inputs
     if key == "circling":  # angles (the heading, the bearing) and a bound on the speed
         m, tuning, sc = circling(120)
         Y = estim.simulate(sc, estim.EKF(m, **tuning), seed=0, warn=False).y
-        return estim.MHE(m, horizon=8, rti=True, lower={"speed": 1.995}, **tuning), Y, None
+        return estim.MHE(m, horizon=4, rti=True, lower={"speed": 1.995}, **tuning), Y, None
     if key == "square":  # negative values of a square: windows that do not converge
         m = estim.Model(states=["x"], outputs=["y"], dynamics=lambda x, u, p: x,
                         output=lambda x, u, p: x[0] ** 2, name="square sensor")
