@@ -40,6 +40,7 @@ import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import casadi as ca
@@ -192,7 +193,7 @@ class Manifold:
     # quaternion's three at its first three components) and a pad, always 0, at each
     # quaternion's fourth. Euclidean states keep their positions, so bounds apply as
     # they are.
-    @property
+    @cached_property
     def slots(self) -> list[int]:
         """The stored position of each tangent coordinate in a padded tangent vector."""
         out = [0] * self.ndx
@@ -201,7 +202,7 @@ class Manifold:
                 out[a] = b
         return out
 
-    @property
+    @cached_property
     def pads(self) -> list[int]:
         """The positions of the pads: the fourth component of each quaternion."""
         return [g[3] for g in self.quaternions]

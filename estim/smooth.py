@@ -369,7 +369,6 @@ def sqrt(x: Operand, width: float) -> Any:
     >>> smooth.sqrt([-1.0, 0.0, 0.25, 4.0], 1e-4).round(4)
     array([0.    , 0.0053, 0.4999, 2.    ])
     """
-    w = _width(width)
-    op, (xv,) = _args(x=x)
-    r = w * _softplus(xv / w, op)
-    return r / op.sqrt(r + w)
+    op, _ = _args(x=x)
+    r = relu(x, width)
+    return r / op.sqrt(r + _width(width))

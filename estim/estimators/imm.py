@@ -47,7 +47,7 @@ from estim._validate import as_choice, as_float
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ekf import EKF
 from estim.estimators.fused import FusedKalman
-from estim.estimators.manifold_steps import tangent_jacobian, unscented_innovation
+from estim.estimators.manifold_steps import output_jacobian, unscented_innovation
 from estim.estimators.square_root import P0_data, covariance
 from estim.estimators.ukf import UKF, _cholesky
 from estim.model import Model
@@ -68,13 +68,8 @@ def _likelihood(est: FusedKalman) -> ca.Function:
     uy = m.measurement_input(u)
     D = ca.diag(mask)
     Rm = D @ R @ D + ca.diag(1 - mask)  # missing rows: identity, no contribution
-    if not M.trivial:  # quaternions, angles: as the mode's own update on the manifold
-        if isinstance(est, UKF):
-            _, _, S, e, _ = unscented_innovation(est, xb, Pb, u, y, R, p, mask, _cholesky)
-        else:
-            C = D @ tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nd)
-            S = C @ Pb @ C.T + Rm
-            e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
+    if isinstance(est, UKF) and not M.trivial:  # as the mode's update on the manifold
+        _, _, S, e, _ = unscented_innovation(est, xb, Pb, u, y, R, p, mask, _cholesky)
     elif isinstance(est, UKF):  # the sigma points of the prediction
         sig, _ = est._sigma_points(xb, Pb)
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
@@ -82,10 +77,10 @@ def _likelihood(est: FusedKalman) -> ca.Function:
         S = sum((float(w) * (z - zp) @ (z - zp).T for w, z in zip(est._Wc, Z, strict=True)),
                 ca.SX.zeros(ny, ny)) + Rm
         e = ca.if_else(mask, y - zp, 0)
-    else:  # EKF: the output linearised at the prediction
-        C = D @ m.H_x(xb, uy, p)
+    else:  # EKF: the output linearised at the prediction (along the retraction)
+        C = D @ output_jacobian(m, xb, uy, p)
         S = C @ Pb @ C.T + Rm
-        e = ca.if_else(mask, y - m.H(xb, uy, p), 0)
+        e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
     L = ca.chol(0.5 * (S + S.T)).T
     z = ca.solve(L, e)
     logl = -0.5 * (ca.sumsqr(z) + ca.sum1(mask) * np.log(2 * np.pi)) - \

@@ -45,9 +45,10 @@ import numpy as np
 
 from estim.solvers.kalman import ekf_checks
 
-__all__ = ["check_manifold_options", "mekf_step", "refuse_manifold", "tangent_jacobian",
-           "tangent_offsets", "tangent_transition_jacobian", "unit_bounds",
-           "unscented_innovation", "usque_step"]
+__all__ = ["check_manifold_options", "mekf_step", "output_jacobian", "refuse_manifold",
+           "retracted", "sigma_offsets", "tangent_jacobian", "tangent_offsets",
+           "tangent_transition_jacobian",
+           "transition_jacobian", "unit_bounds", "unscented_innovation", "usque_step"]
 
 
 def check_manifold_options(model: Any, form: str, clip: bool, lower: Any, upper: Any
@@ -87,15 +88,42 @@ def tangent_jacobian(fun: Any, n: int) -> Any:
     return ca.substitute(ca.jacobian(fun(d), d), d, ca.DM.zeros(n))
 
 
+def transition_jacobian(model: Any, x: Any, u: Any, p: Any, xn: Any = None) -> Any:
+    r"""The transition's Jacobian: :math:`\partial F / \partial x`, on a manifold
+    :math:`\partial [F(x \oplus \delta) \ominus F(x)] / \partial \delta` at 0
+    (ndx x ndx); ``xn`` is :math:`F(x)` if already built."""
+    M = model.manifold
+    if M.euclidean_states:
+        return model.F_x(x, u, p)
+    xn = model.F(x, u, p) if xn is None else xn
+    return tangent_jacobian(lambda d: M.local(xn, model.F(M.retract(x, d), u, p)),
+                            model.ndx)
+
+
+def output_jacobian(model: Any, x: Any, uy: Any, p: Any) -> Any:
+    r"""The output's Jacobian: :math:`\partial h / \partial x`, on a manifold
+    :math:`\partial h(x \oplus \delta) / \partial \delta` at 0 (ny x ndx)."""
+    M = model.manifold
+    if M.euclidean_states:
+        return model.H_x(x, uy, p)
+    return tangent_jacobian(lambda d: model.H(M.retract(x, d), uy, p), model.ndx)
+
+
+def retracted(M: Any, xb: Any, delta: Any) -> tuple[Any, Any]:
+    r"""The update :math:`\hat x = \bar x \oplus \delta` and its reset Jacobian
+    :math:`J = \partial [(\bar x \oplus (\delta + \epsilon)) \ominus \hat x] /
+    \partial \epsilon` at 0, which carries a covariance of the prediction's tangent
+    space to the estimate's (see the module)."""
+    xh = M.retract(xb, delta)
+    return xh, tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)),
+                                delta.numel())
+
+
 def tangent_transition_jacobian(model: Any) -> ca.Function:
-    r"""``A(x, w, p)``: the transition's Jacobian in the tangent space,
-    :math:`\partial [F(x \oplus \delta) \ominus F(x)] / \partial \delta` at 0 (ndx x ndx)."""
-    M, nd = model.manifold, model.ndx
+    """``A(x, w, p)``: :func:`transition_jacobian` as a Function (ndx x ndx)."""
     x, w = ca.SX.sym("x", model.nx), ca.SX.sym("w", model.nw)
     p = ca.SX.sym("p", model.F.size1_in(2))
-    xn = model.F(x, w, p)
-    A = tangent_jacobian(lambda d: M.local(xn, model.F(M.retract(x, d), w, p)), nd)
-    return ca.Function("A_tangent", [x, w, p], [A])
+    return ca.Function("A_tangent", [x, w, p], [transition_jacobian(model, x, w, p)])
 
 
 def _updated(est: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: Any
@@ -104,9 +132,7 @@ def _updated(est: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: A
     prediction ``(xb, Pb)``: the retraction (clipped on the vector states' bounds with
     ``est.clip``), and the update's covariance ``P_update`` carried to the new estimate
     by the reset Jacobian (see the module)."""
-    M = est.model.manifold
-    xh = M.retract(xb, delta)
-    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), delta.numel())
+    xh, J = retracted(est.model.manifold, xb, delta)
     Ph = J @ P_update @ J.T
     Ph = 0.5 * (Ph + Ph.T)
     if est.clip:  # (quaternions and angles have no bounds: unit_bounds)
@@ -123,13 +149,13 @@ def mekf_step(est: Any, predict: bool) -> ca.Function:
     s, x, P, u, y, tun, Q, R, p, mask, y_inf = est._symbols()
     if predict:
         xb = m.F(x, u, p)
-        A = tangent_jacobian(lambda d: M.local(xb, m.F(M.retract(x, d), u, p)), nd)
+        A = transition_jacobian(m, x, u, p, xb)
         Pb = A @ P @ A.T + Q
     else:
         xb, Pb = x, P
     D = ca.diag(mask)
     uy = m.measurement_input(u)  # the input at this measurement
-    C = D @ tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nd)
+    C = D @ output_jacobian(m, xb, uy, p)
     e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
     Rm = D @ R @ D + ca.diag(1 - mask)
     S = C @ Pb @ C.T + Rm
@@ -150,14 +176,18 @@ def _weighted(weights: Any, vs: list) -> Any:
                ca.SX.zeros(*vs[0].shape))
 
 
+def sigma_offsets(est: Any, cols: list) -> list:
+    """A UKF's sigma points' offsets about their centre from the columns ``cols`` of a
+    factor of :math:`cP`: both signs, and 0 first for merwe points."""
+    centre = [] if est.points == "cubature" else [ca.SX.zeros(cols[0].numel())]
+    return centre + cols + [-c for c in cols]
+
+
 def tangent_offsets(est: Any, P: Any, cholesky: Any) -> tuple[list, Any]:
-    """The tangent offsets of a UKF's sigma points about their centre (the columns of the
-    lower Cholesky factor of :math:`cP`, both signs, and 0 for merwe points) and whether
-    ``P`` is positive definite."""
+    """The tangent offsets of a UKF's sigma points (:func:`sigma_offsets` of the lower
+    Cholesky factor of :math:`cP`) and whether ``P`` is positive definite."""
     L, definite = cholesky(est._scale * P)
-    cols = [L[:, k] for k in range(P.shape[0])]
-    centre = [] if est.points == "cubature" else [ca.SX.zeros(P.shape[0])]
-    return centre + cols + [-c for c in cols], definite
+    return sigma_offsets(est, [L[:, k] for k in range(P.shape[0])]), definite
 
 
 def unscented_innovation(est: Any, xb: Any, Pb: Any, u: Any, y: Any, R: Any, p: Any,

@@ -23,7 +23,7 @@ import numpy as np
 
 from estim._fast import FastFunction
 from estim.estimators.base import Estimator
-from estim.estimators.manifold_steps import tangent_jacobian
+from estim.estimators.manifold_steps import output_jacobian, transition_jacobian
 from estim.solvers.nlp import LeastSquaresNLP
 from estim.solvers.solution import Solution
 
@@ -92,14 +92,8 @@ class MovingWindow(Estimator):
         Q, R = ca.SX.sym("Q", nx, nx), ca.SX.sym("R", ny, ny)  # the tuning is data
         p = ca.DM(m.p)
         D = ca.diag(mask)
-        M = m.manifold
-        if M.euclidean_states:
-            C, A = m.H_x(x, up, p), m.F_x(x, u, p)
-        else:  # the Jacobians along the retraction (as the multiplicative EKF's)
-            C = tangent_jacobian(lambda d: m.H(M.retract(x, d), up, p), nx)
-            xn = m.F(x, u, p)
-            A = tangent_jacobian(lambda d: M.local(xn, m.F(M.retract(x, d), u, p)), nx)
-        C = D @ C
+        # (on a manifold the Jacobians along the retraction, as the multiplicative EKF's)
+        C, A = D @ output_jacobian(m, x, up, p), transition_jacobian(m, x, u, p)
         Rm = D @ R @ D + ca.diag(1 - mask)
         S = C @ P @ C.T + Rm
         K = ca.solve(0.5 * (S + S.T), C @ P).T

@@ -57,7 +57,7 @@ from estim.estimators.ensembles import (
     run_record,
     square_root,
 )
-from estim.estimators.manifold_steps import tangent_jacobian
+from estim.estimators.manifold_steps import output_jacobian
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -254,9 +254,7 @@ def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, 
     h0 = model.H(xb, uy, p)
     e = (1 - miss) * M.output_difference(y0, h0)
     if kind == "ekf":
-        C = model.H_x(xb, uy, p) if M.trivial else tangent_jacobian(
-            lambda d: model.H(moved(d), uy, p), nx)
-        Cm = ca.diag(1 - miss) @ C
+        Cm = ca.diag(1 - miss) @ output_jacobian(model, xb, uy, p)
         K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
         IKC = ca.DM.eye(nx) - K @ Cm
         Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form

@@ -58,7 +58,12 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from estim.estimators.manifold_steps import tangent_jacobian
+from estim.estimators.manifold_steps import (
+    output_jacobian,
+    retracted,
+    sigma_offsets,
+    transition_jacobian,
+)
 from estim.solvers.kalman import finite
 from estim.solvers.triangular import (
     cholesky_downdate,
@@ -154,19 +159,11 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     M, nx, ny = m.manifold, m.ndx, m.ny  # (on a manifold: the tangent space's size)
     s, x, S, u, y, tun, LQ, LR, p, mask, y_inf = est._symbols()
     uy = m.measurement_input(u)
-    if M.trivial:
-        A = m.F_x(x, u, p) if predict else None
-        xb = m.F(x, u, p) if predict else x
-        C, h = m.H_x(xb, uy, p), m.H(xb, uy, p)
-    else:  # the multiplicative form: derivatives along the retraction
-        xb = m.F(x, u, p) if predict else x
-        A = tangent_jacobian(lambda d: M.local(xb, m.F(M.retract(x, d), u, p)), nx) \
-            if predict else None
-        h = m.H(xb, uy, p)
-        C = tangent_jacobian(lambda d: m.H(M.retract(xb, d), uy, p), nx)
-    Sb = tria(ca.horzcat(A @ S, LQ)) if predict else S
-    C = ca.diag(mask) @ C
-    e = ca.if_else(mask, M.output_difference(y, h), 0)
+    # (on a manifold the multiplicative form: derivatives along the retraction)
+    xb = m.F(x, u, p) if predict else x
+    Sb = tria(ca.horzcat(transition_jacobian(m, x, u, p, xb) @ S, LQ)) if predict else S
+    C = ca.diag(mask) @ output_jacobian(m, xb, uy, p)
+    e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])
     pre = ca.vertcat(ca.horzcat(LRm, C @ Sb), ca.horzcat(ca.SX(nx, LRm.shape[1]), Sb))
     post = tria(pre)
@@ -192,9 +189,8 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
 def _reset(M: Any, xb: ca.SX, delta: ca.SX, Sh: ca.SX) -> tuple[ca.SX, ca.SX]:
     r"""The multiplicative update on a manifold: :math:`\hat x = \bar x \oplus \delta`
     and the factor :math:`\operatorname{tria}(J S)` of the covariance carried to it by
-    the reset Jacobian (as the covariance form's, :mod:`estim.estimators.manifold_steps`)."""
-    xh = M.retract(xb, delta)
-    J = tangent_jacobian(lambda d: M.local(xh, M.retract(xb, delta + d)), delta.numel())
+    the reset Jacobian (:func:`~estim.estimators.manifold_steps.retracted`)."""
+    xh, J = retracted(M, xb, delta)
     return xh, tria(J @ Sh)
 
 
@@ -219,24 +215,20 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
     root = float(np.sqrt(est._scale))
     s, x, S, u, y, tun, LQ, LR, p, mask, y_inf = est._symbols()
 
-    def offsets(S):
-        cols = [root * S[:, k] for k in range(S.shape[1])]
-        centre = [] if est.points == "cubature" else [ca.SX.zeros(S.shape[0])]
-        return centre + cols + [-d for d in cols]
+    def offsets(S):  # the sigma points' offsets, from the factor itself
+        return sigma_offsets(est, [root * S[:, k] for k in range(S.shape[1])])
 
-    def sigma(x, S):  # x (+) the offsets (x + the offsets on vector states)
+    def sigma(x, offs):  # x (+) the offsets (x + the offsets on vector states)
         if M.euclidean_states:
-            offs = [root * S[:, k] for k in range(x.numel())]
-            centre = [] if est.points == "cubature" else [x]
-            return centre + [x + d for d in offs] + [x - d for d in offs]
-        return [M.retract(x, d) for d in offsets(S)]
+            return [x + d for d in offs]
+        return [M.retract(x, d) for d in offs]
 
     def mean(points):
         return sum((float(w) * v for w, v in zip(Wm, points, strict=True)),
                    ca.SX.zeros(points[0].numel()))
 
     if predict:
-        FX = [m.F(v, u, p) for v in sigma(x, S)]
+        FX = [m.F(v, u, p) for v in sigma(x, offsets(S))]
         if M.euclidean_states:
             xb = mean(FX)
             Sb = _factor([v - xb for v in FX], Wc, LQ)
@@ -251,7 +243,8 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
         xb, Sb = x, S
         ok_mean = ca.SX(1)
     ok_prior = ca.logic_and(ok_mean, finite(ca.vertcat(xb, ca.vec(Sb))))
-    sig = sigma(xb, Sb)
+    offs = offsets(Sb)
+    sig = sigma(xb, offs)
     uy = m.measurement_input(u)
     if M.trivial:
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
@@ -264,7 +257,7 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
         Z = [ca.if_else(mask, M.output_difference(m.H(v, uy, p), zr), 0) for v in sig]
         zp = mean(Z)
         dZ = [v - zp for v in Z]
-        dX = offsets(Sb) if not M.euclidean_states else [v - xb for v in sig]
+        dX = offs if not M.euclidean_states else [v - xb for v in sig]
         e = ca.if_else(mask, M.output_difference(y, zr + zp), 0)
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])
     Sy = _factor(dZ, Wc, LRm)

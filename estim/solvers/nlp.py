@@ -91,6 +91,9 @@ class LeastSquaresNLP(Reweighted):
         self._charts = solver != "gauss-newton" and not model.manifold.euclidean_states
         if self._charts:
             sizes["ref"] = N * nx
+            pads = np.zeros(nx, dtype=bool)
+            pads[model.manifold.pads] = True
+            self._pads = np.tile(pads, N)  # the pads of every slot's step: fixed at 0
         self._slices, start = {}, 0
         for key, size in sizes.items():
             self._slices[key] = slice(start, start + size)
@@ -139,12 +142,9 @@ class LeastSquaresNLP(Reweighted):
         """The bounds of the tangent steps from ``centres`` (flat): ``lbx - c``, ``ubx - c``
         on vector states (quaternions and angles have none), 0 on the pads; and the
         start, zero steps."""
-        pads = np.zeros(self.model.nx, dtype=bool)
-        pads[self.model.manifold.pads] = True
-        pads = np.tile(pads, self.N)
         with np.errstate(invalid="ignore"):  # inf - c
             lo, hi = self.lbx - centres, self.ubx - centres
-        lo[pads] = hi[pads] = 0.0
+        lo[self._pads] = hi[self._pads] = 0.0
         return lo, hi, np.zeros_like(centres)
 
     def reset(self) -> None:
