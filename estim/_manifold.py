@@ -227,6 +227,17 @@ class Manifold:
         out[self.pads, self.pads] = 1.0
         return out
 
+    def window_moves(self, N: int) -> tuple[ca.Function, ca.Function]:
+        """The moves of a window of ``N`` slots, as Functions built once (the windowed
+        solvers' line searches and the exported C call them): ``retract_window(X, D) ->
+        X (+) D`` (each slot by its padded tangent step, ``(nx, N)``) and
+        ``local_window(X, X_to) -> X_to (-) X`` (``(ndx, N)``)."""
+        X, D, X2 = (ca.SX.sym(n, self.nx, N) for n in ("X", "D", "X_to"))
+        moved = ca.horzcat(*[self.retract(X[:, k], D[self.slots, k]) for k in range(N)])
+        local = ca.horzcat(*[self.local(X[:, k], X2[:, k]) for k in range(N)])
+        return (ca.Function("retract_window", [X, D], [moved], ["X", "D"], ["X_moved"]),
+                ca.Function("local_window", [X, X2], [local], ["X", "X_to"], ["D"]))
+
     def unpadded_matrix(self, M: np.ndarray) -> np.ndarray:
         """The tangent block ``(..., ndx, ndx)`` of a padded ``(..., nx, nx)`` one."""
         s = self.slots

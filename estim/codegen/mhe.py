@@ -78,7 +78,7 @@ def functions(estimator: MHE, name: str) -> list[ca.Function]:
             renamed(estimator._build_cov_step(), f"{name}_cov_step"),
             renamed(m.F, f"{name}_transition")]
     if not m.manifold.euclidean_states:  # the window's moves (retraction, tangent steps)
-        retract, local = rti.window_moves(m, estimator.horizon)
+        retract, local = m.manifold.window_moves(estimator.horizon)
         funs += [renamed(retract, f"{name}_retract_window"),
                  renamed(local, f"{name}_local_window")]
     return funs

@@ -49,7 +49,7 @@ class WindowSolve(NamedTuple):
 def _moved(est: RealTimeIteration, X: np.ndarray, D: np.ndarray) -> np.ndarray:
     """The window ``X (N, nx)`` moved by the steps ``D``: ``X + D``, on a manifold the
     retraction of each slot by its padded tangent step (the Function the C export
-    calls too: :func:`estim.solvers.rti.window_moves`)."""
+    calls too: :meth:`Manifold.window_moves <estim._manifold.Manifold.window_moves>`)."""
     if est.model.manifold.euclidean_states:
         return X + D
     return est._rti_retract(X.ravel(), D.ravel())[0].reshape(X.shape).copy()
@@ -84,7 +84,7 @@ class RealTimeIteration(MovingWindow):
     _rti_y: np.ndarray
     _rti_mask: np.ndarray
     _rti_free: np.ndarray
-    #: the phases' Functions; on a manifold also its moves (rti.window_moves)
+    #: the phases' Functions; on a manifold also its moves (Manifold.window_moves)
     _rti_prepare: FastFunction
     _rti_feedback: FastFunction
     _rti_cost: FastFunction
@@ -129,7 +129,7 @@ class RealTimeIteration(MovingWindow):
         bound = [None, *args[1:12], self._rti_y, self._rti_mask]
         self._rti_cost = FastFunction(cost, bound)
         if not m.manifold.euclidean_states:
-            self._rti_retract, self._rti_local = map(FastFunction, rti.window_moves(m, N))
+            self._rti_retract, self._rti_local = map(FastFunction, m.manifold.window_moves(N))
         self._bounded = bool(np.isfinite(self.lower).any() or np.isfinite(self.upper).any())
 
     def _reset(self) -> None:

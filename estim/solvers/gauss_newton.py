@@ -74,7 +74,6 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction, jitted
-from estim._manifold import NP
 from estim.model import Model
 from estim.solvers.chunked import (
     Chunked,
@@ -203,6 +202,8 @@ class StructuredGaussNewton(Globalised):
         self.full = bool(full)
         self._stages = StageFunctions(model, diagonal_Q, diagonal_R)
         self._tangent = self._stages.tangent
+        if self._tangent:  # the line search's moves, built once
+            self._retract, self._local = map(FastFunction, model.manifold.window_moves(N))
         if mode == "auto":  # compiled code: small chunks compile fast and run as fast
             per_slot = self._stages.fused(False, False).n_instructions()
             mode = "mapped" if self.jit or N * per_slot > AUTO_UNROLL_INSTRUCTIONS \
@@ -389,13 +390,12 @@ class StructuredGaussNewton(Globalised):
         slot by its padded tangent step (see :class:`~estim.solvers.stages.StageFunctions`)."""
         if not self._tangent:
             return super()._step_to(x, d)
-        M, nx = self.model.manifold, self.model.nx
-        out = M.retract(x.reshape(-1, nx), d.reshape(-1, nx)[:, M.slots], NP).ravel()
+        out = self._retract(x, d)[0].copy()
         return self._project(out) if self._bounded else out
 
     def _delta(self, xn: np.ndarray, x: np.ndarray) -> np.ndarray:
         r"""The step from ``x`` to ``xn``; on a manifold :math:`x_n \ominus x`, padded."""
         if not self._tangent:
             return xn - x
-        M, nx = self.model.manifold, self.model.nx
-        return M.padded(M.local(x.reshape(-1, nx), xn.reshape(-1, nx), NP)).ravel()
+        M = self.model.manifold
+        return M.padded(self._local(x, xn)[0].reshape(self.N, M.ndx)).ravel()

@@ -200,18 +200,6 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     return prepare, feedback, cost
 
 
-def window_moves(model: Model, N: int) -> tuple[ca.Function, ca.Function]:
-    """On a manifold, ``retract_window(X, D) -> X (+) D`` (each slot by its padded tangent
-    step, ``(nx, N)``) and ``local_window(X, X_to) -> X_to (-) X`` (``(ndx, N)``): the
-    real-time iteration's moves, the same Functions in Python and in the exported C."""
-    M, nx = model.manifold, model.nx
-    X, D, X2 = ca.SX.sym("X", nx, N), ca.SX.sym("D", nx, N), ca.SX.sym("X_to", nx, N)
-    moved = ca.horzcat(*[M.retract(X[:, k], D[M.slots, k]) for k in range(N)])
-    local = ca.horzcat(*[M.local(X[:, k], X2[:, k]) for k in range(N)])
-    return (ca.Function("retract_window", [X, D], [moved], ["X", "D"], ["X_moved"]),
-            ca.Function("local_window", [X, X2], [local], ["X", "X_to"], ["D"]))
-
-
 def _measurement(model: Model, tangent: _TangentTerms | None, x, up, p) -> tuple:
     """``(h(x), dh/dx)``; on a manifold the derivative along the retraction."""
     if tangent is None:
