@@ -23,6 +23,7 @@ install; callers that have an interpreted path fall back to it.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
 import os
@@ -50,6 +51,7 @@ CASADI_VERSION: str = ca.__version__  # type: ignore[attr-defined]
 _LOCK = threading.Lock()
 _COMPILER: dict[str, tuple[str, str] | None] = {}
 _LOADED: dict[str, ca.Function] = {}
+_LIBRARIES: dict[str, ctypes.CDLL] = {}
 
 
 def cache_directory() -> Path:
@@ -116,38 +118,18 @@ def compiled(fun: ca.Function) -> ca.Function:
         No C compiler, a compilation that failed, or a cache directory that cannot be
         written (the message says why).
     """
-    cc = compiler()
-    if cc is None:
-        looked = f"$CC = {os.environ['CC']!r}" if os.environ.get("CC") else \
-            "cc, gcc or clang on the PATH"
-        raise CompilerUnavailable(
-            f"no C compiler found ({looked}): install one (e.g. 'apt install gcc', Xcode's "
-            "command line tools, or MSVC/MinGW) to compile; the interpreted CasADi path is "
-            "used meanwhile")
+    cc = _compiler_or_raise()
     name = fun.name()
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     gen.add(fun)
     code = gen.dump()
-    key = hashlib.sha256("\n".join(
-        [code, *cc, " ".join(FLAGS), CASADI_VERSION, platform.machine(), sys.platform]
-    ).encode()).hexdigest()
+    key, lib, record = _entry(code, name, FLAGS, cc)
     with _LOCK:
         if key in _LOADED:
             return _LOADED[key]
-    try:
-        root = cache_directory()
-    except OSError as exc:
-        raise CompilerUnavailable(f"the compile cache directory cannot be created ({exc}); "
-                                  f"set ESTIM_CACHE_DIR to a writable directory") from None
-    lib = root / f"{name}-{key[:24]}{'.dll' if sys.platform == 'win32' else '.so'}"
-    record = lib.with_suffix(".json")
     loaded = _load(lib, record, key, name)
     if loaded is None:
-        try:
-            _build(code, lib, record, key, cc[0], root)
-        except OSError as exc:
-            raise CompilerUnavailable(f"the compile cache {root} is not writable ({exc}); "
-                                      f"set ESTIM_CACHE_DIR to a writable directory") from None
+        _built(code, lib, record, key, cc[0], FLAGS)
         loaded = _load(lib, record, key, name)
         if loaded is None:
             raise CompilerUnavailable(f"the library compiled for {name} does not load")
@@ -156,26 +138,101 @@ def compiled(fun: ca.Function) -> ca.Function:
     return loaded
 
 
-def _load(lib: Path, record: Path, key: str, name: str) -> ca.Function | None:
-    """The cached library if its record names ``key`` and its hash matches, else None."""
+def shared_library(code: str, name: str, flags: tuple[str, ...] = FLAGS) -> ctypes.CDLL:
+    """C source ``code`` compiled with ``flags`` into a shared library, from the cache or
+    compiled now (then cached) as :func:`compiled` does, loaded with :mod:`ctypes`.
+
+    Raises
+    ------
+    CompilerUnavailable
+        As :func:`compiled`.
+    """
+    cc = _compiler_or_raise()
+    key, lib, record = _entry(code, name, flags, cc)
+    with _LOCK:
+        if key in _LIBRARIES:
+            return _LIBRARIES[key]
+    if not _current(lib, record, key):
+        _built(code, lib, record, key, cc[0], flags)
+    try:
+        loaded = ctypes.CDLL(str(lib))
+    except OSError as exc:
+        raise CompilerUnavailable(f"the library compiled for {name} does not load ({exc})"
+                                  ) from None
+    with _LOCK:
+        _LIBRARIES[key] = loaded
+    return loaded
+
+
+def _compiler_or_raise() -> tuple[str, str]:
+    """The C compiler, or :class:`CompilerUnavailable` saying what to install."""
+    cc = compiler()
+    if cc is None:
+        looked = f"$CC = {os.environ['CC']!r}" if os.environ.get("CC") else \
+            "cc, gcc or clang on the PATH"
+        raise CompilerUnavailable(
+            f"no C compiler found ({looked}): install one (e.g. 'apt install gcc', Xcode's "
+            "command line tools, or MSVC/MinGW) to compile; the interpreted CasADi path is "
+            "used meanwhile")
+    return cc
+
+
+def _entry(code: str, name: str, flags: tuple[str, ...], cc: tuple[str, str]
+           ) -> tuple[str, Path, Path]:
+    """The cache key of ``code`` built with ``flags`` by ``cc``, its library's path and its
+    record's path."""
+    key = hashlib.sha256("\n".join(
+        [code, *cc, " ".join(flags), CASADI_VERSION, platform.machine(), sys.platform]
+    ).encode()).hexdigest()
+    try:
+        root = cache_directory()
+    except OSError as exc:
+        raise CompilerUnavailable(f"the compile cache directory cannot be created ({exc}); "
+                                  f"set ESTIM_CACHE_DIR to a writable directory") from None
+    lib = root / f"{name}-{key[:24]}{'.dll' if sys.platform == 'win32' else '.so'}"
+    return key, lib, lib.with_suffix(".json")
+
+
+def _built(code: str, lib: Path, record: Path, key: str, cc: str,
+           flags: tuple[str, ...]) -> None:
+    """:func:`_build`, with an unwritable cache reported as :class:`CompilerUnavailable`."""
+    try:
+        _build(code, lib, record, key, cc, lib.parent, flags)
+    except OSError as exc:
+        raise CompilerUnavailable(f"the compile cache {lib.parent} is not writable ({exc}); "
+                                  f"set ESTIM_CACHE_DIR to a writable directory") from None
+
+
+def _current(lib: Path, record: Path, key: str) -> bool:
+    """Whether the cached library's record names ``key`` and its hash matches."""
     try:
         meta = json.loads(record.read_text())
-        if meta.get("key") != key or meta.get("sha256") != _sha256(lib):
-            return None
+        return meta.get("key") == key and meta.get("sha256") == _sha256(lib)
+    except (OSError, ValueError):
+        return False
+
+
+def _load(lib: Path, record: Path, key: str, name: str) -> ca.Function | None:
+    """The cached library if its record names ``key`` and its hash matches, else None."""
+    if not _current(lib, record, key):
+        return None
+    try:
         return ca.external(name, str(lib))
-    except (OSError, ValueError, RuntimeError):
+    except RuntimeError:
         return None
 
 
-def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path) -> None:
-    """Compile ``code`` into ``lib`` (through a temporary name) and write its record."""
+def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path,
+           flags: tuple[str, ...] = FLAGS) -> None:
+    """Compile ``code`` with ``flags`` into ``lib`` (through a temporary name) and write its
+    record."""
     with tempfile.TemporaryDirectory(dir=root, prefix="build-") as tmp:
         src = Path(tmp) / "code.c"
         src.write_text(code)
         out = Path(tmp) / lib.name
         try:
             # relative names, so that every build of the same code gives the same bytes
-            run = subprocess.run([cc, *FLAGS, src.name, "-o", out.name, "-lm"], cwd=tmp,
+            run = subprocess.run([cc, *flags, src.name, "-o", out.name, "-lm"], cwd=tmp,
                                  capture_output=True, text=True, timeout=600, check=False)
         except (OSError, subprocess.SubprocessError) as exc:
             raise CompilerUnavailable(f"running the C compiler {cc} failed: {exc}") from None
@@ -186,5 +243,5 @@ def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path) ->
         os.replace(out, lib)
     tmp_record = record.with_name(f"{record.name}.{os.getpid()}.{threading.get_ident()}")
     tmp_record.write_text(json.dumps({"key": key, "sha256": digest, "compiler": cc,
-                                      "flags": list(FLAGS), "casadi": CASADI_VERSION}))
+                                      "flags": list(flags), "casadi": CASADI_VERSION}))
     os.replace(tmp_record, record)

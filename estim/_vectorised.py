@@ -32,7 +32,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-__all__ = ["vectorised"]
+__all__ = ["c_kernel", "vectorised"]
 
 #: numpy expression of each unary (``{0}``) and binary (``{0}``, ``{1}``) operation
 _OPS: dict[int, str] = {
@@ -183,3 +183,91 @@ def vectorised(fun: ca.Function) -> Callable[..., list[np.ndarray]] | None:
             return inner(*args, n)
 
     return call
+
+
+#: C expression of each unary and binary operation (CasADi's generated code's meaning)
+_C_OPS: dict[int, str] = {
+    ca.OP_ASSIGN: "{0}", ca.OP_ADD: "{0} + {1}", ca.OP_SUB: "{0} - {1}",
+    ca.OP_MUL: "{0} * {1}", ca.OP_DIV: "{0} / {1}", ca.OP_NEG: "-{0}",
+    ca.OP_TWICE: "2.0 * {0}", ca.OP_SQ: "{0} * {0}", ca.OP_INV: "1.0 / {0}",
+    ca.OP_SQRT: "sqrt({0})", ca.OP_EXP: "exp({0})", ca.OP_LOG: "log({0})",
+    ca.OP_POW: "pow({0}, {1})", ca.OP_CONSTPOW: "pow({0}, {1})", ca.OP_SIN: "sin({0})",
+    ca.OP_COS: "cos({0})", ca.OP_TAN: "tan({0})", ca.OP_ASIN: "asin({0})",
+    ca.OP_ACOS: "acos({0})", ca.OP_ATAN: "atan({0})", ca.OP_SINH: "sinh({0})",
+    ca.OP_COSH: "cosh({0})", ca.OP_TANH: "tanh({0})", ca.OP_ASINH: "asinh({0})",
+    ca.OP_ACOSH: "acosh({0})", ca.OP_ATANH: "atanh({0})", ca.OP_ATAN2: "atan2({0}, {1})",
+    ca.OP_HYPOT: "hypot({0}, {1})", ca.OP_EXPM1: "expm1({0})", ca.OP_LOG1P: "log1p({0})",
+    ca.OP_ERF: "erf({0})", ca.OP_FABS: "fabs({0})",
+    ca.OP_SIGN: "({0} < 0.0 ? -1.0 : ({0} > 0.0 ? 1.0 : {0}))",
+    ca.OP_COPYSIGN: "copysign({0}, {1})", ca.OP_FLOOR: "floor({0})", ca.OP_CEIL: "ceil({0})",
+    ca.OP_FMOD: "fmod({0}, {1})", ca.OP_FMIN: "fmin({0}, {1})", ca.OP_FMAX: "fmax({0}, {1})",
+    ca.OP_LT: "(double)({0} < {1})", ca.OP_LE: "(double)({0} <= {1})",
+    ca.OP_EQ: "(double)({0} == {1})", ca.OP_NE: "(double)({0} != {1})",
+    ca.OP_NOT: "(double)({0} == 0.0)",
+    ca.OP_AND: "(double)({0} != 0.0 && {1} != 0.0)",
+    ca.OP_OR: "(double)({0} != 0.0 || {1} != 0.0)",
+    ca.OP_IF_ELSE_ZERO: "({0} != 0.0 ? {1} : 0.0)",
+}
+
+
+def _c_literal(value: float) -> str:
+    """A float as a C expression, exactly (hexadecimal; inf and NaN by their macros)."""
+    if value != value:
+        return "NAN"
+    if value in (np.inf, -np.inf):
+        return "INFINITY" if value > 0 else "(-INFINITY)"
+    return f"({value.hex()})"
+
+
+def c_kernel(fun: ca.Function, name: str, varying: set[int]) -> str | None:
+    r"""The C source of ``fun`` evaluated at ``n`` points, one loop over the points.
+
+    ``static void name(size_t n, const double *a0, ..., double *r0, ...)``: input ``i``
+    in ``varying`` is ``(nnz_in(i), n)`` row-major (row ``j`` of point ``p`` at
+    ``a_i[j n + p]``), the other inputs are ``(nnz_in(i),)``, the same at every point
+    (dense inputs); every output is dense, ``(numel_out(i), n)`` in column-major order,
+    its structural zeros written as 0. The instructions that depend on no varying
+    input are evaluated once, before the loop; the rest, straight-line code in the
+    loop, which a C compiler vectorises over the points when it holds no call of the
+    math library. Each operation is written as CasADi's own generated code writes it,
+    so compiled without fast-math and without contraction it computes what CasADi's
+    virtual machine computes. None when an instruction has no C counterpart here (a
+    call of another Function).
+    """
+    if not fun.is_a("SXFunction"):
+        return None
+    params = [f"const double *restrict a{i}" for i in range(fun.n_in())] + \
+        [f"double *restrict r{i}" for i in range(fun.n_out())]
+    before: list[str] = []
+    inside: list[str] = []
+    slot: dict[int, tuple[str, bool]] = {}  # work slot -> (C name, varies)
+    written: set[tuple[int, int]] = set()
+    dense = [fun.sparsity_out(i).find() for i in range(fun.n_out())]  # nonzero -> entry
+    for k in range(fun.n_instructions()):
+        op, a, o = fun.instruction_id(k), fun.instruction_input(k), fun.instruction_output(k)
+        if op == ca.OP_INPUT:
+            var = a[0] in varying
+            ref = f"a{a[0]}[{a[1]} * n + i]" if var else f"a{a[0]}[{a[1]}]"
+            name_k, expr = f"t{k}", ref
+        elif op == ca.OP_CONST:
+            name_k, expr, var = f"t{k}", _c_literal(float(fun.instruction_constant(k))), False
+        elif op == ca.OP_OUTPUT:
+            src, var = slot[a[0]]
+            row = dense[o[0]][o[1]]
+            inside.append(f"r{o[0]}[{row} * n + i] = {src};")
+            written.add((o[0], row))
+            continue
+        elif op in _C_OPS and 1 <= len(a) <= 2 and min(a) >= 0:
+            args = [slot[i] for i in a]
+            var = any(v for _, v in args)
+            name_k, expr = f"t{k}", _C_OPS[op].format(*(n_ for n_, _ in args))
+        else:
+            return None
+        (inside if var else before).append(f"const double {name_k} = {expr};")
+        slot[o[0]] = (name_k, var)
+    zeros = [f"r{i}[{j} * n + i] = 0.0;" for i in range(fun.n_out())
+             for j in range(fun.numel_out(i)) if (i, j) not in written]
+    body = "\n".join(f"    {line}" for line in before)
+    loop = "\n".join(f"        {line}" for line in inside + zeros)
+    return (f"static void {name}(size_t n, {', '.join(params)})\n{{\n{body}\n"
+            f"    for (size_t i = 0; i < n; ++i) {{\n{loop}\n    }}\n}}\n")

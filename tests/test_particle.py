@@ -1,8 +1,10 @@
 """The bootstrap particle filter against the exact Kalman filter (filterpy), and its
-resampling, seeding, recovery and argument checks."""
+resampling, seeding, recovery and argument checks: interpreted and compiled
+(``jit=True``) alike, through the ``PF`` fixture."""
 
 from __future__ import annotations
 
+import functools
 import pickle
 
 import casadi as ca
@@ -11,16 +13,25 @@ import pytest
 from linear_gaussian import P0, X0, A, Q, R, kalman, linear_model, record
 
 import estim
+from estim._compile import compiler
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
 
 
-def test_means_agree_with_the_kalman_filter_within_monte_carlo_error():
+@pytest.fixture(params=[False, True], ids=["interpreted", "compiled"])
+def PF(request):
+    """``estim.ParticleFilter`` interpreted, and compiled (``jit=True``)."""
+    if request.param and compiler() is None:
+        pytest.skip("no C compiler")
+    return functools.partial(estim.ParticleFilter, jit=request.param)
+
+
+def test_means_agree_with_the_kalman_filter_within_monte_carlo_error(PF):
     """Over independent seeds, the particle filter's mean at every sample equals the
     exact posterior mean within 3 standard errors of the seeds' average."""
     Y = record(20)
     x_kf, P_kf, _ = kalman(Y)
     m = linear_model()
-    runs = np.array([estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=500,
+    runs = np.array([PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=500,
                                           seed=s).filter(Y).x for s in range(40)])
     se = runs.std(axis=0, ddof=1) / np.sqrt(len(runs))
     z = (runs.mean(axis=0) - x_kf) / se
@@ -33,38 +44,38 @@ def test_means_agree_with_the_kalman_filter_within_monte_carlo_error():
     assert 0.5 < np.median(ratio) < 3.0
 
 
-def test_likelihood_estimate_is_unbiased():
+def test_likelihood_estimate_is_unbiased(PF):
     """E[exp(log L_hat - log L)] = 1 (Del Moral 2004): the mean over 200 seeds within
     3 standard errors of 1."""
     Y = record(15, seed=4)
     _, _, ll = kalman(Y)
     m = linear_model()
-    ratios = np.array([np.exp(estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=200,
+    ratios = np.array([np.exp(PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=200,
                                                    seed=s).filter(Y).log_likelihood - ll)
                        for s in range(200)])
     se = ratios.std(ddof=1) / np.sqrt(len(ratios))
     assert abs(ratios.mean() - 1.0) < 3 * se, (ratios.mean(), se)
 
 
-def test_seeded_runs_are_identical_and_reset_restarts_the_stream():
+def test_seeded_runs_are_identical_and_reset_restarts_the_stream(PF):
     m, Y = linear_model(), record(10)
-    a = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=7)
-    b = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=7)
+    a = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=7)
+    b = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=7)
     ra, rb = a.filter(Y), b.filter(Y)
     assert np.array_equal(ra.x, rb.x) and np.array_equal(ra.P, rb.P)
     assert np.array_equal(a.filter(Y).x, ra.x)  # filter resets
     c = pickle.loads(pickle.dumps(a))
     assert np.array_equal(c.filter(Y).x, ra.x)
-    other = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=8)
+    other = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, seed=8)
     assert not np.array_equal(other.filter(Y).x, ra.x)
     # step by step (replay) gives what filter gives
     log = estim.replay(a, Y)
     assert np.array_equal(np.asarray(log.x_hat), ra.x)
 
 
-def test_step_reports_ess_likelihood_and_missing_outputs():
+def test_step_reports_ess_likelihood_and_missing_outputs(PF):
     m = linear_model()
-    pf = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=400, seed=0)
+    pf = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=400, seed=0)
     pf.step(np.array([0.3]))
     info = pf.info
     assert info.status == "ok" and 1.0 <= info.extra["ess"] <= 400
@@ -75,9 +86,9 @@ def test_step_reports_ess_likelihood_and_missing_outputs():
     assert np.isnan(pf.info.nis) and pf.info.status == "ok"
 
 
-def test_collapse_is_suspect_and_nonfinite_weights_reanchor():
+def test_collapse_is_suspect_and_nonfinite_weights_reanchor(PF):
     m = linear_model()
-    pf = estim.ParticleFilter(m, Q=Q, R=1e-10, x0=X0, P0=P0, n_particles=50, seed=0)
+    pf = PF(m, Q=Q, R=1e-10, x0=X0, P0=P0, n_particles=50, seed=0)
     pf.step(np.array([0.5]))
     assert pf.info.status.startswith("suspect: effective sample size")
     assert pf.info.success
@@ -85,7 +96,7 @@ def test_collapse_is_suspect_and_nonfinite_weights_reanchor():
     def capped(y, yhat, p):  # a log-density with bounded support: |y - yhat| < 5
         return ca.if_else(ca.fabs(y[0] - yhat[0]) < 5, -0.5 * (y[0] - yhat[0]) ** 2, -ca.inf)
 
-    pf = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=200, loglik=capped)
+    pf = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=200, loglik=capped)
     pf.step(np.array([0.1]))
     x = pf.step(np.array([1e3]))  # no particle, and no re-anchored one, can explain it
     assert pf.info.status.startswith("failed: every particle weight is zero")
@@ -94,7 +105,7 @@ def test_collapse_is_suspect_and_nonfinite_weights_reanchor():
     assert pf.info.success
 
 
-def test_custom_log_densities():
+def test_custom_log_densities(PF):
     """Student-t and Laplace measurement noise (the docstring's examples) run and give
     finite estimates; a Gaussian written by hand equals the built-in one."""
     m, Y = linear_model(), record(10)
@@ -107,15 +118,15 @@ def test_custom_log_densities():
         return -ca.fabs(y[0] - yhat[0]) / b
 
     for ll in (student, laplace):
-        r = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300,
+        r = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300,
                                  loglik=ll).filter(Y)
         assert r.success and np.isfinite(r.x).all()
 
     def gauss(y, yhat, p):
         return -0.5 * (y[0] - yhat[0]) ** 2 / R[0, 0] - 0.5 * np.log(2 * np.pi * R[0, 0])
 
-    a = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, loglik=gauss)
-    b = estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300)
+    a = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300, loglik=gauss)
+    b = PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300)
     ra, rb = a.filter(Y), b.filter(Y)
     assert np.allclose(ra.x, rb.x, rtol=0, atol=1e-10)
     assert ra.log_likelihood == pytest.approx(rb.log_likelihood, abs=1e-9)
@@ -165,7 +176,7 @@ def test_bad_arguments_are_named():
         estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=None)
 
 
-def test_backward_simulation_matches_the_rts_smoother():
+def test_backward_simulation_matches_the_rts_smoother(PF):
     """Forward-filtering backward-simulation: over 20 seeds, the smoothed means equal
     filterpy's Rauch-Tung-Striebel smoother within 3.5 standard errors of the seeds'
     average (40 comparisons), and the paths' covariance is of the smoother's size."""
@@ -178,7 +189,7 @@ def test_backward_simulation_matches_the_rts_smoother():
     Qs = [Q] * len(Y)
     xs, Ps, _, _ = rts_smoother(x_kf, P_kf, Fs, Qs)
     m = linear_model()
-    runs = [estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=1000,
+    runs = [PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=1000,
                                  seed=s).smooth(Y, n_paths=300) for s in range(20)]
     means = np.array([r.x for r in runs])
     se = means.std(axis=0, ddof=1) / np.sqrt(len(means))
@@ -188,26 +199,26 @@ def test_backward_simulation_matches_the_rts_smoother():
     assert 0.5 < spread < 2.0, spread
     assert runs[0].paths.shape == (300, 20, 2)
     with pytest.raises(ValueError, match="positive definite Q"):
-        estim.ParticleFilter(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0).smooth(Y)
+        PF(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0).smooth(Y)
     with pytest.raises(ValueError, match="n_paths"):
-        estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0).smooth(Y, n_paths=0)
+        PF(m, Q=Q, R=R, x0=X0, P0=P0).smooth(Y, n_paths=0)
 
 
-def test_linearised_proposal_is_exact_on_a_linear_output():
+def test_linearised_proposal_is_exact_on_a_linear_output(PF):
     """With a linear output the "ekf" proposal is the optimal one: the means still agree
     with the Kalman filter within Monte Carlo error, and with precise measurements
     (R = 1e-3) the likelihood estimate varies far less than the bootstrap filter's."""
     Y = record(15, seed=5)
     m = linear_model()
     x_kf, _, _ = kalman(Y)
-    runs = np.array([estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300,
+    runs = np.array([PF(m, Q=Q, R=R, x0=X0, P0=P0, n_particles=300,
                                           proposal="ekf", seed=s).filter(Y).x
                      for s in range(30)])
     se = runs.std(axis=0, ddof=1) / np.sqrt(len(runs))
     assert np.abs((runs.mean(axis=0) - x_kf) / se).max() < 3.5
     Rp = np.array([[1e-3]])
     Yp = record(15, seed=5, r=Rp[0, 0])
-    lls = {prop: np.array([estim.ParticleFilter(m, Q=Q, R=Rp, x0=X0, P0=P0, n_particles=200,
+    lls = {prop: np.array([PF(m, Q=Q, R=Rp, x0=X0, P0=P0, n_particles=200,
                                                 proposal=prop, seed=s).filter(Yp).log_likelihood
                            for s in range(30)]) for prop in ("bootstrap", "ekf")}
     # an F-test at the 0.1 % level: the linearised proposal's variance is smaller
@@ -215,17 +226,17 @@ def test_linearised_proposal_is_exact_on_a_linear_output():
     ratio = lls["ekf"].var(ddof=1) / lls["bootstrap"].var(ddof=1)
     assert ratio < stats.f.ppf(0.001, 29, 29), ratio
     with pytest.raises(ValueError, match="Q must be positive definite"):
-        estim.ParticleFilter(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ekf")
+        PF(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ekf")
     with pytest.raises(ValueError, match="did you mean 'ekf'"):
-        estim.ParticleFilter(m, Q=Q, R=R, x0=X0, P0=P0, proposal="ekff")
+        PF(m, Q=Q, R=R, x0=X0, P0=P0, proposal="ekff")
 
 
-def test_compare_is_deterministic_in_any_number_of_jobs():
+def test_compare_is_deterministic_in_any_number_of_jobs(PF):
     """The same seeds give the same particle filter runs in one process or two workers."""
     sc = estim.scenarios.van_der_pol(n_steps=40)
 
     def pf(model, tuning):
-        return estim.ParticleFilter(model, n_particles=200, seed=3, **tuning)
+        return PF(model, n_particles=200, seed=3, **tuning)
 
     one = estim.compare(sc, {"pf": pf}, seeds=range(3), n_jobs=1)
     two = estim.compare(sc, {"pf": pf}, seeds=range(3), n_jobs=2)
@@ -233,27 +244,27 @@ def test_compare_is_deterministic_in_any_number_of_jobs():
     assert one.rows[0].failures == 0 and 0.3 < one.rows[0].nees_mean < 3.0
 
 
-def test_particles_outside_the_bounds_get_no_weight():
+def test_particles_outside_the_bounds_get_no_weight(PF):
     """The model's bounds are the state's support: on the batch reactor (concentrations
     that cannot be negative, a guess far off and tiny process noise) every estimate stays
     inside them and the run neither fails nor raises, where without them the cloud follows
     a negative concentration whose dynamics diverge (estimates beyond 1e100)."""
     sc = estim.scenarios.batch_reactor()
-    pf = estim.ParticleFilter(sc.model, n_particles=300, **sc.tuning)
+    pf = PF(sc.model, n_particles=300, **sc.tuning)
     log = estim.simulate(sc, pf, seed=0)
     x_hat = np.asarray(log.x_hat)
     assert np.all(x_hat >= 0.0) and np.isfinite(x_hat).all()
     assert pf.lower.tolist() == [0.0, 0.0, 0.0]
-    free = estim.ParticleFilter(sc.model, n_particles=300, lower=-np.inf, **sc.tuning)
+    free = PF(sc.model, n_particles=300, lower=-np.inf, **sc.tuning)
     assert np.isinf(free.lower).all()
     with pytest.raises(ValueError, match="lower must not exceed upper"):
-        estim.ParticleFilter(sc.model, lower=1.0, upper=0.0, **sc.tuning)
+        PF(sc.model, lower=1.0, upper=0.0, **sc.tuning)
     # a collapsed cloud's covariance is singular: its NEES is infinite, not an error
     from estim.metrics import nees_values
     assert np.isinf(nees_values(np.ones((1, 3)), np.zeros((1, 3, 3))))[0]
 
 
-def test_unscented_proposal():
+def test_unscented_proposal(PF):
     """The "ukf" proposal (spherical-cubature moments of the output over N(F(x), Q)) is
     the "ekf" one when the output is linear: the same particles and weights from the
     same seed, to rounding. On the growth model's quadratic output y = x^2/20 it is a
@@ -262,8 +273,8 @@ def test_unscented_proposal():
     Y = record(15, seed=5)
     m = linear_model()
     kw = dict(Q=Q, R=R, x0=X0, P0=P0, n_particles=200, seed=3)
-    ekf = estim.ParticleFilter(m, proposal="ekf", **kw).filter(Y)
-    ukf = estim.ParticleFilter(m, proposal="ukf", **kw).filter(Y)
+    ekf = PF(m, proposal="ekf", **kw).filter(Y)
+    ukf = PF(m, proposal="ukf", **kw).filter(Y)
     np.testing.assert_allclose(ukf.x, ekf.x, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(ukf.log_likelihood, ekf.log_likelihood, rtol=1e-9)
     g = estim.Model(states=["x"], inputs=["t"], outputs=["y"],
@@ -276,7 +287,7 @@ def test_unscented_proposal():
             x = x / 2 + 25 * x / (1 + x**2) + 8 * np.cos(1.2 * (t - 1)) + rng.normal(0, 10**0.5)
         ys.append(x**2 / 20 + rng.normal())
     Yg, Ug = np.array(ys)[:, None], np.arange(29.0)[:, None]
-    out = {prop: [estim.ParticleFilter(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=500,
+    out = {prop: [PF(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=500,
                                        proposal=prop, seed=s).filter(Yg, Ug)
                   for s in range(20)] for prop in ("bootstrap", "ukf")}
     ll = {k: np.array([r.log_likelihood for r in v]) for k, v in out.items()}
@@ -288,4 +299,4 @@ def test_unscented_proposal():
     ess = {k: np.mean([r.ess.mean() for r in v]) for k, v in out.items()}
     assert ess["ukf"] > 1.2 * ess["bootstrap"], ess
     with pytest.raises(ValueError, match="Q must be positive definite"):
-        estim.ParticleFilter(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ukf")
+        PF(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ukf")

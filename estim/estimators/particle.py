@@ -42,12 +42,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._manifold import NP
-from estim._validate import as_choice, as_float, as_int, as_seed
+from estim._validate import as_bool, as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ensembles import (
@@ -57,7 +56,8 @@ from estim.estimators.ensembles import (
     run_record,
     square_root,
 )
-from estim.estimators.manifold_steps import output_jacobian
+from estim.estimators.particle_compiled import COLLAPSE, CompiledParticles
+from estim.estimators.particle_graphs import definite, graphs, measured_tuning, prior_tuning
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
 from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
@@ -68,9 +68,6 @@ __all__ = ["ParticleFilter", "ParticleFilterResult"]
 #: measurement, linearised at the predicted particle ("ekf") or through the
 #: unscented transform of its transition density ("ukf")
 PROPOSALS = ("bootstrap", "ekf", "ukf")
-#: an effective sample size below this fraction of the particles (and below 2) is a
-#: collapse of the weights, reported as ``"suspect: ..."``
-COLLAPSE = 0.01
 
 
 @dataclass(frozen=True)
@@ -102,15 +99,6 @@ class ParticleFilterResult:
     log_likelihood_increments: np.ndarray
     status: tuple[str, ...]
     success: bool
-
-
-def _definite(Q: np.ndarray) -> None:
-    """Refuse a singular ``Q`` for the linearised proposal (its density ratio needs one)."""
-    if np.linalg.eigvalsh(Q).min() <= 0.0:
-        raise ValueError("Q must be positive definite with proposal='ekf' or 'ukf' (the "
-                         "weights hold "
-                         "the transition density); use the bootstrap proposal for a "
-                         "singular Q")
 
 
 def _spread(D: np.ndarray, W: np.ndarray) -> np.ndarray:
@@ -169,135 +157,39 @@ def _moments(model: Model, X: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np
     return x_hat, _spread(D, W)
 
 
-def _prior_tuning(P0: np.ndarray, tun: np.ndarray) -> np.ndarray:
-    """The linearised proposal's tuning ``tun`` with ``P0`` in place of ``Q``."""
-    nx, L0 = len(P0), np.linalg.cholesky(P0)
-    return np.concatenate([P0.ravel(order="F"), np.linalg.inv(L0).ravel(order="F"),
-                           tun[2 * nx * nx:-nx * nx], L0.ravel(order="F")])
+def _update(X: np.ndarray, ell: np.ndarray, observed: np.ndarray, const: float,
+            W_prev: np.ndarray | None, support: tuple[np.ndarray, np.ndarray] | None
+            ) -> tuple[np.ndarray | None, float, np.ndarray]:
+    r"""Normalised weights :math:`W_k \propto W_{k-1} e^{\ell}` (``W_prev`` None:
+    equal; zero outside the ``support``), the log-likelihood term (``const`` added: the
+    Gaussian's constant, 0 for a user's log-density) and the particles (non-finite ones
+    zeroed, their weight zero); ``(None, nan, X)`` when no weight is left."""
+    N = X.shape[1]
+    if not observed.any():
+        ell = np.zeros(N)
+    a = ell if W_prev is None else ell + np.log(W_prev)
+    if support is not None:  # outside the support: weight zero
+        inside = ((X >= support[0]) & (X <= support[1])).all(axis=0)
+        a = np.where(inside, a, -np.inf)
+    top = a.max()  # NaN if any is NaN
+    finite = bool(np.isfinite(X.sum()))  # (NaN and inf propagate; an overflow of
+    # the sum alone only takes the slow path below)
+    if not (np.isfinite(top) and finite):  # the slow path: some particles are lost
+        ok = np.isfinite(X).all(axis=0) & ~np.isnan(a)
+        a = np.where(ok, a, -np.inf)
+        top = a.max()
+        if not np.isfinite(top):
+            return None, float("nan"), X
+        X = np.where(ok, X, 0.0)
+    W = np.exp(a - top)
+    s = W.sum()
+    W /= s
+    # log sum_i W_prev_i e^{l_i}
+    inc = float(top + np.log(s / N if W_prev is None else s))
+    return W, inc + const, X
 
 
-def _graphs(model: Model, loglik: Callable | None, proposal: str
-            ) -> tuple[ca.Function, ca.Function, ca.Function | None, ca.Function]:
-    """``weigh(x, w, y0, WR, miss) -> (yhat, l)``, ``advance(x, v, w, tun, y0, WR, miss)
-    -> (x_next, yhat, l)``, the linearised proposal's first step ``start`` (from the
-    prior; None for the bootstrap filter) and ``transit(x, w) -> F(x, w)`` for one
-    particle (see
-    :class:`ParticleFilter`): ``y0`` the measurement with 0 where missing (``miss`` 1
-    there), ``WR`` the inverse Cholesky factor of the measured rows of ``R`` embedded in
-    ``(ny, ny)`` (the Gaussian term without its constant), ``tun`` what the
-    ``proposal`` reads of the tuning (see :meth:`ParticleFilter._proposal_tuning`); with
-    the linearised proposal ``l`` includes the ratio of the transition density to the
-    proposal's."""
-    nx, ny, nw, nd = model.nx, model.ny, model.nw, model.ndx
-    M = model.manifold
-    p = ca.DM(model.p)
-    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nd), ca.SX.sym("w", nw)
-    y0 = ca.SX.sym("y0", ny)
-    WR, miss = ca.SX.sym("WR", ny * ny), ca.SX.sym("miss", ny)
-
-    def measure(xk):
-        yhat = model.H(xk, model.measurement_input(w), p)
-        if loglik is None:  # (output angles wrapped)
-            e = (1 - miss) * M.output_difference(y0, yhat)
-            return yhat, -0.5 * ca.sumsqr(ca.reshape(WR, ny, ny) @ e)
-        y = (1 - miss) * y0 + miss * yhat
-        params = {n: ca.SX(val) for n, val in model.params.items()}
-        return yhat, _scalar(loglik(y, yhat, params))
-
-    yhat, ell = measure(x)
-    weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])
-    xb = model.F(x, w, p)
-    if proposal == "bootstrap":  # tun: L_Q; on a manifold the noise in its tangent space
-        tun = ca.SX.sym("tun", nd * nd)
-        noise = ca.reshape(tun, nd, nd) @ v
-        xn = xb + noise if M.euclidean_states else M.retract(xb, noise)
-        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
-                              [xn, *measure(xn)])
-        start = None
-    else:  # "ekf", "ukf", tun: Q, L_Q^-1, R (identity rows where missing), L_Q
-        tun = ca.SX.sym("tun", 3 * nd * nd + ny * ny)
-        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss], list(
-            _linearised(model, measure, xb, v, w, tun, y0, miss, proposal)))
-        # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
-        start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss], list(
-            _linearised(model, measure, x, v, w, tun, y0, miss, proposal)))
-    transit = ca.Function("pf_transit", [x, w], [xb])
-    return weigh, advance, start, transit
-
-
-def _linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, tun: ca.SX,
-                y0: ca.SX, miss: ca.SX, kind: str = "ekf") -> tuple[ca.SX, ca.SX, ca.SX]:
-    r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement
-    (see :class:`ParticleFilter`'s ``proposal``): with the output linearised at
-    :math:`\bar x` (``kind="ekf"``), or through the unscented transform of
-    :math:`N(\bar x, Q)` by the spherical-cubature rule (``"ukf"``: the :math:`2n`
-    points :math:`\bar x \pm \sqrt{n}\, L_Q e_j` of weight :math:`1/(2n)`, whose
-    joint covariance of state and output is positive semi-definite, so that the
-    updated covariance :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
-    particle, its predicted output and its log-weight factor (measurement density
-    times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel).
-
-    On a manifold the Gaussian is that of the tangent step :math:`\delta` at
-    :math:`\bar x`, the particle :math:`\bar x \oplus \delta` (the transition's noise
-    is :math:`x \ominus \bar x = \delta`), the output's derivative taken along the
-    retraction and its deviations wrapped."""
-    M = model.manifold
-    nx, ny, p = model.ndx, model.ny, ca.DM(model.p)  # (on a manifold: the tangent space)
-    n2 = nx * nx
-    Qm, LQi = ca.reshape(tun[:n2], nx, nx), ca.reshape(tun[n2:2 * n2], nx, nx)
-    Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)
-    uy = model.measurement_input(w)
-
-    def moved(d):
-        return xb + d if M.trivial else M.retract(xb, d)
-
-    h0 = model.H(xb, uy, p)
-    e = (1 - miss) * M.output_difference(y0, h0)
-    if kind == "ekf":
-        Cm = ca.diag(1 - miss) @ output_jacobian(model, xb, uy, p)
-        K = ca.solve(Cm @ Qm @ Cm.T + Rm, Cm @ Qm).T  # Q C^T S^-1
-        IKC = ca.DM.eye(nx) - K @ Cm
-        Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
-    else:
-        LQ = ca.reshape(tun[2 * n2 + ny * ny:], nx, nx)
-        offsets = [np.sqrt(nx) * LQ[:, j] for j in range(nx)]
-        offsets += [-d for d in offsets]
-        wt = 0.5 / nx
-        # the outputs' deviations from h(x_bar) (wrapped); missing rows: 0
-        Ys = [(1 - miss) * M.output_difference(model.H(moved(d), uy, p), h0)
-              for d in offsets]
-        yb = wt * sum(Ys[1:], Ys[0])
-        Pyy, Pxy = Rm, ca.SX.zeros(nx, ny)
-        for d, Yj in zip(offsets, Ys, strict=True):
-            dy = Yj - yb
-            Pyy = Pyy + wt * (dy @ dy.T)
-            Pxy = Pxy + wt * (d @ dy.T)
-        e = e - (1 - miss) * yb
-        K = ca.solve(Pyy, Pxy.T).T  # P_xy P_yy^-1 (Pyy symmetric)
-        Sig = Qm - K @ Pyy @ K.T
-    LS = ca.chol(0.5 * (Sig + Sig.T)).T
-    step = K @ e + LS @ v
-    xn = moved(step)
-    yhat, ell = measure(xn)
-    d = LQi @ step
-    ell += -0.5 * ca.sumsqr(d) + ca.sum1(ca.log(ca.diag(LQi))) + 0.5 * ca.sumsqr(v) + \
-        ca.sum1(ca.log(ca.diag(LS)))
-    return xn, yhat, ell
-
-
-def _scalar(value) -> ca.SX:
-    """The user's log-density as a scalar SX expression (a clear error otherwise)."""
-    try:
-        out = ca.SX(value)
-    except (NotImplementedError, RuntimeError, TypeError):
-        raise TypeError(f"loglik must return a scalar CasADi expression of y, yhat and p, "
-                        f"got {type(value).__name__}") from None
-    if out.numel() != 1:
-        raise ValueError(f"loglik must return a scalar expression, got shape {out.shape}")
-    return out
-
-
-class ParticleFilter(Estimator):
+class ParticleFilter(CompiledParticles, Estimator):
     r"""Bootstrap particle filter (sequential importance resampling; see the module).
 
     Parameters
@@ -347,9 +239,17 @@ class ParticleFilter(Estimator):
         cannot be negative, a tank that cannot overfill). The estimates, weighted means
         of particles inside, stay inside.
     seed : int
-        Seed of the filter's random numbers (``numpy.random.default_rng``); every
-        :meth:`reset` starts the same stream again, so a run is reproducible
-        bit for bit.
+        Seed of the filter's random numbers (``numpy.random.default_rng``; with
+        ``jit=True`` the compiled path's own streams); every :meth:`reset` starts the
+        same stream again, so a run is reproducible bit for bit.
+    jit : bool
+        Run the steps compiled (:mod:`estim.solvers.particle_kernel`): :meth:`filter`
+        in one call of machine code for the whole record, :meth:`step` in one call
+        each, with the random numbers drawn there too; several times faster (the model's
+        two kernels take a few tenths of a second to compile, once per machine). The
+        same filter with other random numbers. Models with quaternion or angle states,
+        a model whose graph calls an integrator, or a machine without a C compiler stay
+        interpreted, with an :class:`~estim.EstimationWarning`. Default False.
 
     Notes
     -----
@@ -370,7 +270,7 @@ class ParticleFilter(Estimator):
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
                  ess_threshold: float = 0.5, loglik: Callable | None = None,
                  proposal: str = "bootstrap", lower: ArrayLike | None = None,
-                 upper: ArrayLike | None = None, seed: int = 0):
+                 upper: ArrayLike | None = None, seed: int = 0, jit: bool = False):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.lower, self.upper = self._bounds(lower, upper)
         bounded = np.isfinite(self.lower).any() or np.isfinite(self.upper).any()
@@ -387,61 +287,52 @@ class ParticleFilter(Estimator):
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
+        self.jit = as_bool(jit, "jit")
         self._build()
         self._tuning_changed()
         self._reset()
 
     def _build(self) -> None:
-        weigh, advance, start, transit = _graphs(self.model, self.loglik, self.proposal)
+        g = graphs(self.model, self.loglik, self.proposal)
         self._weigh, self._advance, self._transit = (
-            over_points(f) for f in (weigh, advance, transit))
-        self._start = None if start is None else over_points(start)
+            over_points(f) for f in (g.weigh, g.advance, g.transit))
+        self._start = None if g.start is None else over_points(g.start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
+        if self.jit:
+            self._compile(g, self._support)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         for key in ("_weigh", "_advance", "_start", "_transit"):  # built again
             del state[key]
+        state["_kernel"] = self._kernel_state()  # (the compiled state, without its library)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
+        kernel = state.pop("_kernel", None)
         self.__dict__.update(state)
         self._build()
+        self._kernel_restore(kernel)
 
     # ------------------------------------------------------------ tuning
     def _check_tuning(self, new: dict) -> None:
         if getattr(self, "proposal", "bootstrap") != "bootstrap" and "Q" in new:
-            _definite(new["Q"])
+            definite(new["Q"])
 
     def _tuning_changed(self) -> None:
         if self.proposal != "bootstrap":
-            _definite(self.Q)
+            definite(self.Q)
         self._LQ = square_root(self.Q).ravel(order="F")
         self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray,
                                            np.ndarray]] = {}
 
     def _measured(self, observed: np.ndarray
                   ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
-        """``WR`` (flat), the Gaussian constant, the block of ``R`` of the measured
-        outputs ``observed``, the proposal's tuning (see :func:`_graphs`) and the
-        missing outputs' indicator ``miss``, kept by pattern."""
+        """:func:`~estim.estimators.particle_graphs.measured_tuning`, kept by pattern."""
         key = observed.tobytes()
         if key not in self._whitening:
-            ny, idx = self.model.ny, np.flatnonzero(observed)
-            WR, const, Ro = np.zeros((ny, ny)), 0.0, self.R[np.ix_(idx, idx)]
-            if idx.size:
-                L = np.linalg.cholesky(Ro)
-                WR[np.ix_(idx, idx)] = np.linalg.inv(L)
-                const = -0.5 * idx.size * np.log(2 * np.pi) - float(np.log(np.diag(L)).sum())
-            tun = self._LQ
-            if self.proposal != "bootstrap":  # Q, L_Q^-1, R (identity where missing), L_Q
-                Rm = np.eye(ny)
-                Rm[np.ix_(idx, idx)] = Ro
-                LQi = np.linalg.inv(self._LQ.reshape(self.model.ndx, -1, order="F"))
-                tun = np.concatenate([self.Q.ravel(order="F"), LQi.ravel(order="F"),
-                                      Rm.ravel(order="F"), self._LQ])
-            self._whitening[key] = (WR.ravel(order="F"), const, Ro, tun,
-                                    (~observed).astype(float))
+            self._whitening[key] = measured_tuning(self.Q, self.R, self._LQ, self.proposal,
+                                                   observed)
         return self._whitening[key]
 
     def _reset(self) -> None:
@@ -449,38 +340,61 @@ class ParticleFilter(Estimator):
         self._X: np.ndarray | None = None
         self._W: np.ndarray | None = None  # the weights after the last step (None: equal)
         self._trusted = (self.x0.copy(), None if self.P0 is None else self.P0.copy())
+        self._kernel_reset(self.seed)
 
     # -------------------------------------------------------------- step
     def _step(self, y, u, first):
         m, N, nx = self.model, self.n_particles, self.model.ndx
         observed = ~np.isnan(y)
+        w = self._transition(u) if m.nw else np.zeros(0)
+        if self._kernel is not None:
+            return self._compiled_step(y, w, first)
         WR, const, Ro, tun, miss = self._measured(observed)
         y0 = y if Ro.shape[0] == len(y) else np.where(observed, y, 0.0)
-        w = self._transition(u) if m.nw else np.zeros(0)
         if (first or self._X is None) and self._start is not None:
             V = self._rng.standard_normal((nx, N))
-            X, Yh, ell = self._start(self.x0, V, w, _prior_tuning(self.P0, tun), y0, WR, miss, n=N)
+            X, Yh, ell = self._start(self.x0, V, w, prior_tuning(self.P0, tun), y0, WR, miss, n=N)
         elif first or self._X is None:
             X = draw_about(m, self._rng, self.x0, self.P0, N)
             Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         else:
             V = self._rng.standard_normal((nx, N))
             X, Yh, ell = self._advance(self._X, V, w, tun, y0, WR, miss, n=N)
-        status, success = "ok", True
-        W, inc, X = self._update(X, ell[0], observed, const, self._W)
+        W, inc, X = _update(X, ell[0], observed, self._constant(const), self._W,
+                            self._support)
         if W is None:  # every weight zero or not finite: re-anchor
-            x_t, P_t = self._anchor(*self._trusted)
-            X = draw_about(m, self._rng, x_t, P_t, N)
-            Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
-            W, inc, X = self._update(X, ell[0], observed, const, None)
-            status, success = ("failed: every particle weight is zero or not finite; "
-                               "re-anchored on the last trusted estimate with P + P0"), False
-            if W is None:
-                W, inc = np.full(N, 1.0 / N), float("nan")
-                status += " (no update: the new particles' weights are not finite either)"
+            return self._anchor_step(y, w, observed)
+        return self._settled(y, w, observed, X, Yh, W, inc, "ok")
+
+    def _anchor_step(self, y: np.ndarray, w: np.ndarray, observed: np.ndarray
+                     ) -> tuple[np.ndarray, StepInfo]:
+        """A step that left no weight: new particles from :math:`N(\\hat x, P + P_0)`
+        about the last trusted estimate, weighted by the same measurement."""
+        m, N = self.model, self.n_particles
+        WR, const, Ro, _, miss = self._measured(observed)
+        y0 = y if Ro.shape[0] == len(y) else np.where(observed, y, 0.0)
+        x_t, P_t = self._anchor(*self._trusted)
+        X = draw_about(m, self._rng, x_t, P_t, N)
+        Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
+        W, inc, X = _update(X, ell[0], observed, self._constant(const), None, self._support)
+        status = ("failed: every particle weight is zero or not finite; re-anchored on the "
+                  "last trusted estimate with P + P0")
+        if W is None:
+            W, inc = np.full(N, 1.0 / N), float("nan")
+            status += " (no update: the new particles' weights are not finite either)"
+        return self._settled(y, w, observed, X, Yh, W, inc, status)
+
+    def _settled(self, y, w, observed, X, Yh, W, inc, status):
+        """The step's estimate, status and resampling from the updated particles ``X``,
+        their predicted outputs ``Yh`` and weights ``W`` (``status`` "ok" or the
+        re-anchoring's failure)."""
+        m, N = self.model, self.n_particles
+        Ro = self._measured(observed)[2]
+        success = status == "ok"
         x_hat, P = _moments(m, X, W)
         ess = effective_sample_size(W)
         if m.manifold.output_angles:  # each predicted output angle moved next to y
+            y0 = np.where(observed, y, 0.0)
             Yh = y0[:, None] - m.manifold.output_difference(y0, Yh.T, NP).T
         e, nis = _innovation(y, observed, Yh, self._W, Ro)
         if success and ess < max(2.0, COLLAPSE * N):
@@ -498,34 +412,6 @@ class ParticleFilter(Estimator):
         info = StepInfo._fast(status=status, success=success, P=P, innovation=e, nis=nis)
         info.extra.update(ess=ess, log_likelihood=inc, resampled=bool(resampled))
         return x_hat, info
-
-    def _update(self, X, ell, observed, const, W_prev):
-        r"""Normalised weights :math:`W_k \propto W_{k-1} e^{\ell}` (``W_prev`` None:
-        equal), the log-likelihood term and the particles (non-finite ones zeroed, their
-        weight zero); ``(None, nan, X)`` when no weight is left."""
-        N = X.shape[1]
-        if not observed.any():
-            ell = np.zeros(N)
-        a = ell if W_prev is None else ell + np.log(W_prev)
-        if self._support is not None:  # outside the support: weight zero
-            inside = ((X >= self._support[0]) & (X <= self._support[1])).all(axis=0)
-            a = np.where(inside, a, -np.inf)
-        top = a.max()  # NaN if any is NaN
-        finite = bool(np.isfinite(X.sum()))  # (NaN and inf propagate; an overflow of
-        # the sum alone only takes the slow path below)
-        if not (np.isfinite(top) and finite):  # the slow path: some particles are lost
-            ok = np.isfinite(X).all(axis=0) & ~np.isnan(a)
-            a = np.where(ok, a, -np.inf)
-            top = a.max()
-            if not np.isfinite(top):
-                return None, float("nan"), X
-            X = np.where(ok, X, 0.0)
-        W = np.exp(a - top)
-        s = W.sum()
-        W /= s
-        # log sum_i W_prev_i e^{l_i}; a user's log-density is the full density
-        inc = float(top + np.log(s / N if W_prev is None else s))
-        return W, inc + (const if self.loglik is None else 0.0), X
 
     @property
     def particles(self) -> tuple[np.ndarray, np.ndarray]:
@@ -552,13 +438,17 @@ class ParticleFilter(Estimator):
         -------
         ParticleFilterResult
         """
-        X, P, infos = run_record(self, Y, U)
-        inc = np.array([info.extra["log_likelihood"] for info in infos])
-        status = tuple(info.status for info in infos)
+        if self._kernel is not None:  # the whole record in compiled calls
+            X, P, statuses, ess, inc = self._compiled_filter(Y, U)
+        else:
+            X, P, infos = run_record(self, Y, U)
+            inc = np.array([info.extra["log_likelihood"] for info in infos])
+            statuses = [info.status for info in infos]
+            ess = np.array([info.extra["ess"] for info in infos])
+        status = tuple(statuses)
         return ParticleFilterResult(
-            x=X, P=P, ess=np.array([info.extra["ess"] for info in infos]),
-            log_likelihood=float(inc.sum()), log_likelihood_increments=inc, status=status,
-            success=not any(s.startswith("failed") for s in status))
+            x=X, P=P, ess=ess, log_likelihood=float(inc.sum()), log_likelihood_increments=inc,
+            status=status, success=not any(s.startswith("failed") for s in status))
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                n_paths: int = 100) -> ParticleSmoothResult:
