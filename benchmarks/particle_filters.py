@@ -3,8 +3,9 @@ per second, and accuracy on the standard test problems.
 
 * **Speed**, the 2-state linear Gaussian model ``x' = A x + v``, ``y = x_1 + w``
   (``A = [[1, 0.1], [0, 1]]``, ``Q = diag(1e-3, 1e-2)``, ``R = 0.1``), a record of
-  ``T = 100`` samples: ``ParticleFilter.filter`` at ``N = 10^2 .. 10^6`` (particle-steps
-  per second, median of 3 runs, and the peak memory of one run by ``tracemalloc``),
+  ``T = 100`` samples: ``ParticleFilter.filter`` at ``N = 10^2 .. 10^6``, interpreted
+  and compiled (``jit=True``) (particle-steps per second, median of 5 runs, and the
+  peak memory of one run by ``tracemalloc``),
   against, at every ``N`` up to 10^5, a bootstrap filter written in numpy around
   filterpy's ``systematic_resample`` (what a filterpy user writes), and ``particles``
   (Chopin's library: ``SMC`` with ``ssm.Bootstrap``, systematic resampling at ESS < N/2).
@@ -165,7 +166,7 @@ def kalman_means(Y: np.ndarray) -> np.ndarray:
     return np.array(means)
 
 
-def timed(fn, repeats: int = 3) -> float:
+def timed(fn, repeats: int = 5) -> float:
     walls = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -217,13 +218,16 @@ def main(argv=None) -> None:
     rows = []
     for N in sizes:
         Tn = T if N < 1_000_000 else 20
-        pf = estim.ParticleFilter(lg, Q=Q, R=R, x0=np.zeros(2), P0=P0, n_particles=N)
-        pf.filter(lg_y[:Tn])
-        wall = timed(lambda pf=pf, Tn=Tn: pf.filter(lg_y[:Tn]))
+        walls = {}
+        for jit in (False, True):
+            pf = estim.ParticleFilter(lg, Q=Q, R=R, x0=np.zeros(2), P0=P0, n_particles=N,
+                                      jit=jit)
+            pf.filter(lg_y[:Tn])
+            walls[jit] = timed(lambda pf=pf, Tn=Tn: pf.filter(lg_y[:Tn]))
         mem = peak_mb(lambda pf=pf, Tn=Tn: pf.filter(lg_y[:Tn]))
         base = timed(lambda N=N: numpy_bootstrap(lg_y, N, np.random.default_rng(1))) \
             if N <= 100_000 else float("nan")
-        rows.append((N, Tn, wall, mem, base))
+        rows.append((N, Tn, walls[False], walls[True], mem, base))
     out = None
     if peer is not None:
         stdout, stderr = peer.communicate()
@@ -231,16 +235,16 @@ def main(argv=None) -> None:
         if out is None:
             print(f"particles failed: {stderr.strip().splitlines()[-1:]}")
     print(f"\nSpeed: linear Gaussian model, 2 states, T = {T}; million particle-steps per second"
-          f" (median of 3)\n")
-    print(f"{'N':>9} {'estim':>8} {'MB peak':>8} {'numpy+filterpy':>15} {'particles':>10} "
-          f"{'/numpy':>7} {'/particles':>10}")
-    for N, Tn, wall, mem, base in rows:
-        mps = N * Tn / wall / 1e6
+          f" (median of 5); the ratios are the compiled filter's speed-up\n")
+    print(f"{'N':>9} {'estim':>8} {'jit':>8} {'MB peak':>8} {'numpy+filterpy':>15} "
+          f"{'particles':>10} {'/numpy':>7} {'/particles':>10}")
+    for N, Tn, wall, wall_jit, mem, base in rows:
         peer_s = out["lg_seconds"].get(str(N)) if out else None
         peer_mps = N * T / peer_s / 1e6 if peer_s else float("nan")
-        per_T = wall * T / Tn  # estim's time for T samples
-        print(f"{N:9d} {mps:8.2f} {mem:8.1f} {N * T / base / 1e6:15.2f} {peer_mps:10.2f} "
-              f"{base / per_T:7.1f} {peer_s / per_T if peer_s else np.nan:10.1f}")
+        per_T = wall_jit * T / Tn  # the compiled filter's time for T samples
+        print(f"{N:9d} {N * Tn / wall / 1e6:8.2f} {N * Tn / wall_jit / 1e6:8.2f} {mem:8.1f} "
+              f"{N * T / base / 1e6:15.2f} {peer_mps:10.2f} {base / per_T:7.1f} "
+              f"{peer_s / per_T if peer_s else np.nan:10.1f}")
     print(f"LowLevelParticleFilters.jl (published, not measured here): {LLPF_MPS:.1f} M/s")
 
     # error against the exact filter as N grows (Monte Carlo rate 1/sqrt(N))
@@ -258,46 +262,60 @@ def main(argv=None) -> None:
 
     # the growth model
     g = growth()
-    rmse, walls = [], []
-    for s, (X, Y) in enumerate(ngm):
-        pf = estim.ParticleFilter(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=1000, seed=s)
-        t0 = time.perf_counter()
-        res = pf.filter(Y[:, None], np.arange(T, dtype=float)[:, None])
-        walls.append(time.perf_counter() - t0)
-        rmse.append(np.sqrt(np.mean((res.x[:, 0] - X) ** 2)))
+    rmse: dict[bool, list] = {False: [], True: []}
+    walls_g: dict[bool, list] = {False: [], True: []}
+    for jit in (False, True):
+        estim.ParticleFilter(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=1000,
+                             jit=jit)  # (built once: later filters load it)
+        for s, (X, Y) in enumerate(ngm):
+            pf = estim.ParticleFilter(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=1000,
+                                      seed=s, jit=jit)
+            t0 = time.perf_counter()
+            res = pf.filter(Y[:, None], np.arange(T, dtype=float)[:, None])
+            walls_g[jit].append(time.perf_counter() - t0)
+            rmse[jit].append(np.sqrt(np.mean((res.x[:, 0] - X) ** 2)))
     print(f"\nGrowth model, N = 1000, T = {T}, {seeds} records:")
-    print(f"  estim     RMSE {np.mean(rmse):.3f}  (median run {1e3 * np.median(walls):.1f} ms)")
+    for jit, name in ((False, "estim    "), (True, "estim jit")):
+        print(f"  {name} RMSE {np.mean(rmse[jit]):.3f}  (median run "
+              f"{1e3 * np.median(walls_g[jit]):.1f} ms, range "
+              f"{1e3 * min(walls_g[jit]):.1f}-{1e3 * max(walls_g[jit]):.1f})")
     if out:
         prmse = [np.sqrt(np.mean((np.asarray(m) - X) ** 2))
                  for m, (X, _) in zip(out["ngm"]["means"], ngm, strict=True)]
         print(f"  particles RMSE {np.mean(prmse):.3f}  (median run "
               f"{1e3 * np.median(out['ngm']['seconds']):.1f} ms)")
-        diff = np.asarray(rmse) - np.asarray(prmse)
-        print(f"  estim - particles: {np.mean(diff):+.3f} ± {diff.std(ddof=1) / np.sqrt(seeds):.3f}"
-              f" (paired, same records), {100 * np.mean(diff) / np.mean(prmse):+.1f} %")
+        for jit, name in ((False, "estim"), (True, "estim jit")):
+            diff = np.asarray(rmse[jit]) - np.asarray(prmse)
+            print(f"  {name} - particles: {np.mean(diff):+.3f} ± "
+                  f"{diff.std(ddof=1) / np.sqrt(seeds):.3f} (paired, same records), "
+                  f"{100 * np.mean(diff) / np.mean(prmse):+.1f} %")
 
     # stochastic volatility
     v = volatility()
     mu, phi, sigma = SV
-    lls, walls = [], []
-    for s, Y in enumerate(sv):
-        pf = estim.ParticleFilter(v, Q=sigma ** 2, R=1.0, x0=[mu],
-                                  P0=sigma ** 2 / (1 - phi ** 2), n_particles=1000,
-                                  loglik=sv_loglik, seed=s)
-        t0 = time.perf_counter()
-        lls.append(pf.filter(Y[:, None]).log_likelihood)
-        walls.append(time.perf_counter() - t0)
+    lls: dict[bool, list] = {False: [], True: []}
+    walls_v: dict[bool, list] = {False: [], True: []}
+    for jit in (False, True):
+        for s, Y in enumerate(sv):
+            pf = estim.ParticleFilter(v, Q=sigma ** 2, R=1.0, x0=[mu],
+                                      P0=sigma ** 2 / (1 - phi ** 2), n_particles=1000,
+                                      loglik=sv_loglik, seed=s, jit=jit)
+            t0 = time.perf_counter()
+            lls[jit].append(pf.filter(Y[:, None]).log_likelihood)
+            walls_v[jit].append(time.perf_counter() - t0)
     print(f"\nStochastic volatility, N = 1000, T = {sv_T}, one record, {seeds} seeds:")
-    print(f"  estim     var(log L) {np.var(lls, ddof=1):.4f}  (median run "
-          f"{1e3 * np.median(walls):.1f} ms)")
+    for jit, name in ((False, "estim    "), (True, "estim jit")):
+        print(f"  {name} var(log L) {np.var(lls[jit], ddof=1):.4f}  (median run "
+              f"{1e3 * np.median(walls_v[jit]):.1f} ms)")
     if out:
         pll = np.asarray(out["sv"]["loglik"])
         print(f"  particles var(log L) {np.var(pll, ddof=1):.4f}  (median run "
               f"{1e3 * np.median(out['sv']['seconds']):.1f} ms)")
-        ratio = np.var(lls, ddof=1) / np.var(pll, ddof=1)
-        lo, hi = (ratio / stats.f.ppf(q, seeds - 1, seeds - 1) for q in (0.975, 0.025))
-        print(f"  ratio estim/particles {ratio:.2f}, 95 % interval [{lo:.2f}, {hi:.2f}]; "
-              f"mean log L difference {np.mean(np.asarray(lls) - pll):+.3f}")
+        for jit, name in ((False, "estim"), (True, "estim jit")):
+            ratio = np.var(lls[jit], ddof=1) / np.var(pll, ddof=1)
+            lo, hi = (ratio / stats.f.ppf(q, seeds - 1, seeds - 1) for q in (0.975, 0.025))
+            print(f"  {name}/particles {ratio:.2f}, 95 % interval [{lo:.2f}, {hi:.2f}]; "
+                  f"mean log L difference {np.mean(np.asarray(lls[jit]) - pll):+.3f}")
     if out is None:
         print("\n(particles not run: no interpreter at --peer-python)")
 

@@ -58,7 +58,7 @@ def main(path):
     lg = LinearGauss2(A=d["A"], C=d["C"], Q=d["Q"], R=d["R"], P0=d["P0"])
     speed = {}
     for N in [int(n) for n in d["speed_N"]]:
-        walls = [run(lg, d["lg_y"][:, 0], N, s, moments=False)[2] for s in range(3)]
+        walls = [run(lg, d["lg_y"][:, 0], N, s, moments=False)[2] for s in range(5)]
         speed[N] = float(np.median(walls))
     out["lg_seconds"] = speed
     # the growth model and stochastic volatility, one record per seed

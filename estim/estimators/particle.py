@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
-from estim.estimators.base import Estimator, StepInfo
+from estim.estimators.base import StepInfo
 from estim.estimators.ensembles import (
     deviations,
     draw_about,
@@ -189,7 +189,7 @@ def _update(X: np.ndarray, ell: np.ndarray, observed: np.ndarray, const: float,
     return W, inc + const, X
 
 
-class ParticleFilter(CompiledParticles, Estimator):
+class ParticleFilter(CompiledParticles):
     r"""Bootstrap particle filter (sequential importance resampling; see the module).
 
     Parameters
@@ -374,6 +374,7 @@ class ParticleFilter(CompiledParticles, Estimator):
         WR, const, Ro, _, miss = self._measured(observed)
         y0 = y if Ro.shape[0] == len(y) else np.where(observed, y, 0.0)
         x_t, P_t = self._anchor(*self._trusted)
+        assert P_t is not None  # (P0 is required)
         X = draw_about(m, self._rng, x_t, P_t, N)
         Yh, ell = self._weigh(X, w, y0, WR, miss, n=N)
         W, inc, X = _update(X, ell[0], observed, self._constant(const), None, self._support)

@@ -23,7 +23,7 @@ import numpy as np
 
 from estim._validate import as_inputs, as_record
 from estim.consistency import chi2_limit, consistency_status
-from estim.estimators.base import StepInfo
+from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.ensembles import square_root
 from estim.estimators.particle_graphs import Graphs, prior_tuning
 from estim.exceptions import CompilerUnavailable, EstimationWarning
@@ -65,20 +65,29 @@ def innovations(Y: np.ndarray, observed: np.ndarray, yb: np.ndarray, Syy: np.nda
     return E, nis
 
 
-class CompiledParticles:
-    """What :class:`~estim.ParticleFilter` adds for ``jit=True`` (a mixin: it reads the
-    filter's model, tuning, measured-output patterns and re-anchoring step)."""
+class CompiledParticles(Estimator):
+    """What :class:`~estim.ParticleFilter` adds for ``jit=True``: it reads the filter's
+    tuning, measured-output patterns and re-anchoring step."""
 
     _kernel: ParticleKernel | None = None
     # (given by ParticleFilter)
-    model: Any
     n_particles: int
     resampling: str
     ess_threshold: float
     proposal: str
     loglik: Any
-    x0: np.ndarray
-    P0: np.ndarray
+    _trace: list | None
+    _X: np.ndarray | None
+    _W: np.ndarray | None
+    _trusted: tuple[np.ndarray, np.ndarray | None]
+
+    def _measured(self, observed: np.ndarray
+                  ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def _anchor_step(self, y: np.ndarray, w: np.ndarray, observed: np.ndarray
+                     ) -> tuple[np.ndarray, StepInfo]:
+        raise NotImplementedError
 
     def _compile(self, graphs: Graphs, support: tuple[np.ndarray, np.ndarray] | None
                  ) -> None:
@@ -127,6 +136,7 @@ class CompiledParticles:
 
     def _first_tuning(self, tun: np.ndarray) -> np.ndarray:
         """The first step's tuning: ``L_0``, or the linearised proposal's with ``P0``."""
+        assert self.P0 is not None  # (the particle filter requires it)
         if self.proposal == "bootstrap":
             return square_root(self.P0).ravel(order="F")
         return prior_tuning(self.P0, tun)
@@ -186,11 +196,11 @@ class CompiledParticles:
         ok = np.flatnonzero(~(collapsed | beyond))
         if ok.size:
             self._trusted = (rec.x[ok[-1]], rec.P[ok[-1]])
-        j = done - 1
-        info = StepInfo._fast(status=status[j], success=True, P=rec.P[j], innovation=E[j],
-                              nis=float(nis[j]))
-        info.extra.update(ess=float(rec.ess[j]), log_likelihood=float(inc[j]),
-                          resampled=bool(rec.resampled[j]))
+        last = done - 1
+        info = StepInfo._fast(status=status[last], success=True, P=rec.P[last],
+                              innovation=E[last], nis=float(nis[last]))
+        info.extra.update(ess=float(rec.ess[last]), log_likelihood=float(inc[last]),
+                          resampled=bool(rec.resampled[last]))
         return status, inc, info
 
     def _published(self) -> None:
@@ -215,7 +225,7 @@ class CompiledParticles:
         goes on from its particles."""
         x_hat, info = self._anchor_step(y, w, observed)
         k = self._kernel
-        assert k is not None
+        assert k is not None and self._X is not None
         k.set_particles(self._X, self._W)
         self._published()
         return x_hat, info

@@ -166,8 +166,8 @@ class ParticleKernel:
 
     def __init__(self, first: ca.Function, advance: ca.Function, *, n: int,
                  lower: np.ndarray | None, upper: np.ndarray | None):
-        kernels = [c_kernel(first, "k_first", {1}), c_kernel(advance, "k_advance", {0, 1})]
-        if kernels[0] is None or kernels[1] is None:
+        k_first, k_advance = c_kernel(first, "k_first", {1}), c_kernel(advance, "k_advance", {0, 1})
+        if k_first is None or k_advance is None:
             raise CompilerUnavailable("the model's graph calls another Function (an "
                                       "integrator): the particle filter stays interpreted")
         self.nx, self.nd = advance.nnz_in(0), advance.nnz_in(1)
@@ -178,7 +178,7 @@ class ParticleKernel:
             else (np.ascontiguousarray(lower, float), np.ascontiguousarray(upper, float))
         self._lib = _driver()
         code = _KERNEL_HEAD + "\n".join(k.replace("static void k_", "PF_CLONES void k_")
-                                         for k in kernels)
+                                         for k in (k_first, k_advance))
         self._model_lib = shared_library(code, "estim_particle_model", FLAGS)
         self._kernels = [ctypes.cast(getattr(self._model_lib, name), ctypes.c_void_p).value
                          for name in ("k_first", "k_advance")]
