@@ -9,6 +9,7 @@ per second, and accuracy on the standard test problems.
   against, at every ``N`` up to 10^5, a bootstrap filter written in numpy around
   filterpy's ``systematic_resample`` (what a filterpy user writes), and ``particles``
   (Chopin's library: ``SMC`` with ``ssm.Bootstrap``, systematic resampling at ESS < N/2).
+  The peak memory is that of building the compiled filter and running it once.
   LowLevelParticleFilters.jl's published figure (8.4 million particle-steps in 1.14 s,
   about 7.4 M/s, one Julia thread) is quoted for scale, not measured here.
 * **Error against the exact filter**: the RMS difference of the filtered means from filterpy's
@@ -28,8 +29,8 @@ per second, and accuracy on the standard test problems.
 
 ``particles`` needs numpy < 2: it runs in its own interpreter (``--peer-python``, default
 ``../venv-particles/bin/python`` beside the repository, skipped when absent) through
-``benchmarks/particles_peer.py`` on the records simulated here, at the same time on the
-same machine. Install it with ``python -m venv venv-particles &&
+``benchmarks/particles_peer.py`` on the records simulated here, first and to completion,
+so that neither runs while the other is timed. Install it with ``python -m venv venv-particles &&
 venv-particles/bin/pip install "numpy<2" particles``.
 
 Run from the repository root::
@@ -200,8 +201,8 @@ def main(argv=None) -> None:
     sv_T = 500
     sv = [sv_record(sv_T, np.random.default_rng(200))] * seeds  # one record, many filter seeds
 
-    # the peer, started first: it runs while estim runs (same machine, same time)
-    peer = None
+    # the peer first, to completion: nothing else runs while either is timed
+    out = None
     if os.path.exists(args.peer_python):
         data = tempfile.NamedTemporaryFile(suffix=".npz", delete=False)
         np.savez(data, A=A, C=C, Q=Q, R=R, P0=P0, lg_y=lg_y,
@@ -209,8 +210,11 @@ def main(argv=None) -> None:
                  ngm_y=np.array([y for _, y in ngm]), ngm_N=1000,
                  sv_y=np.array(sv), sv_N=1000, sv_mu=SV[0], sv_phi=SV[1], sv_sigma=SV[2])
         data.close()
-        peer = subprocess.Popen([args.peer_python, str(here / "particles_peer.py"), data.name],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        peer = subprocess.run([args.peer_python, str(here / "particles_peer.py"), data.name],
+                              capture_output=True, text=True, check=False)
+        out = json.loads(peer.stdout) if peer.returncode == 0 else None
+        if out is None:
+            print(f"particles failed: {peer.stderr.strip().splitlines()[-1:]}")
 
     print(f"estim {estim.__version__}, numpy {np.__version__}, casadi {ca.__version__}, "
           f"Python {platform.python_version()}, {platform.machine()}, {os.cpu_count()} CPUs")
@@ -224,16 +228,11 @@ def main(argv=None) -> None:
                                       jit=jit)
             pf.filter(lg_y[:Tn])
             walls[jit] = timed(lambda pf=pf, Tn=Tn: pf.filter(lg_y[:Tn]))
-        mem = peak_mb(lambda pf=pf, Tn=Tn: pf.filter(lg_y[:Tn]))
+        mem = peak_mb(lambda N=N, Tn=Tn: estim.ParticleFilter(
+            lg, Q=Q, R=R, x0=np.zeros(2), P0=P0, n_particles=N, jit=True).filter(lg_y[:Tn]))
         base = timed(lambda N=N: numpy_bootstrap(lg_y, N, np.random.default_rng(1))) \
             if N <= 100_000 else float("nan")
         rows.append((N, Tn, walls[False], walls[True], mem, base))
-    out = None
-    if peer is not None:
-        stdout, stderr = peer.communicate()
-        out = json.loads(stdout) if peer.returncode == 0 else None
-        if out is None:
-            print(f"particles failed: {stderr.strip().splitlines()[-1:]}")
     print(f"\nSpeed: linear Gaussian model, 2 states, T = {T}; million particle-steps per second"
           f" (median of 5); the ratios are the compiled filter's speed-up\n")
     print(f"{'N':>9} {'estim':>8} {'jit':>8} {'MB peak':>8} {'numpy+filterpy':>15} "

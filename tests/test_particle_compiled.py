@@ -210,3 +210,30 @@ def test_a_pickled_filter_goes_on_where_it_was():
     a = [pf.step(y) for y in Y[6:]]
     b = [copy.step(y) for y in Y[6:]]
     assert np.array_equal(np.array(a), np.array(b))
+
+
+def test_innovations_by_pattern_of_measured_outputs():
+    """The batched NIS over patterns of missing outputs equals the one-by-one formula,
+    with NaN where nothing is measured or the prediction is not finite."""
+    from estim.estimators.particle_compiled import innovations
+
+    rng = np.random.default_rng(3)
+    T, ny = 40, 3
+    Y = rng.normal(size=(T, ny))
+    Y[rng.random((T, ny)) < 0.3] = np.nan
+    Y[5] = np.nan
+    yb = rng.normal(size=(T, ny))
+    yb[7, :] = np.inf
+    G = rng.normal(size=(T, ny, ny))
+    Syy = G @ G.transpose(0, 2, 1)
+    Rm = np.diag([0.1, 0.2, 0.3])
+    E, nis = innovations(Y, ~np.isnan(Y), yb, Syy, Rm)
+    for t in range(T):
+        obs = ~np.isnan(Y[t])
+        if not obs.any() or not np.isfinite(yb[t, obs]).all():
+            assert np.isnan(nis[t]) and not E[t].any()
+            continue
+        e = Y[t, obs] - yb[t, obs]
+        ref = e @ np.linalg.solve(Syy[t][np.ix_(obs, obs)] + Rm[np.ix_(obs, obs)], e)
+        assert nis[t] == pytest.approx(ref, rel=1e-12)
+        assert np.array_equal(E[t, obs], e) and not E[t, ~obs].any()

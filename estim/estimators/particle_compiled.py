@@ -29,11 +29,19 @@ from estim.estimators.particle_graphs import Graphs, prior_tuning
 from estim.exceptions import CompilerUnavailable, EstimationWarning
 from estim.solvers.particle_kernel import KernelRecord, ParticleKernel
 
-__all__ = ["CompiledParticles", "innovations"]
+__all__ = ["CompiledParticles", "innovations", "measured_patterns"]
 
 #: an effective sample size below this fraction of the particles (and below 2) is a
 #: collapse of the weights, reported as ``"suspect: ..."``
 COLLAPSE = 0.01
+
+
+def measured_patterns(observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``observed (T, ny)`` and the index of each row among them."""
+    if observed.all():  # (the usual record: one pattern)
+        return observed[:1], np.zeros(len(observed), dtype=np.intp)
+    patterns, which = np.unique(observed, axis=0, return_inverse=True)
+    return patterns, which.ravel()
 
 
 def innovations(Y: np.ndarray, observed: np.ndarray, yb: np.ndarray, Syy: np.ndarray,
@@ -42,11 +50,10 @@ def innovations(Y: np.ndarray, observed: np.ndarray, yb: np.ndarray, Syy: np.nda
     measured rows (0 elsewhere), and their NIS against the predicted output covariances
     ``Syy (T, ny, ny)`` plus the measured rows' block of ``R`` (NaN without a measured
     output or a finite prediction), one batched solve per pattern of measured outputs."""
-    T = len(Y)
-    E, nis = np.zeros_like(Y), np.full(T, np.nan)
-    patterns, which = np.unique(observed, axis=0, return_inverse=True)
+    E, nis = np.zeros_like(Y), np.full(len(Y), np.nan)
+    patterns, which = measured_patterns(observed)
     for p, obs in enumerate(patterns):
-        rows = np.flatnonzero(which.ravel() == p)
+        rows = np.flatnonzero(which == p)
         if not obs.any():
             continue
         eo = Y[np.ix_(rows, obs)] - yb[np.ix_(rows, obs)]
@@ -54,6 +61,10 @@ def innovations(Y: np.ndarray, observed: np.ndarray, yb: np.ndarray, Syy: np.nda
         rows, eo = rows[good], eo[good]
         S = Syy[rows][:, obs][:, :, obs] + R[np.ix_(obs, obs)]
         E[np.ix_(rows, obs)] = eo
+        if S.shape[1] == 1:  # one measured output: a division
+            with np.errstate(divide="ignore", invalid="ignore"):
+                nis[rows] = np.where(S[:, 0, 0] > 0, eo[:, 0] ** 2 / S[:, 0, 0], np.nan)
+            continue
         try:
             nis[rows] = np.einsum("ti,ti->t", eo, np.linalg.solve(S, eo[:, :, None])[:, :, 0])
         except np.linalg.LinAlgError:  # (a singular one among them: one by one)
@@ -144,14 +155,13 @@ class CompiledParticles(Estimator):
     def _kernel_rows(self, Y: np.ndarray, W: np.ndarray) -> dict[str, np.ndarray]:
         """The kernel's step data for the measurements ``Y (T, ny)`` and transition
         inputs ``W (T, nw)``, with each step's measured pattern."""
-        T = len(Y)
         observed = ~np.isnan(Y)
         rows: dict[str, Any] = {"observed": observed, "w": W}
-        parts = [self._measured(observed[k]) for k in range(T)]  # (kept by pattern)
-        rows["WR"] = np.array([p[0] for p in parts]).reshape(T, -1)
-        rows["const"] = np.array([p[1] for p in parts])
-        rows["tun"] = np.array([p[3] for p in parts]).reshape(T, -1)
-        rows["miss"] = np.array([p[4] for p in parts]).reshape(T, -1)
+        patterns, which = measured_patterns(observed)
+        parts = [self._measured(obs) for obs in patterns]  # (kept by pattern)
+        for key, i in (("WR", 0), ("const", 1), ("tun", 3), ("miss", 4)):
+            rows[key] = np.array([np.ravel(part[i]) for part in parts])[which]
+        rows["const"] = rows["const"][:, 0]
         rows["y0"] = np.where(observed, Y, 0.0)
         rows["measured"] = observed.any(axis=1)
         return rows
