@@ -47,7 +47,6 @@ from numpy.typing import ArrayLike
 
 from estim._manifold import NP
 from estim._validate import as_bool, as_choice, as_float, as_int, as_seed
-from estim.consistency import consistency_status
 from estim.estimators.base import StepInfo
 from estim.estimators.ensembles import (
     deviations,
@@ -56,7 +55,7 @@ from estim.estimators.ensembles import (
     run_record,
     square_root,
 )
-from estim.estimators.particle_compiled import COLLAPSE, CompiledParticles
+from estim.estimators.particle_compiled import CompiledParticles, step_status
 from estim.estimators.particle_graphs import definite, graphs, measured_tuning, prior_tuning
 from estim.estimators.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
@@ -398,10 +397,8 @@ class ParticleFilter(CompiledParticles):
             y0 = np.where(observed, y, 0.0)
             Yh = y0[:, None] - m.manifold.output_difference(y0, Yh.T, NP).T
         e, nis = _innovation(y, observed, Yh, self._W, Ro)
-        if success and ess < max(2.0, COLLAPSE * N):
-            status = f"suspect: effective sample size {ess:.1f} of {N}"
-        elif success and nis == nis:  # the measurement against the particles' prediction
-            status = consistency_status(nis, int(observed.sum()))
+        if success:  # the weights' collapse, the measurement against the prediction
+            status = step_status(ess, nis, int(observed.sum()), N)
         if status == "ok":
             self._trusted = (x_hat, P)
         if self._trace is not None:

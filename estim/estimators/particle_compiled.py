@@ -29,11 +29,20 @@ from estim.estimators.particle_graphs import Graphs, prior_tuning
 from estim.exceptions import CompilerUnavailable, EstimationWarning
 from estim.solvers.particle_kernel import KernelRecord, ParticleKernel
 
-__all__ = ["CompiledParticles", "innovations", "measured_patterns"]
+__all__ = ["CompiledParticles", "innovations", "measured_patterns", "step_status"]
 
 #: an effective sample size below this fraction of the particles (and below 2) is a
 #: collapse of the weights, reported as ``"suspect: ..."``
 COLLAPSE = 0.01
+
+
+def step_status(ess: float, nis: float, dof: int, N: int) -> str:
+    """A particle filter step's status: a collapse of the weights (an effective sample
+    size ``ess`` below 1 % of the ``N`` particles and below 2), else the measurement
+    against the particles' prediction (its ``nis`` beyond the chi-square tail)."""
+    if ess < max(2.0, COLLAPSE * N):
+        return f"suspect: effective sample size {ess:.1f} of {N}"
+    return consistency_status(nis, dof) if nis == nis else "ok"
 
 
 def measured_patterns(observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,8 +210,7 @@ class CompiledParticles(Estimator):
         beyond = ~collapsed & (nis > limit)  # (NaN: not beyond)
         status = ["ok"] * done
         for j in np.flatnonzero(collapsed | beyond):
-            status[j] = f"suspect: effective sample size {rec.ess[j]:.1f} of {N}" \
-                if collapsed[j] else consistency_status(float(nis[j]), int(dof[j]))
+            status[j] = step_status(float(rec.ess[j]), float(nis[j]), int(dof[j]), N)
         ok = np.flatnonzero(~(collapsed | beyond))
         if ok.size:
             self._trusted = (rec.x[ok[-1]], rec.P[ok[-1]])
