@@ -17,8 +17,10 @@ Two libraries, both through the per-machine compile cache
 The random numbers are the kernel's own: xoshiro256** (Blackman, Vigna 2021) in
 eight interleaved streams for the normal numbers, drawn by a 256-layer ziggurat
 (Marsaglia, Tsang 2000, with Doornik's 2005 uniforms), whose rare draws outside the
-layers' boxes, and the resampling's uniforms, come from a ninth stream; all nine are
-seeded from the filter's seed by :class:`numpy.random.SeedSequence`. The eight
+layers' boxes come from a ninth stream, and the resampling's uniforms from a tenth; all
+ten are seeded from the filter's seed by :class:`numpy.random.SeedSequence`. On a
+machine with more than one core, a second thread draws the next step's normal numbers
+while a step runs (the same numbers). The eight
 streams are advanced together (AVX-512 or AVX2 where the processor has them, plain C
 otherwise) and give the same numbers on every instruction set, so a seed gives the
 same run bit for bit.
@@ -37,6 +39,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
@@ -56,7 +59,7 @@ ZIGGURAT_V = 4.92867323399e-3
 ZIGGURAT_LAYERS = 256
 #: the kernel's flags: optimised with vectorisation, no fast-math, no contraction (the
 #: per-particle Functions compute what CasADi's virtual machine computes)
-FLAGS = ("-O3", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
+FLAGS = ("-O3", "-pthread", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
 _SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2, "residual": 3}
 
 
@@ -79,7 +82,7 @@ class _Args(ctypes.Structure):
     """The C driver's ``pf_args``, field for field."""
 
     _fields_ = [(name, ctypes.c_int64) for name in
-                ("n", "T", "first", "scheme", "nx", "ny", "nd", "nw", "ntun")] + \
+                ("n", "T", "first", "scheme", "nx", "ny", "nd", "nw", "ntun", "ahead")] + \
         [("threshold", ctypes.c_double)] + \
         [(name, ctypes.c_void_p) for name in (
             "k_first", "k_advance", "lower", "upper", "x0", "tun0", "w", "tun", "y0", "WR",
@@ -187,7 +190,10 @@ class ParticleKernel:
         self.X = np.zeros((self.nx, n))
         self.lw, self.W = np.zeros(n), np.full(n, 1.0 / n)
         self._equal = np.ones(1, dtype=np.int64)
-        self.rng = np.zeros(36, dtype=np.uint64)
+        self.rng = np.zeros(40, dtype=np.uint64)
+        #: draw the next step's normal numbers in a second thread while a step runs
+        #: (the same numbers either way)
+        self.ahead = (os.cpu_count() or 1) > 1
 
     @property
     def equal(self) -> bool:
@@ -195,9 +201,10 @@ class ParticleKernel:
 
     def seed(self, seed: int) -> None:
         """Start the nine streams of ``seed`` again."""
-        self.rng[:] = np.random.SeedSequence(seed).generate_state(36, np.uint64)
-        for lane in [*range(8), 8]:  # a stream's state must not be all zero
-            idx = [32 + j for j in range(4)] if lane == 8 else [8 * j + lane for j in range(4)]
+        self.rng[:] = np.random.SeedSequence(seed).generate_state(40, np.uint64)
+        for lane in range(10):  # a stream's state must not be all zero
+            idx = [8 * j + lane for j in range(4)] if lane < 8 else \
+                [32 + 4 * (lane - 8) + j for j in range(4)]
             if not self.rng[idx].any():
                 self.rng[idx[0]] = 1
 
@@ -238,6 +245,7 @@ class ParticleKernel:
             return None if a is None else a.ctypes.data
 
         args = _Args(n, T, int(first), _SCHEMES[scheme], nx, ny, self.nd, self.nw, self.ntun,
+                     int(self.ahead),
                      threshold, *self._kernels, ptr(self.bounds[0]), ptr(self.bounds[1]),
                      *(ptr(arrays[k]) for k in ("x0", "tun0", "w", "tun", "y0", "WR", "miss",
                                                 "measured")),
