@@ -20,7 +20,7 @@ eight interleaved streams for the normal numbers, drawn by a 256-layer ziggurat
 layers' boxes come from a ninth stream, and the resampling's uniforms from a tenth; all
 ten are seeded from the filter's seed by :class:`numpy.random.SeedSequence`. On a
 machine with more than one core, a second thread draws the next step's normal numbers
-while a step runs (the same numbers). The eight
+while a step runs (from :data:`AHEAD_MIN` numbers per step; the same numbers). The eight
 streams are advanced together (AVX-512 or AVX2 where the processor has them, plain C
 otherwise) and give the same numbers on every instruction set, so a seed gives the
 same run bit for bit.
@@ -61,6 +61,9 @@ ZIGGURAT_LAYERS = 256
 #: per-particle Functions compute what CasADi's virtual machine computes)
 FLAGS = ("-O3", "-pthread", "-fPIC", "-shared", "-fno-fast-math", "-ffp-contract=off")
 _SCHEMES = {"systematic": 0, "stratified": 1, "multinomial": 2, "residual": 3}
+#: the fewest normal numbers per step for which a second thread draws them ahead (below,
+#: handing a step's numbers over costs more than drawing them)
+AHEAD_MIN = 8192
 
 
 def ziggurat_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -192,8 +195,8 @@ class ParticleKernel:
         self._equal = np.ones(1, dtype=np.int64)
         self.rng = np.zeros(40, dtype=np.uint64)
         #: draw the next step's normal numbers in a second thread while a step runs
-        #: (the same numbers either way)
-        self.ahead = (os.cpu_count() or 1) > 1
+        #: (the same numbers either way), from :data:`AHEAD_MIN` numbers per step
+        self.ahead = (os.cpu_count() or 1) > 1 and self.nd * n >= AHEAD_MIN
 
     @property
     def equal(self) -> bool:
