@@ -300,3 +300,18 @@ def test_unscented_proposal(PF):
     assert ess["ukf"] > 1.2 * ess["bootstrap"], ess
     with pytest.raises(ValueError, match="Q must be positive definite"):
         PF(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ukf")
+
+
+def test_particles_whose_state_is_lost_get_no_weight(PF):
+    """A transition that is not finite for part of the cloud (the square root of a
+    negative state) zeroes those particles' weights: the estimates stay finite and every
+    step succeeds, with all the weight on particles whose state is a number."""
+    m = estim.Model(states=["x"], outputs=["y"], dynamics=lambda x, u, p: ca.sqrt(x) + 1.0,
+                    output=lambda x, u, p: x)
+    Y = np.array([[np.nan], [2.4], [2.5], [2.6], [2.6]])  # (half the cloud below 0 first)
+    pf = PF(m, Q=0.01, R=0.04, x0=[0.0], P0=4.0, n_particles=400, seed=1)
+    res = pf.filter(Y)
+    assert res.success and np.isfinite(res.x).all() and np.isfinite(res.P).all()
+    X, W = pf.particles
+    assert np.isfinite(X).all() and np.isclose(W.sum(), 1.0)
+    assert abs(res.x[-1, 0] - 2.6) < 0.2
