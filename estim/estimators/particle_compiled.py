@@ -172,7 +172,7 @@ class CompiledParticles(Estimator):
             rows[key] = np.array([np.ravel(part[i]) for part in parts])[which]
         rows["const"] = rows["const"][:, 0]
         rows["y0"] = np.where(observed, Y, 0.0)
-        rows["measured"] = observed.any(axis=1)
+        rows["measured"] = observed.any(axis=1).astype(np.int64)
         return rows
 
     def _kernel_run(self, rows: dict[str, Any], start: int, first: bool) -> KernelRecord:
@@ -184,7 +184,8 @@ class CompiledParticles(Estimator):
         T, N = len(rows["measured"]) - start, self.n_particles
         trace = (np.empty((T, self.model.nx, N)), np.empty((T, N))) \
             if self._trace is not None else None
-        rec = k.run(first=first, x0=self.x0, tun0=self._first_tuning(rows["tun"][start]),
+        rec = k.run(first=first, x0=self.x0,
+                    tun0=self._first_tuning(rows["tun"][start]) if first else k._zero,
                     w=rows["w"][sl], tun=rows["tun"][sl], y0=rows["y0"][sl],
                     WR=rows["WR"][sl], miss=rows["miss"][sl], measured=rows["measured"][sl],
                     scheme=self.resampling, threshold=self.ess_threshold, trace=trace)
@@ -229,12 +230,33 @@ class CompiledParticles(Estimator):
 
     def _compiled_step(self, y: np.ndarray, w: np.ndarray, first: bool
                        ) -> tuple[np.ndarray, StepInfo]:
-        rows = self._kernel_rows(y[None], w[None])
+        observed = ~np.isnan(y)
+        WR, const, Ro, tun, miss = self._measured(observed)
+        rows = {"w": w[None], "WR": WR[None], "tun": tun[None], "miss": miss[None],
+                "y0": np.where(observed, y, 0.0)[None],
+                "measured": np.array([observed.any()], dtype=np.int64)}
         rec = self._kernel_run(rows, 0, first or self._X is None)
         if rec.done == 0:
-            return self._reanchored(y, w, rows["observed"][0])
+            return self._reanchored(y, w, observed)
         self._published()
-        info = self._judged(y[None], rows, 0, rec)[2]
+        # the step's status, as _judged gives it for a record
+        e = np.zeros_like(y)
+        nis = float("nan")
+        if observed.any():
+            e[observed] = y[observed] - rec.yb[0, observed]
+            S = rec.Syy[0][np.ix_(observed, observed)] + Ro
+            if np.isfinite(e).all() and np.isfinite(S).all():
+                try:
+                    nis = float(e[observed] @ np.linalg.solve(S, e[observed]))
+                except np.linalg.LinAlgError:
+                    pass
+        ess = float(rec.ess[0])
+        status = step_status(ess, nis, int(observed.sum()), self.n_particles)
+        if status == "ok":
+            self._trusted = (rec.x[0], rec.P[0])
+        info = StepInfo._fast(status=status, success=True, P=rec.P[0], innovation=e, nis=nis)
+        info.extra.update(ess=ess, log_likelihood=float(rec.inc[0]) + self._constant(const),
+                          resampled=bool(rec.resampled[0]))
         return rec.x[0], info
 
     def _reanchored(self, y: np.ndarray, w: np.ndarray, observed: np.ndarray

@@ -105,6 +105,13 @@ _KERNEL_HEAD = """#include <math.h>
 """
 
 
+def _contiguous(value: np.ndarray, dtype: type) -> np.ndarray:
+    """``value`` as a C-contiguous array of ``dtype`` (itself when it is one already)."""
+    if isinstance(value, np.ndarray) and value.dtype == dtype and value.flags.c_contiguous:
+        return value
+    return np.ascontiguousarray(value, dtype=dtype)
+
+
 @lru_cache(maxsize=1)
 def _driver() -> ctypes.CDLL:
     """The driver's library (the same for every model: compiled once per machine)."""
@@ -194,6 +201,17 @@ class ParticleKernel:
         self.lw, self.W = np.zeros(n), np.full(n, 1.0 / n)
         self._equal = np.ones(1, dtype=np.int64)
         self.rng = np.zeros(40, dtype=np.uint64)
+        self._zero = np.zeros(1)
+        self._empty = self._zero.ctypes.data  # (an input without entries)
+        # the call's arguments that do not change (the buffers are the kernel's own)
+        self._args = _Args(n=n, nx=self.nx, ny=self.ny, nd=self.nd, nw=self.nw,
+                           ntun=self.ntun, k_first=self._kernels[0],
+                           k_advance=self._kernels[1])
+        for name, array in (("lower", self.bounds[0]), ("upper", self.bounds[1]),
+                            ("X", self.X), ("lw", self.lw), ("Wp", self.W),
+                            ("equal", self._equal), ("rng", self.rng), ("work", self.work),
+                            ("iwork", self.iwork)):
+            setattr(self._args, name, array.ctypes.data)
         #: draw the next step's normal numbers in a second thread while a step runs
         #: (the same numbers either way), from :data:`AHEAD_MIN` numbers per step
         self.ahead = (os.cpu_count() or 1) > 1 and self.nd * n >= AHEAD_MIN
@@ -232,30 +250,26 @@ class ParticleKernel:
         weight (:attr:`KernelRecord.done` less than T); its particles are then the
         last step's. ``trace``: ``(T, nx, n)`` and ``(T, n)`` arrays filled with the
         particles and weights of every step before resampling."""
-        T, n, nx, ny = len(measured), self.n, self.nx, self.ny
-        arrays = {name: np.ascontiguousarray(value, dtype=float) for name, value in
-                  (("x0", x0), ("tun0", tun0), ("w", w), ("tun", tun), ("y0", y0),
-                   ("WR", WR), ("miss", miss))}
-        arrays["measured"] = np.ascontiguousarray(measured, dtype=np.int64)
-        out = KernelRecord(0, np.empty((T, nx)), np.empty((T, nx, nx)), np.empty(T),
-                           np.empty(T), np.empty((T, ny)), np.empty((T, ny, ny)),
-                           np.zeros(T, dtype=np.int64))
-        for key in ("w", "tun", "y0", "WR", "miss"):  # an empty row still needs memory
-            if arrays[key].size == 0:
-                arrays[key] = np.zeros(1)
-
-        def ptr(a: np.ndarray | None) -> int | None:
-            return None if a is None else a.ctypes.data
-
-        args = _Args(n, T, int(first), _SCHEMES[scheme], nx, ny, self.nd, self.nw, self.ntun,
-                     int(self.ahead),
-                     threshold, *self._kernels, ptr(self.bounds[0]), ptr(self.bounds[1]),
-                     *(ptr(arrays[k]) for k in ("x0", "tun0", "w", "tun", "y0", "WR", "miss",
-                                                "measured")),
-                     ptr(self.X), ptr(self.lw), ptr(self.W), ptr(self._equal), ptr(self.rng),
-                     ptr(self.work), ptr(self.iwork), ptr(out.x), ptr(out.P), ptr(out.ess),
-                     ptr(out.inc), ptr(out.yb), ptr(out.Syy), ptr(out.resampled),
-                     ptr(None if trace is None else trace[0]),
-                     ptr(None if trace is None else trace[1]))
+        T, nx, ny = len(measured), self.nx, self.ny
+        # the outputs in one buffer (one address to take): x, P, ess, inc, yb, Syy and the
+        # resampling flags (int64, the same size)
+        sizes = np.cumsum([0, T * nx, T * nx * nx, T, T, T * ny, T * ny * ny, T])
+        buf = np.empty(sizes[-1])
+        base = buf.ctypes.data
+        part = [buf[sizes[i]:sizes[i + 1]] for i in range(7)]
+        out = KernelRecord(0, part[0].reshape(T, nx), part[1].reshape(T, nx, nx), part[2],
+                           part[3], part[4].reshape(T, ny), part[5].reshape(T, ny, ny),
+                           part[6].view(np.int64))
+        args = self._args
+        args.T, args.first, args.scheme = T, int(first), _SCHEMES[scheme]
+        args.threshold, args.ahead = threshold, int(self.ahead)
+        for name, value in (("x0", x0), ("tun0", tun0), ("w", w), ("tun", tun), ("y0", y0),
+                            ("WR", WR), ("miss", miss), ("measured", measured)):
+            array = _contiguous(value, np.int64 if name == "measured" else np.float64)
+            setattr(args, name, array.ctypes.data if array.size else self._empty)
+        for i, name in enumerate(("xh", "P", "ess", "inc", "yb", "Syy", "resampled")):
+            setattr(args, name, base + 8 * int(sizes[i]))
+        args.trace_X = None if trace is None else trace[0].ctypes.data
+        args.trace_W = None if trace is None else trace[1].ctypes.data
         out.done = int(self._lib.pf_run(ctypes.byref(args)))
         return out
