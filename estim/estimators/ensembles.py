@@ -21,7 +21,8 @@ from estim._manifold import NP
 from estim._validate import as_inputs, as_record
 from estim._vectorised import vectorised
 
-__all__ = ["deviations", "draw_about", "moved", "over_points", "run_record", "square_root"]
+__all__ = ["deviations", "draw_about", "moved", "over_points", "prepared_record", "run_record",
+           "square_root"]
 
 
 def square_root(M: np.ndarray) -> np.ndarray:
@@ -79,6 +80,19 @@ def over_points(fun: ca.Function) -> Callable[..., list[np.ndarray]]:
     return mapped
 
 
+def prepared_record(est, Y, U) -> tuple[np.ndarray, np.ndarray]:
+    """The record checked, ``Y (T, ny)``, and the input of each step ``(T, nu)`` (``U[k]``
+    acts from sample k to k+1, a held or sampled input at each sample for ``(T, nu)``),
+    with ``est`` reset to filter it."""
+    m = est.model
+    Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+    U = as_inputs(U, Y.shape[0], m)
+    steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
+    est.reset()
+    est._dt = None
+    return Y, steps_u
+
+
 def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     """``est.step`` over a whole record after a reset, what :func:`~estim.replay` does:
     ``Y (T, ny)`` (NaN where missing) and ``U`` as for :meth:`EKF.filter
@@ -86,12 +100,8 @@ def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     sampled input at each sample). Returns the estimates ``(T, nx)``, their
     covariances ``(T, ndx, ndx)`` and every step's :class:`~estim.StepInfo`."""
     m = est.model
-    Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+    Y, steps_u = prepared_record(est, Y, U)
     T = Y.shape[0]
-    U = as_inputs(U, T, m)
-    steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
-    est.reset()
-    est._dt = None
     X, P, infos = np.empty((T, m.nx)), np.empty((T, m.ndx, m.ndx)), []
     for k in range(T):  # (the record is checked: rows go to the step unchecked)
         X[k] = est._checked_step(Y[k], steps_u[k])

@@ -21,10 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from estim._validate import as_inputs, as_record
 from estim.consistency import chi2_limit, consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.ensembles import square_root
+from estim.estimators.ensembles import prepared_record, square_root
 from estim.estimators.particle_graphs import Graphs, prior_tuning
 from estim.exceptions import CompilerUnavailable, EstimationWarning
 from estim.solvers.particle_kernel import KernelRecord, ParticleKernel
@@ -276,12 +275,8 @@ class CompiledParticles(Estimator):
         """A whole record through the kernel: estimates, covariances, statuses, ESS and
         log-likelihood increments (the filter's state as after :func:`~estim.replay`)."""
         m = self.model
-        Y = as_record(Y, m.ny, "Y", names=m.output_names, what="outputs")
+        Y, steps_u = prepared_record(self, Y, U)
         T = Y.shape[0]
-        U = as_inputs(U, T, m)
-        steps_u = U if m.sampled else np.vstack([np.zeros((1, m.nu)), U[:-1]])
-        self.reset()
-        self._dt = None
         W = np.empty((T, m.nw))
         if m.nw or self._sampled:
             for k in range(T):
