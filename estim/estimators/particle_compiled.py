@@ -231,10 +231,13 @@ class CompiledParticles(Estimator):
                        ) -> tuple[np.ndarray, StepInfo]:
         observed = ~np.isnan(y)
         WR, const, Ro, tun, miss = self._measured(observed)
-        rows = {"w": w[None], "WR": WR[None], "tun": tun[None], "miss": miss[None],
-                "y0": np.where(observed, y, 0.0)[None],
-                "measured": np.array([observed.any()], dtype=np.int64)}
-        rec = self._kernel_run(rows, 0, first or self._X is None)
+        k = self._kernel
+        assert k is not None
+        first = first or self._X is None
+        rec = k.step(first=first, x0=self.x0, tun0=self._first_tuning(tun) if first else k._zero,
+                     w=w, tun=tun, y0=np.where(observed, y, 0.0), WR=WR, miss=miss,
+                     measured=bool(observed.any()), scheme=self.resampling,
+                     threshold=self.ess_threshold)
         if rec.done == 0:
             return self._reanchored(y, w, observed)
         self._published()

@@ -185,7 +185,7 @@ class ParticleKernel:
                                       "integrator): the particle filter stays interpreted")
         self.nx, self.nd = advance.nnz_in(0), advance.nnz_in(1)
         self.nw, self.ny = advance.nnz_in(2), advance.nnz_in(4)
-        self.ntun = advance.nnz_in(3)
+        self.ntun, self.ntun0 = advance.nnz_in(3), first.nnz_in(3)
         self.n = n
         self.bounds = (np.full(self.nx, -np.inf), np.full(self.nx, np.inf)) if lower is None \
             else (np.ascontiguousarray(lower, float), np.ascontiguousarray(upper, float))
@@ -212,6 +212,7 @@ class ParticleKernel:
                             ("equal", self._equal), ("rng", self.rng), ("work", self.work),
                             ("iwork", self.iwork)):
             setattr(self._args, name, array.ctypes.data)
+        self._step_io: tuple | None = None  # (step's argument buffers: built on first use)
         #: draw the next step's normal numbers in a second thread while a step runs
         #: (the same numbers either way), from :data:`AHEAD_MIN` numbers per step
         self.ahead = (os.cpu_count() or 1) > 1 and self.nd * n >= AHEAD_MIN
@@ -220,8 +221,49 @@ class ParticleKernel:
     def equal(self) -> bool:
         return bool(self._equal[0])
 
+    def step(self, *, first: bool, x0: np.ndarray, tun0: np.ndarray, w: np.ndarray,
+             tun: np.ndarray, y0: np.ndarray, WR: np.ndarray, miss: np.ndarray,
+             measured: bool, scheme: str, threshold: float) -> KernelRecord:
+        """One step (:meth:`run` with ``T = 1``, the data of the step as flat arrays),
+        through buffers kept from call to call: no addresses to take."""
+        if self._step_io is None:  # built on the first step
+            sizes = [self.nx, self.ntun0, self.nw, self.ntun, self.ny,
+                     self.ny * self.ny, self.ny, 1]
+            names = ["x0", "tun0", "w", "tun", "y0", "WR", "miss", "measured"]
+            bounds = np.cumsum([0, *[max(size, 1) for size in sizes]])
+            inputs = np.zeros(bounds[-1])
+            outputs = np.empty(self.nx + self.nx ** 2 + 3 + self.ny + self.ny ** 2)
+            args = _Args()
+            ctypes.pointer(args)[0] = self._args  # (a copy of the unchanging fields)
+            base, views = inputs.ctypes.data, {}
+            for i, name in enumerate(names):
+                setattr(args, name, base + 8 * int(bounds[i]))
+                views[name] = inputs[bounds[i]:bounds[i] + sizes[i]]
+            views["measured"] = inputs[bounds[7]:bounds[7] + 1].view(np.int64)
+            out_sizes = np.cumsum([0, self.nx, self.nx ** 2, 1, 1, self.ny, self.ny ** 2, 1])
+            base = outputs.ctypes.data
+            for i, name in enumerate(("xh", "P", "ess", "inc", "yb", "Syy", "resampled")):
+                setattr(args, name, base + 8 * int(out_sizes[i]))
+            args.T, args.trace_X, args.trace_W = 1, None, None
+            self._step_io = (args, views, outputs, out_sizes)
+        args, views, outputs, out_sizes = self._step_io
+        for name, value in (("w", w), ("tun", tun), ("y0", y0), ("WR", WR), ("miss", miss)):
+            views[name][:] = value
+        if first:
+            views["x0"][:], views["tun0"][:] = x0, tun0
+        views["measured"][0] = int(measured)
+        args.first, args.scheme = int(first), _SCHEMES[scheme]
+        args.threshold, args.ahead = threshold, 0
+        done = int(self._lib.pf_run(ctypes.byref(args)))
+        part = [outputs[out_sizes[i]:out_sizes[i + 1]] for i in range(7)]
+        return KernelRecord(done, part[0].reshape(1, self.nx).copy(),
+                            part[1].reshape(1, self.nx, self.nx).copy(), part[2].copy(),
+                            part[3].copy(), part[4].reshape(1, self.ny).copy(),
+                            part[5].reshape(1, self.ny, self.ny).copy(),
+                            part[6].view(np.int64).copy())
+
     def seed(self, seed: int) -> None:
-        """Start the nine streams of ``seed`` again."""
+        """Start the ten streams of ``seed`` again."""
         self.rng[:] = np.random.SeedSequence(seed).generate_state(40, np.uint64)
         for lane in range(10):  # a stream's state must not be all zero
             idx = [8 * j + lane for j in range(4)] if lane < 8 else \
