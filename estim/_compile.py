@@ -123,10 +123,11 @@ def compiled(fun: ca.Function) -> ca.Function:
     gen = ca.CodeGenerator(f"{name}.c", {"with_header": False})
     gen.add(fun)
     code = gen.dump()
-    key, lib, record = _entry(code, name, FLAGS, cc)
+    key = _key(code, FLAGS, cc)
     with _LOCK:
         if key in _LOADED:
             return _LOADED[key]
+    lib, record = _paths(name, key)
     loaded = _load(lib, record, key, name)
     if loaded is None:
         _built(code, lib, record, key, cc[0], FLAGS)
@@ -148,10 +149,11 @@ def shared_library(code: str, name: str, flags: tuple[str, ...] = FLAGS) -> ctyp
         As :func:`compiled`.
     """
     cc = _compiler_or_raise()
-    key, lib, record = _entry(code, name, flags, cc)
+    key = _key(code, flags, cc)
     with _LOCK:
         if key in _LIBRARIES:
             return _LIBRARIES[key]
+    lib, record = _paths(name, key)
     if not _current(lib, record, key):
         _built(code, lib, record, key, cc[0], flags)
     try:
@@ -177,20 +179,22 @@ def _compiler_or_raise() -> tuple[str, str]:
     return cc
 
 
-def _entry(code: str, name: str, flags: tuple[str, ...], cc: tuple[str, str]
-           ) -> tuple[str, Path, Path]:
-    """The cache key of ``code`` built with ``flags`` by ``cc``, its library's path and its
-    record's path."""
-    key = hashlib.sha256("\n".join(
+def _key(code: str, flags: tuple[str, ...], cc: tuple[str, str]) -> str:
+    """The cache key of ``code`` built with ``flags`` by ``cc``."""
+    return hashlib.sha256("\n".join(
         [code, *cc, " ".join(flags), CASADI_VERSION, platform.machine(), sys.platform]
     ).encode()).hexdigest()
+
+
+def _paths(name: str, key: str) -> tuple[Path, Path]:
+    """The cached library's path and its record's path (the directory created)."""
     try:
         root = cache_directory()
     except OSError as exc:
         raise CompilerUnavailable(f"the compile cache directory cannot be created ({exc}); "
                                   f"set ESTIM_CACHE_DIR to a writable directory") from None
     lib = root / f"{name}-{key[:24]}{'.dll' if sys.platform == 'win32' else '.so'}"
-    return key, lib, lib.with_suffix(".json")
+    return lib, lib.with_suffix(".json")
 
 
 def _built(code: str, lib: Path, record: Path, key: str, cc: str,
