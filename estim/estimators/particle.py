@@ -298,7 +298,7 @@ class ParticleFilter(CompiledParticles):
         self._start = None if g.start is None else over_points(g.start)
         self._trace: list | None = None  # smooth's forward pass: (X, W, w) per sample
         if self.jit:
-            self._compile(g, self._support)
+            self._compile(g)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()

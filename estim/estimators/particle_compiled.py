@@ -90,6 +90,8 @@ class CompiledParticles(Estimator):
 
     _kernel: ParticleKernel | None = None
     # (given by ParticleFilter)
+    lower: np.ndarray
+    upper: np.ndarray
     n_particles: int
     resampling: str
     ess_threshold: float
@@ -108,20 +110,18 @@ class CompiledParticles(Estimator):
                      ) -> tuple[np.ndarray, StepInfo]:
         raise NotImplementedError
 
-    def _compile(self, graphs: Graphs, support: tuple[np.ndarray, np.ndarray] | None
-                 ) -> None:
-        """Build the kernel, or stay interpreted with one warning saying why."""
+    def _compile(self, graphs: Graphs) -> None:
+        """Build the kernel (the support: the filter's ``lower``, ``upper``), or stay
+        interpreted with one warning saying why."""
         self._kernel = None
         if not self.model.manifold.trivial:
             why = ("the model has quaternion or angle states or outputs, whose means the "
                    "compiled path does not take")
         else:
             try:
-                lower, upper = (None, None) if support is None else \
-                    (support[0][:, 0], support[1][:, 0])
-                self._kernel = ParticleKernel(
-                    graphs.first, graphs.advance, n=self.n_particles, lower=lower,
-                    upper=upper)
+                self._kernel = ParticleKernel(graphs.first, graphs.advance,
+                                              n=self.n_particles, lower=self.lower,
+                                              upper=self.upper)
                 return
             except CompilerUnavailable as exc:
                 why = str(exc)

@@ -129,6 +129,11 @@ def _driver() -> ctypes.CDLL:
     return lib
 
 
+#: the outputs of a call, in this order in one buffer: x, P, ess, inc, yb, Syy and the
+#: resampling flags (int64, the same size as a double)
+_OUTPUTS = ("xh", "P", "ess", "inc", "yb", "Syy", "resampled")
+
+
 @dataclass
 class KernelRecord:
     """What :meth:`ParticleKernel.run` gives for the steps it ran (``(k, ...)`` arrays)."""
@@ -156,8 +161,8 @@ class ParticleKernel:
         :func:`estim.estimators.particle_graphs.graphs`).
     n : int
         The number of particles.
-    lower, upper : (nx,) arrays or None
-        The support (None: unbounded).
+    lower, upper : (nx,) arrays
+        The support (-inf and inf where unbounded).
 
     Raises
     ------
@@ -178,7 +183,7 @@ class ParticleKernel:
     """
 
     def __init__(self, first: ca.Function, advance: ca.Function, *, n: int,
-                 lower: np.ndarray | None, upper: np.ndarray | None):
+                 lower: np.ndarray, upper: np.ndarray):
         k_first, k_advance = c_kernel(first, "k_first", {1}), c_kernel(advance, "k_advance", {0, 1})
         if k_first is None or k_advance is None:
             raise CompilerUnavailable("the model's graph calls another Function (an "
@@ -187,8 +192,7 @@ class ParticleKernel:
         self.nw, self.ny = advance.nnz_in(2), advance.nnz_in(4)
         self.ntun, self.ntun0 = advance.nnz_in(3), first.nnz_in(3)
         self.n = n
-        self.bounds = (np.full(self.nx, -np.inf), np.full(self.nx, np.inf)) if lower is None \
-            else (np.ascontiguousarray(lower, float), np.ascontiguousarray(upper, float))
+        self.bounds = (np.ascontiguousarray(lower, float), np.ascontiguousarray(upper, float))
         self._lib = _driver()
         code = _KERNEL_HEAD + "\n".join(k.replace("static void k_", "PF_CLONES void k_")
                                          for k in (k_first, k_advance))
@@ -232,7 +236,6 @@ class ParticleKernel:
             names = ["x0", "tun0", "w", "tun", "y0", "WR", "miss", "measured"]
             bounds = np.cumsum([0, *[max(size, 1) for size in sizes]])
             inputs = np.zeros(bounds[-1])
-            outputs = np.empty(self.nx + self.nx ** 2 + 3 + self.ny + self.ny ** 2)
             args = _Args()
             ctypes.pointer(args)[0] = self._args  # (a copy of the unchanging fields)
             base, views = inputs.ctypes.data, {}
@@ -240,13 +243,11 @@ class ParticleKernel:
                 setattr(args, name, base + 8 * int(bounds[i]))
                 views[name] = inputs[bounds[i]:bounds[i] + sizes[i]]
             views["measured"] = inputs[bounds[7]:bounds[7] + 1].view(np.int64)
-            out_sizes = np.cumsum([0, self.nx, self.nx ** 2, 1, 1, self.ny, self.ny ** 2, 1])
-            base = outputs.ctypes.data
-            for i, name in enumerate(("xh", "P", "ess", "inc", "yb", "Syy", "resampled")):
-                setattr(args, name, base + 8 * int(out_sizes[i]))
+            outputs, offsets = self._outputs(1)
+            self._point_outputs(args, outputs, offsets)
             args.T, args.trace_X, args.trace_W = 1, None, None
-            self._step_io = (args, views, outputs, out_sizes)
-        args, views, outputs, out_sizes = self._step_io
+            self._step_io = (args, views, outputs, offsets)
+        args, views, outputs, offsets = self._step_io
         for name, value in (("w", w), ("tun", tun), ("y0", y0), ("WR", WR), ("miss", miss)):
             views[name][:] = value
         if first:
@@ -255,12 +256,30 @@ class ParticleKernel:
         args.first, args.scheme = int(first), _SCHEMES[scheme]
         args.threshold, args.ahead = threshold, 0
         done = int(self._lib.pf_run(ctypes.byref(args)))
-        part = [outputs[out_sizes[i]:out_sizes[i + 1]] for i in range(7)]
-        return KernelRecord(done, part[0].reshape(1, self.nx).copy(),
-                            part[1].reshape(1, self.nx, self.nx).copy(), part[2].copy(),
-                            part[3].copy(), part[4].reshape(1, self.ny).copy(),
-                            part[5].reshape(1, self.ny, self.ny).copy(),
-                            part[6].view(np.int64).copy())
+        return self._record(outputs.copy(), offsets, 1, done)
+
+    def _outputs(self, T: int) -> tuple[np.ndarray, np.ndarray]:
+        """One buffer for the outputs of ``T`` steps (see :data:`_OUTPUTS`) and the
+        offsets of its parts."""
+        nx, ny = self.nx, self.ny
+        offsets = np.cumsum([0, T * nx, T * nx * nx, T, T, T * ny, T * ny * ny, T])
+        return np.empty(offsets[-1]), offsets
+
+    @staticmethod
+    def _point_outputs(args: _Args, buf: np.ndarray, offsets: np.ndarray) -> None:
+        """The call's output fields pointed at the parts of ``buf``."""
+        base = buf.ctypes.data
+        for i, name in enumerate(_OUTPUTS):
+            setattr(args, name, base + 8 * int(offsets[i]))
+
+    def _record(self, buf: np.ndarray, offsets: np.ndarray, T: int, done: int
+                ) -> KernelRecord:
+        """The outputs of ``T`` steps in ``buf`` as a :class:`KernelRecord` (views)."""
+        nx, ny = self.nx, self.ny
+        part = [buf[offsets[i]:offsets[i + 1]] for i in range(len(_OUTPUTS))]
+        return KernelRecord(done, part[0].reshape(T, nx), part[1].reshape(T, nx, nx), part[2],
+                            part[3], part[4].reshape(T, ny), part[5].reshape(T, ny, ny),
+                            part[6].view(np.int64))
 
     def seed(self, seed: int) -> None:
         """Start the ten streams of ``seed`` again."""
@@ -292,26 +311,20 @@ class ParticleKernel:
         weight (:attr:`KernelRecord.done` less than T); its particles are then the
         last step's. ``trace``: ``(T, nx, n)`` and ``(T, n)`` arrays filled with the
         particles and weights of every step before resampling."""
-        T, nx, ny = len(measured), self.nx, self.ny
-        # the outputs in one buffer (one address to take): x, P, ess, inc, yb, Syy and the
-        # resampling flags (int64, the same size)
-        sizes = np.cumsum([0, T * nx, T * nx * nx, T, T, T * ny, T * ny * ny, T])
-        buf = np.empty(sizes[-1])
-        base = buf.ctypes.data
-        part = [buf[sizes[i]:sizes[i + 1]] for i in range(7)]
-        out = KernelRecord(0, part[0].reshape(T, nx), part[1].reshape(T, nx, nx), part[2],
-                           part[3], part[4].reshape(T, ny), part[5].reshape(T, ny, ny),
-                           part[6].view(np.int64))
+        T = len(measured)
+        buf, offsets = self._outputs(T)
         args = self._args
         args.T, args.first, args.scheme = T, int(first), _SCHEMES[scheme]
         args.threshold, args.ahead = threshold, int(self.ahead)
+        held = []  # (the arrays whose addresses the call reads, alive until it returns)
         for name, value in (("x0", x0), ("tun0", tun0), ("w", w), ("tun", tun), ("y0", y0),
                             ("WR", WR), ("miss", miss), ("measured", measured)):
             array = _contiguous(value, np.int64 if name == "measured" else np.float64)
+            held.append(array)
             setattr(args, name, array.ctypes.data if array.size else self._empty)
-        for i, name in enumerate(("xh", "P", "ess", "inc", "yb", "Syy", "resampled")):
-            setattr(args, name, base + 8 * int(sizes[i]))
+        self._point_outputs(args, buf, offsets)
         args.trace_X = None if trace is None else trace[0].ctypes.data
         args.trace_W = None if trace is None else trace[1].ctypes.data
-        out.done = int(self._lib.pf_run(ctypes.byref(args)))
-        return out
+        done = int(self._lib.pf_run(ctypes.byref(args)))
+        del held
+        return self._record(buf, offsets, T, done)
