@@ -14,6 +14,7 @@ for the unrolled iteration, cost, covariance and rollout functions with the same
 from __future__ import annotations
 
 import copy
+import itertools
 import time
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -36,11 +37,6 @@ __all__ = ["Chunked", "ChunkedCost", "ChunkedCovariance", "ChunkedCovariances",
 PREBIND_BYTES = 16 * 2**20
 
 
-def _key(const) -> tuple | None:
-    """A hashable form of :meth:`Chunked._constants`."""
-    return None if const is None else tuple(tuple(v.tolist()) for v in const.values())
-
-
 def bind(buffer: ca.FunctionBuffer, args: Sequence[np.ndarray], res: Sequence[np.ndarray]
          ) -> None:
     """Point a CasADi ``FunctionBuffer`` at the arrays ``args`` and ``res`` in place (no
@@ -60,6 +56,19 @@ def split(lo: int, hi: int, chunk: int) -> list[tuple[int, int]]:
     full = lo + (hi - lo) // chunk * chunk
     return [(a, a + chunk) for a in range(lo, full, chunk)] + [(a, a + 1)
                                                                 for a in range(full, hi)]
+
+
+def carry_layout(sizes: Sequence[int]) -> list[int]:
+    """The offsets of the parts of a packed carry vector of parts of ``sizes``."""
+    return [int(v) for v in np.cumsum([0, *sizes])]
+
+
+def unpack(packed: ca.SX, sparsities: Sequence[ca.Sparsity]) -> list[ca.SX]:
+    """The parts of the vector ``packed`` in the (dense) shapes of ``sparsities``,
+    column-major, as :func:`carry_layout` lays them out."""
+    parts = ca.vertsplit(packed, carry_layout([sp.numel() for sp in sparsities]))
+    return [ca.reshape(p, sp.size1(), sp.size2()) for p, sp in zip(parts, sparsities,
+                                                                    strict=True)]
 
 
 class Chunked:
@@ -89,14 +98,18 @@ class Chunked:
         self.jit = jit
         self._funs: dict[tuple, ca.Function] = {}
         self._bufs: dict[tuple, tuple] = {}
+        self._held: list = []  # what the prebound buffers point at, and the buffers
         nx, ny, nu = self.nx, self.ny, self.nu
         self.xnext = np.zeros(N * nx)
         self.om = np.zeros(N)
         self.link = np.ones(N)
         self.link[-1] = 0.0
         self.a = np.zeros(N)
-        self.a0 = np.zeros(nx * nx)
-        self.full_a, self.full_om = gn.full, gn.full
+        # the inputs every slot shares, one vector: wq, xbar, w0 and a0 = W0^T W0
+        self.shared = np.zeros(3 * nx * nx + nx)
+        self._shared_parts = [self.shared[a:b] for a, b in itertools.pairwise(
+            carry_layout([nx * nx, nx, nx * nx, nx * nx]))]
+        self.a0 = self._shared_parts[3]
         sl = gn._slices
         p = gn._pbuf
         self.views = {"y": p[sl["y"]], "wy": p[sl["wy"]], "u": p[sl["u"]], "up": p[sl["up"]],
@@ -131,54 +144,66 @@ class Chunked:
             self._bufs[key] = fun.buffer()
         return self._bufs[key]
 
-    def _constants(self, lo, hi):
-        """A full record's window bookkeeping of slots ``lo:hi`` (arrival weight ``a``,
-        ``om``, ``link``), constants of its chunk functions as in the unrolled graph
-        (they fold away); None for a window, where they are data."""
-        if not self.gn.full:
-            return None
-        a = np.zeros(hi - lo)
-        if lo == 0:
-            a[0] = 1.0
-        link = np.ones(hi - lo)
-        if hi == self.N:
-            link[-1] = 0.0
-        return {"a": a, "om": np.ones(hi - lo), "link": link}
+    def _kind(self, lo, hi):
+        """What distinguishes the chunk functions of slots ``lo:hi`` besides their length:
+        for a full record whether the chunk holds the first slot and the last (its window
+        bookkeeping is then constant, see :meth:`_sequences`); None for a window."""
+        return (lo == 0, hi == self.N) if self.gn.full else None
 
-    def _fold(self, seq, const):
-        """``seq`` with the bookkeeping symbols replaced by ``const`` (if any); the
-        function keeps them as (unused) inputs, so every chunk is called alike."""
-        if const is None:
-            return seq
-        out = dict(seq)
-        for k, v in const.items():
-            out[k] = ca.DM(v).T
-        return out
+    def _sequences(self, L, complete, kind):
+        """The per-slot symbols of a chunk of ``L`` slots, and the inputs among them.
 
-    def _forward_chunk(self, step, L, n_carry, complete, damped, const=None):
+        A full record's window bookkeeping (arrival weight ``a``, ``om``, ``link``) is
+        constant, as in the unrolled graph: ``a`` is 1 at the first slot, ``link`` 0 at
+        the last, ``om`` 1; they fold away and are no inputs. In a window they are
+        data."""
+        sym = ca.SX.sym
+        seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
+        if complete:
+            seq["wy"] = sym("wy", self.ny * self.ny)
+        if kind is None:
+            return seq, list(seq.values())
+        inputs = [v for k, v in seq.items() if k not in ("a", "om", "link")]
+        first, last = kind
+        a, link = np.zeros(L), np.ones(L)
+        a[0], link[-1] = float(first), float(not last)
+        seq.update(a=ca.DM(a).T, om=ca.DM.ones(1, L), link=ca.DM(link).T)
+        return seq, inputs
+
+    def _shared_symbols(self):
+        """The inputs every slot shares, as one vector (:attr:`shared`): ``wq``,
+        ``xbar``, ``w0``, ``a0``."""
+        nx = self.nx
+        sh = ca.SX.sym("shared", self.shared.size)
+        wq, xbar, w0, a0 = ca.vertsplit(sh, list(np.cumsum([0, nx * nx, nx, nx * nx,
+                                                             nx * nx])))
+        return sh, wq, xbar, w0, a0
+
+    def _forward_chunk(self, step, L, n_carry, complete, damped, kind=None):
         """``L`` slots of the fused forward step
-        (:meth:`~estim.solvers.stages.StageFunctions.fused`)."""
+        (:meth:`~estim.solvers.stages.StageFunctions.fused`), ``kind`` as
+        :meth:`_kind`. The carry in and out is one vector (:func:`carry_layout`), the
+        shared inputs another (:meth:`_shared_symbols`), so that binding a chunk's
+        buffer takes few calls."""
         def build():
-            nx, sym = self.nx, ca.SX.sym
-            carry = [sym(f"c{i}", step.sparsity_in(i)) for i in range(n_carry)]
-            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
-            if complete:
-                seq["wy"] = sym("wy", self.ny * self.ny)
-            inputs = list(seq.values())
-            seq = self._fold(seq, const)
-            shared = [sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
-                      sym("a0", nx * nx)] + ([sym("lam")] if damped else [])
-            c, slots = carry, []
+            sizes = [step.sparsity_in(i) for i in range(n_carry)]
+            packed = ca.SX.sym("carry", sum(sp.numel() for sp in sizes))
+            c = unpack(packed, sizes)
+            seq, inputs = self._sequences(L, complete, kind)
+            sh, wq, *rest = self._shared_symbols()
+            lam = [ca.SX.sym("lam")] if damped else []
+            slots = []
             for j in range(L):
                 wy = seq["wy"] if complete else seq["wy"][:, j]
                 res = step(*c, seq["x"][:, j], seq["xn"][:, j], seq["y"][:, j], wy,
                            seq["up"][:, j], seq["a"][j], seq["u"][:, j], seq["om"][j],
-                           shared[0], seq["link"][j], *shared[1:])
+                           wq, seq["link"][j], *rest, *lam)
                 c, slots = res[:n_carry], slots + [res[n_carry:]]
-            outs = list(c) + [ca.horzcat(*col) for col in zip(*slots, strict=True)]
-            return ca.Function(f"fwd_chunk_{L}", carry + inputs + shared,
+            outs = [ca.vertcat(*[ca.vec(ca.densify(o)) for o in c])] + \
+                [ca.horzcat(*col) for col in zip(*slots, strict=True)]
+            return ca.Function(f"fwd_chunk_{L}", [packed] + inputs + [sh] + lam,
                                [ca.densify(o) for o in outs])  # (dense: built once)
-        return self._compiled(("fwd", id(step), L, complete, _key(const)), build)
+        return self._compiled(("fwd", id(step), L, complete, kind), build)
 
     def _backward_chunk(self, L):
         """``L`` steps of the backward substitution, the last slot first."""
@@ -208,16 +233,11 @@ class Chunked:
             return ca.Function(f"cov_bwd_chunk_{L}", [Sn, Vs, Lm, iD], [ca.horzcat(*out)])
         return self._compiled(("cov_bwd", L), build)
 
-    def _cost_chunk(self, L, complete, const=None):
+    def _cost_chunk(self, L, complete, kind=None):
+        """The cost of ``L`` slots, ``kind`` as :meth:`_kind`."""
         def build():
-            nx, sym = self.nx, ca.SX.sym
-            seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
-            if complete:
-                seq["wy"] = sym("wy", self.ny * self.ny)
-            inputs = list(seq.values())
-            seq = self._fold(seq, const)
-            wq, xbar, w0, a0 = (sym("wq", nx * nx), sym("xbar", nx), sym("w0", nx * nx),
-                                sym("a0", nx * nx))
+            seq, inputs = self._sequences(L, complete, kind)
+            sh, wq, xbar, w0, a0 = self._shared_symbols()
             total = ca.SX(0)
             for j in range(L):
                 wy = seq["wy"] if complete else seq["wy"][:, j]
@@ -225,8 +245,8 @@ class Chunked:
                                            seq["a"][j], xbar, w0, a0)
                 total += seq["link"][j] * self.st.trans_cost(
                     seq["x"][:, j], seq["xn"][:, j], seq["u"][:, j], seq["om"][j], wq)
-            return ca.Function(f"cost_chunk_{L}", inputs + [wq, xbar, w0, a0], [total])
-        return self._compiled(("cost", L, complete, _key(const)), build)
+            return ca.Function(f"cost_chunk_{L}", inputs + [sh], [total])
+        return self._compiled(("cost", L, complete, kind), build)
 
     def _roll_chunk(self, L):
         def build():
@@ -258,18 +278,22 @@ class Chunked:
         The arrays must stay in place (they are views of the solver's buffers): each
         chunk gets a buffer with its arguments bound once, unless the buffers' work
         memory would exceed :data:`PREBIND_BYTES`; then one buffer per function is
-        rebound at every call."""
+        rebound at every call. The buffers and arrays a call reads are kept alive by
+        :attr:`_held` (one list, not some objects per chunk: fewer objects for Python's
+        garbage collector to track)."""
         jobs = list(jobs)
         work = sum(8 * fun.sz_w() for fun, _, _ in jobs)
-        out: list[tuple[Callable[[], None], tuple | None]] = []
+        out: list[Callable[[], None]] = []
         for fun, args, res in jobs:
             if work <= PREBIND_BYTES:
                 b, ev = fun.buffer()
                 bind(b, args, res)
-                out.append((ev, (b, args, res)))  # the buffer and arrays kept alive
+                out.append(ev)
+                self._held.append(b)
+                self._held.extend(args)
+                self._held.extend(res)
             else:
-                buf = self._buffer(fun)
-                out.append((partial(self._call, buf, args, res), None))
+                out.append(partial(self._call, self._buffer(fun), args, res))
         return out
 
     def prepare(self):
@@ -288,15 +312,21 @@ class Chunked:
             self.om[:-1] = p[sl["omega"]]
             self.a[:] = p[sl["a"]]
         W0 = self.views["w0"].reshape(nx, nx, order="F")
-        self.a0[:] = (W0.T @ W0).ravel(order="F")
+        wq, xbar, w0, a0 = self._shared_parts
+        wq[:], xbar[:], w0[:] = self.views["wq"], self.views["xbar"], self.views["w0"]
+        a0[:] = (W0.T @ W0).ravel(order="F")
 
     def _slot_args(self, lo, hi, complete):
+        """The per-slot inputs of the chunk of slots ``lo:hi`` (see :meth:`_sequences`)."""
         nx, ny, nu = self.nx, self.ny, self.nu
         v = self.views
         wy = v["wr"] if complete else v["wy"][lo * ny * ny:hi * ny * ny]
-        return [self.gn._xbuf[lo * nx:hi * nx], self.xnext[lo * nx:hi * nx],
-                v["y"][lo * ny:hi * ny], wy, v["up"][lo * nu:hi * nu], self.a[lo:hi],
-                v["u"][lo * self.nw:hi * self.nw], self.om[lo:hi], self.link[lo:hi]]
+        x, xn, y, up, u = (self.gn._xbuf[lo * nx:hi * nx], self.xnext[lo * nx:hi * nx],
+                           v["y"][lo * ny:hi * ny], v["up"][lo * nu:hi * nu],
+                           v["u"][lo * self.nw:hi * self.nw])
+        if self.gn.full:  # the bookkeeping is constant
+            return [x, xn, y, wy, up, u]
+        return [x, xn, y, wy, up, self.a[lo:hi], u, self.om[lo:hi], self.link[lo:hi]]
 
 
 class ChunkedIteration:
@@ -318,7 +348,10 @@ class ChunkedIteration:
         init.append(np.zeros(nx))
         if self.bounded:
             init.append(np.ones(nx))
-        self.carries = [init] + [[np.zeros_like(a) for a in init] for _ in range(M)]
+        # one vector each (see Chunked._forward_chunk), and views of the last one's parts
+        layout = carry_layout([a.size for a in init])
+        self.carries = [np.concatenate(init)] + [np.zeros(layout[-1]) for _ in range(M)]
+        self._last = [self.carries[-1][a:b] for a, b in itertools.pairwise(layout)]
         # per-slot outputs: per chain Vs, vs, L; then g, cost; with bounds free, diag
         shapes = [nx * nx, nx, nx * nx] * self.chains + [nx, 1] + ([nx, nx] if self.bounded
                                                                   else []) + \
@@ -342,8 +375,7 @@ class ChunkedIteration:
         return other
 
     def shared(self):
-        v = self.ch.views
-        return [v["wq"], v["xbar"], v["w0"], self.ch.a0] + ([self.lam] if self.damped else [])
+        return [self.ch.shared] + ([self.lam] if self.damped else [])
 
     def forward(self):
         ch = self.ch
@@ -351,15 +383,15 @@ class ChunkedIteration:
             shapes = [len(a) // ch.N for a in self.slot_out]
             self._fwd_calls = ch.calls(
                 (ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
-                                   self.damped, ch._constants(lo, hi)),
-                 self.carries[c] + ch._slot_args(lo, hi, self.complete) + self._shared,
-                 self.carries[c + 1] + [a[lo * n:hi * n] for a, n in
-                                        zip(self.slot_out, shapes, strict=True)])
+                                   self.damped, ch._kind(lo, hi)),
+                 [self.carries[c]] + ch._slot_args(lo, hi, self.complete) + self._shared,
+                 [self.carries[c + 1]] + [a[lo * n:hi * n] for a, n in
+                                          zip(self.slot_out, shapes, strict=True)])
                 for c, (lo, hi) in enumerate(ch.chunks))
         ch.prepare()
-        for call, _ in self._fwd_calls:
+        for call in self._fwd_calls:
             call()
-        return self.carries[-1]
+        return self._last
 
     def _backward_calls(self):
         """Per chain, the backward chunks from the last: ``d_j`` from ``d_{j+1}`` and
@@ -393,7 +425,7 @@ class ChunkedIteration:
             ch.last_buf[1][:] = z
             ch.last_buf[3]()
             d[-nx:] = ch.last_buf[2]
-            for call, _ in self._bwd_calls[c]:
+            for call in self._bwd_calls[c]:
                 call()
             if self.bounded:  # fixed variables: a step scaled by the Gauss-Newton diagonal
                 free, diag = self.slot_out[-2], self.slot_out[-1]
@@ -412,14 +444,12 @@ class ChunkedCost:
     def evaluate(self):
         ch = self.ch
         if self._calls is None:
-            v = ch.views
-            shared = [v["wq"], v["xbar"], v["w0"], ch.a0]
             self._calls = ch.calls(
-                (ch._cost_chunk(hi - lo, self.complete, ch._constants(lo, hi)),
-                 ch._slot_args(lo, hi, self.complete) + shared, [self.parts[c:c + 1]])
+                (ch._cost_chunk(hi - lo, self.complete, ch._kind(lo, hi)),
+                 ch._slot_args(lo, hi, self.complete) + [ch.shared], [self.parts[c:c + 1]])
                 for c, (lo, hi) in enumerate(ch.chunks))
         ch.prepare()
-        for call, _ in self._calls:
+        for call in self._calls:
             call()
         self.out[0][0] = self.parts.sum()
         return self.out
@@ -462,7 +492,7 @@ class ChunkedCovariances:
                   L[(lo + 1) * n2:(hi + 1) * n2], inv_D[(lo + 1) * nx:(hi + 1) * nx]],
                  [P[lo * n2:hi * n2]])
                 for lo, hi in reversed(ch.tchunks))
-        for call, _ in self._calls:
+        for call in self._calls:
             call()
         return self.out
 
@@ -489,6 +519,6 @@ class ChunkedRoll:
                 for lo, hi in ch.tchunks)
         ch.prepare()
         out[:nx] = x[:nx] + alpha[0] * d[:nx]
-        for call, _ in self._calls:
+        for call in self._calls:
             call()
         return self.out

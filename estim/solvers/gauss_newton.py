@@ -100,7 +100,7 @@ AUTO_UNROLL_INSTRUCTIONS = 2_200_000
 #: :data:`MIN_CHUNK_SLOTS` and at most :data:`CHUNK_SLOTS` (with ``jit``: 16, compiled
 #: in about two seconds instead of ten, and as fast), in a loop of at most
 #: :data:`MAX_CHUNKS` calls (longer chunks for longer records). Building grows with the
-#: chunk (a function per task), binding the buffers of the loop (about 50 microseconds
+#: chunk (a function per task), binding the buffers of the loop (about 25 microseconds
 #: a chunk and task) and its overhead per call (a microsecond) with their number, so
 #: that their sum is least near :math:`\sqrt{N}`: on the Silverbox (7 states) at 2000
 #: samples, chunks of 16-24 slots build and bind in 0.06 s, chunks of 48 in 0.09 s,
