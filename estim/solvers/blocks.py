@@ -119,12 +119,12 @@ def sym_product(A, B) -> ca.SX:
     """:math:`A^\\top B` for a product known to be symmetric: the lower triangle is
     computed, the upper one mirrors it (same SX nodes)."""
     n = A.shape[1]
-    out = ca.SX(n, n)
-    for i in range(n):
-        for j in range(i + 1):
-            out[i, j] = ca.dot(A[:, i], B[:, j])
-            out[j, i] = out[i, j]
-    return out
+    a, b = ca.horzsplit(A), ca.horzsplit(B)
+    out: list[Any] = [None] * (n * n)  # column-major
+    for j in range(n):
+        for i in range(j, n):
+            out[i + j * n] = out[j + i * n] = ca.dot(a[i], b[j])
+    return ca.reshape(ca.vertcat(*out), n, n)
 
 
 def gram(A) -> ca.SX:

@@ -151,24 +151,29 @@ class Chunked:
         return (lo == 0, hi == self.N) if self.gn.full else None
 
     def _sequences(self, L, complete, kind):
-        """The per-slot symbols of a chunk of ``L`` slots, and the inputs among them.
+        """The per-slot symbols of a chunk of ``L`` slots, ``{name: [column of each
+        slot]}``, and the inputs among them.
 
         A full record's window bookkeeping (arrival weight ``a``, ``om``, ``link``) is
         constant, as in the unrolled graph: ``a`` is 1 at the first slot, ``link`` 0 at
         the last, ``om`` 1; they fold away and are no inputs. In a window they are
-        data."""
+        data. With ``complete`` every slot has the same output weight ``wy``."""
         sym = ca.SX.sym
         seq = {k: sym(k, n, L) for k, n in self.sizes.items()}
         if complete:
             seq["wy"] = sym("wy", self.ny * self.ny)
         if kind is None:
-            return seq, list(seq.values())
-        inputs = [v for k, v in seq.items() if k not in ("a", "om", "link")]
-        first, last = kind
-        a, link = np.zeros(L), np.ones(L)
-        a[0], link[-1] = float(first), float(not last)
-        seq.update(a=ca.DM(a).T, om=ca.DM.ones(1, L), link=ca.DM(link).T)
-        return seq, inputs
+            inputs = list(seq.values())
+        else:
+            inputs = [v for k, v in seq.items() if k not in ("a", "om", "link")]
+            first, last = kind
+            a, link = np.zeros(L), np.ones(L)
+            a[0], link[-1] = float(first), float(not last)
+            seq.update(a=ca.DM(a).T, om=ca.DM.ones(1, L), link=ca.DM(link).T)
+        cols = {k: ca.horzsplit(v) for k, v in seq.items()}
+        if complete:
+            cols["wy"] = [seq["wy"]] * L
+        return cols, inputs
 
     def _shared_symbols(self):
         """The inputs every slot shares, as one vector (:attr:`shared`): ``wq``,
@@ -193,11 +198,8 @@ class Chunked:
             sh, wq, *rest = self._shared_symbols()
             lam = [ca.SX.sym("lam")] if damped else []
             slots = []
-            for j in range(L):
-                wy = seq["wy"] if complete else seq["wy"][:, j]
-                res = step(*c, seq["x"][:, j], seq["xn"][:, j], seq["y"][:, j], wy,
-                           seq["up"][:, j], seq["a"][j], seq["u"][:, j], seq["om"][j],
-                           wq, seq["link"][j], *rest, *lam)
+            for x, xn, y, wy, up, a, u, om, link in zip(*seq.values(), strict=True):
+                res = step(*c, x, xn, y, wy, up, a, u, om, wq, link, *rest, *lam)
                 c, slots = res[:n_carry], slots + [res[n_carry:]]
             outs = [ca.vertcat(*[ca.vec(ca.densify(o)) for o in c])] + \
                 [ca.horzcat(*col) for col in zip(*slots, strict=True)]
@@ -239,12 +241,9 @@ class Chunked:
             seq, inputs = self._sequences(L, complete, kind)
             sh, wq, xbar, w0, a0 = self._shared_symbols()
             total = ca.SX(0)
-            for j in range(L):
-                wy = seq["wy"] if complete else seq["wy"][:, j]
-                total += self.st.meas_cost(seq["x"][:, j], seq["y"][:, j], wy, seq["up"][:, j],
-                                           seq["a"][j], xbar, w0, a0)
-                total += seq["link"][j] * self.st.trans_cost(
-                    seq["x"][:, j], seq["xn"][:, j], seq["u"][:, j], seq["om"][j], wq)
+            for x, xn, y, wy, up, a, u, om, link in zip(*seq.values(), strict=True):
+                total += self.st.meas_cost(x, y, wy, up, a, xbar, w0, a0)
+                total += link * self.st.trans_cost(x, xn, u, om, wq)
             return ca.Function(f"cost_chunk_{L}", inputs + [sh], [total])
         return self._compiled(("cost", L, complete, kind), build)
 

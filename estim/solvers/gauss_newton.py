@@ -86,7 +86,7 @@ from estim.solvers.chunked import (
 from estim.solvers.globalisation import Globalised
 from estim.solvers.stages import Slots, StageFunctions, forward_scan
 
-__all__ = ["StructuredGaussNewton", "full_record_constants"]
+__all__ = ["StructuredGaussNewton", "chunk_slots", "full_record_constants"]
 
 #: ``mode="auto"`` expands the graph while it has at most this many instructions (the
 #: slots times the instructions of one slot's forward step: about 4200 slots of the
@@ -124,6 +124,17 @@ MAX_CHUNKS = 1024
 #: 0.05 s at any length where the expanded graph takes 0.3 s at 1000 slots of the
 #: Lorenz model, and evaluate about as fast (1.1 ms against 0.7 ms there).
 COVARIANCE_UNROLL_SLOTS = 256
+
+
+def chunk_slots(n: int) -> int:
+    """The mapped mode's chunk length for ``n`` alike slots: about :math:`\\sqrt{n/5}`
+    (see :data:`CHUNK_SLOTS`), moved by up to a quarter to the length that leaves the
+    fewest slots over (each of which is a call of its own, and the first of them a
+    function to build), the nearest such."""
+    base = max(min(CHUNK_SLOTS, max(MIN_CHUNK_SLOTS, round((n / 5) ** 0.5))),
+               -(-n // MAX_CHUNKS))
+    near = range(max(1, base - base // 4), base + base // 4 + 1)
+    return min(near, key=lambda L: (n % L, abs(L - base)))
 
 
 def full_record_constants(N: int) -> tuple[ca.DM, ca.DM]:
@@ -289,9 +300,8 @@ class StructuredGaussNewton(Globalised):
     def _build_chunked(self, key: str, complete: bool):
         """The mapped mode's function ``key``: loops over chunks (see :class:`Chunked`)."""
         if self._chunked is None:
-            chunk = JIT_CHUNK_SLOTS if self.jit else max(
-                min(CHUNK_SLOTS, max(MIN_CHUNK_SLOTS, round((self.N / 5) ** 0.5))),
-                -(-self.N // MAX_CHUNKS))
+            chunk = JIT_CHUNK_SLOTS if self.jit else chunk_slots(
+                self.N - 2 if self.full and self.N > 2 else self.N)
             self._chunked = Chunked(self, chunk, self.jit)
         ch, nx = self._chunked, self.model.nx
         if key == "cost":
