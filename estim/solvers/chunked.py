@@ -356,21 +356,20 @@ class ChunkedIteration:
                                                                   else []) + \
             ([nx] * self.chains if covariance else [])  # (the reciprocals of D last)
         self.slot_out = [np.zeros(n * N) for n in shapes]
-        self.d = [np.zeros(N * nx) for _ in range(self.chains)]
+        self.d = [np.zeros(N * nx) for _ in range(self.chains)]  # (scratch)
         self.out = [np.zeros(1), np.zeros(N * nx)] + [np.zeros(N * nx)
                                                       for _ in range(self.chains)]
         self.lam = np.zeros(1)
         self._shared = self.shared()
-        self._fwd_calls: list | None = None  # built on first use (see Chunked.calls)
-        self._bwd_calls: list | None = None
+        # the chunk loops, "fwd" and "bwd", bound on first use (see Chunked.calls) and
+        # shared with the twins, as the scratch they work on is
+        self._loops: dict[str, list] = {}
 
     def twin(self) -> ChunkedIteration:
         """The same function with its own output buffers (the scratch, and with it the
-        forward calls, is shared)."""
+        chunk loops, is shared)."""
         other = copy.copy(self)
         other.out = [np.zeros_like(a) for a in self.out]
-        other.d = [np.zeros_like(a) for a in self.d]
-        other._bwd_calls = None
         return other
 
     def shared(self):
@@ -378,9 +377,9 @@ class ChunkedIteration:
 
     def forward(self):
         ch = self.ch
-        if self._fwd_calls is None:
+        if "fwd" not in self._loops:
             shapes = [len(a) // ch.N for a in self.slot_out]
-            self._fwd_calls = ch.calls(
+            self._loops["fwd"] = ch.calls(
                 (ch._forward_chunk(self.step, hi - lo, self.n_carry, self.complete,
                                    self.damped, ch._kind(lo, hi)),
                  [self.carries[c]] + ch._slot_args(lo, hi, self.complete) + self._shared,
@@ -388,7 +387,7 @@ class ChunkedIteration:
                                           zip(self.slot_out, shapes, strict=True)])
                 for c, (lo, hi) in enumerate(ch.chunks))
         ch.prepare()
-        for call in self._fwd_calls:
+        for call in self._loops["fwd"]:
             call()
         return self._last
 
@@ -415,8 +414,8 @@ class ChunkedIteration:
         g, cost = self.slot_out[3 * self.chains], self.slot_out[3 * self.chains + 1]
         self.out[0][0] = cost.sum()
         self.out[1][:] = g
-        if self._bwd_calls is None:
-            self._bwd_calls = self._backward_calls()
+        if "bwd" not in self._loops:
+            self._loops["bwd"] = self._backward_calls()
         for c in range(self.chains):
             S, z = last[4 * c], last[4 * c + 1]
             d = self.d[c]
@@ -424,7 +423,7 @@ class ChunkedIteration:
             ch.last_buf[1][:] = z
             ch.last_buf[3]()
             d[-nx:] = ch.last_buf[2]
-            for call in self._bwd_calls[c]:
+            for call in self._loops["bwd"][c]:
                 call()
             if self.bounded:  # fixed variables: a step scaled by the Gauss-Newton diagonal
                 free, diag = self.slot_out[-2], self.slot_out[-1]
