@@ -36,6 +36,7 @@ There are no timing assertions; the numbers depend on the machine.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import platform
@@ -59,33 +60,65 @@ from silverbox_model import fit_estim, fit_least_squares  # noqa: E402 - the two
 #: the estim fit's process noise, relative (q for the states, q_θ for the parameters)
 Q, Q_PARAM = 1e-8, 1e-14
 DEFAULT_CASES = ["2000:foh", "10000:zoh"]
-#: estim's relative-decrease tolerance (``solver_options={"ftol": ...}``): least_squares
-#: stops on its ``ftol = 1e-8`` (the reductions of the last step), estim here at a
-#: hundredth of it (``--ftol default`` runs estim's own default, 1e-13)
-FTOL = 1e-10
+#: estim's relative-decrease tolerance (``solver_options={"ftol": ...}``): least_squares'
+#: own ``ftol = 1e-8`` (it stops once the last step reduced the cost by less than that
+#: fraction, estim once the next Gauss-Newton step promises less, and takes it);
+#: ``--ftol default`` runs estim's own default, 1e-13
+FTOL = 1e-8
 
 
-def run(samples: int, hold: str, ftol: float | None = FTOL) -> dict:
-    """One run in this process: least_squares, then estim's first and second fits."""
+class FullCollections:
+    """Counts Python's full (generation-2) garbage collections that the interpreter
+    starts on its own (:meth:`collect` runs one that is not counted)."""
+
+    def __init__(self) -> None:
+        self.count, self._explicit = 0, False
+        gc.callbacks.append(self._seen)
+
+    def _seen(self, phase: str, info: dict) -> None:
+        if phase == "start" and info["generation"] == 2 and not self._explicit:
+            self.count += 1
+
+    def collect(self) -> None:
+        """``gc.collect()``, not counted."""
+        self._explicit = True
+        try:
+            gc.collect()
+        finally:
+            self._explicit = False
+
+
+def run(samples: int, hold: str, ftol: float | None = FTOL, collect: bool = True) -> dict:
+    """One run in this process: least_squares, then estim's first and second fits, each
+    timed from a collected heap (``collect``: ``gc.collect()`` before it, untimed)."""
     data = load()
     u, y = data.u_train[:samples], data.y_train[:samples]
+    full = FullCollections()
+    if collect:
+        full.collect()
     t0 = time.perf_counter()
     ls = fit_least_squares(u, y, hold, method="trf")
     ls_s = time.perf_counter() - t0
+    ls_full = full.count
     options = None if ftol is None else {"ftol": ftol}
-    fit = fit_estim(u, y, hold, "gauss-newton", Q, Q_PARAM, options, "measured", foh="native")
+    if collect:
+        full.collect()
+    fit = fit_estim(u, y, hold, "gauss-newton", Q, Q_PARAM, options, "measured", foh="native",
+                    collect=full.collect if collect else None)
     return {"samples": samples, "hold": hold, "ls_s": ls_s, "ls_build_s": ls.build_seconds,
             "ls_nfev": ls.nfev, "first_s": fit.first_seconds, "build_s": fit.build_seconds,
             "second_s": fit.second_seconds, "solve_s": fit.solve_seconds,
             "iterations": fit.iterations, "success": fit.success,
             "agreement": float(np.max(np.abs(fit.theta / ls.theta - 1))),
+            "full_collections": [ls_full, full.count - ls_full],
             "theta": fit.theta.tolist(), "theta_ls": ls.theta.tolist()}
 
 
-def run_isolated(samples: int, hold: str, ftol: float | None) -> dict:
+def run_isolated(samples: int, hold: str, ftol: float | None, collect: bool) -> dict:
     """:func:`run` in a fresh process."""
     proc = subprocess.run([sys.executable, __file__, "--run", f"{samples}:{hold}", "--ftol",
-                           "default" if ftol is None else repr(ftol)], cwd=ROOT,
+                           "default" if ftol is None else repr(ftol)]
+                          + ([] if collect else ["--no-collect"]), cwd=ROOT,
                           capture_output=True, text=True)
     if proc.returncode != 0:
         raise RuntimeError(proc.stderr.strip().splitlines()[-1])
@@ -112,18 +145,21 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--cases", type=case, nargs="+", default=[case(c) for c in DEFAULT_CASES])
     parser.add_argument("--ftol", type=lambda v: None if v == "default" else float(v),
-                        default=FTOL, help="estim's ftol, or 'default' (default 1e-10)")
+                        default=FTOL, help="estim's ftol, or 'default' (default 1e-8)")
+    parser.add_argument("--no-collect", dest="collect", action="store_false",
+                        help="time without gc.collect() before each timed section")
     parser.add_argument("--run", type=case, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.run:
-        print(json.dumps(run(*args.run, ftol=args.ftol)))
+        print(json.dumps(run(*args.run, ftol=args.ftol, collect=args.collect)))
         return {}
     print(f"estim {estim.__version__}, casadi {ca.__version__}, scipy {scipy.__version__}, "
           f"numpy {np.__version__}, Python {platform.python_version()}, "
           f"{platform.machine()}, {os.cpu_count()} CPUs; estim from {Path(estim.__file__).parent}")
     rows = {}
     for n, hold in args.cases:
-        rows[n, hold] = [run_isolated(n, hold, args.ftol) for _ in range(args.runs)]
+        rows[n, hold] = [run_isolated(n, hold, args.ftol, args.collect)
+                         for _ in range(args.runs)]
     ftol = "default (1e-13)" if args.ftol is None else f"{args.ftol:g}"
     print(f"\nSilverbox, q = {Q:g}, q_θ = {Q_PARAM:g}, 'measured' start, estim's ftol "
           f"{ftol} (least_squares' 1e-8); median [range] of {args.runs} processes, seconds\n")
@@ -146,6 +182,11 @@ def main(argv: list[str] | None = None) -> dict:
               f"solve {stat([r['solve_s'] for r in rs], '.3f')} (2nd fit); least_squares "
               f"build {stat([r['ls_build_s'] for r in rs], '.3f')}")
     print("agreement: max over the runs of max_i |θ_i(estim) / θ_i(least_squares) - 1|.")
+    print("full garbage collections inside the timed sections (least_squares, estim's two "
+          "fits), over the runs, " + ("each section timed after gc.collect()" if args.collect
+                                      else "without gc.collect()") + ": " + ", ".join(
+        f"{n} {hold.upper()} {sum(r['full_collections'][0] for r in rs)} / "
+        f"{sum(r['full_collections'][1] for r in rs)}" for (n, hold), rs in rows.items()))
     return rows
 
 
