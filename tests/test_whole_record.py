@@ -9,9 +9,18 @@ import pytest
 from models import two_tanks
 
 import estim
+from estim.estimators import fused_calls
 
 TOL = 1e-12
 FILTERS = pytest.mark.parametrize("F", [estim.EKF, estim.UKF], ids=["ekf", "ukf"])
+
+
+@pytest.fixture(params=[None, 7], ids=["one-call", "windows-of-7"])
+def window(request, monkeypatch):
+    """The record in one Function, or in windows of 7 samples (the last one padded)."""
+    if request.param is not None:
+        monkeypatch.setattr(fused_calls, "RECORD_WINDOW", request.param)
+    return request.param
 
 
 def _same(est, Y, U=None, t=None):
@@ -81,7 +90,7 @@ def test_a_record_of_one_sample_and_all_missing(F):
 
 @pytest.mark.parametrize("hold", ["zoh", "foh"])
 @FILTERS
-def test_a_model_with_inputs(hold, F):
+def test_a_model_with_inputs(hold, F, window):
     m = estim.Model(states=["q", "v"], outputs=["q"], inputs=["u"],
                     ode=lambda x, u, p: ca.vertcat(x[1], -49 * x[0] - 1.4 * x[1] + 3 * u[0]),
                     output=lambda x, u, p: x[0] + 0.1 * u[0], dt=0.05, hold=hold)
@@ -96,7 +105,7 @@ def test_a_model_with_inputs(hold, F):
 
 
 @FILTERS
-def test_irregular_time_stamps(F):
+def test_irregular_time_stamps(F, window):
     m = estim.Model(states=["x1", "x2"], outputs=["y"], inputs=["u"],
                     ode=lambda x, u, p: ca.vertcat(x[1], (1 - x[0] ** 2) * x[1] - x[0] + u[0]),
                     output=lambda x, u, p: x[0], dt=0.1, variable_dt=True)
@@ -110,7 +119,7 @@ def test_irregular_time_stamps(F):
 
 @pytest.mark.parametrize("gate", [None, 1e-6])
 @FILTERS
-def test_outliers_suspect_and_gated(gate, F):
+def test_outliers_suspect_and_gated(gate, F, window):
     sc = estim.scenarios.van_der_pol(n_steps=120)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
     Y = _missing(log.y)
@@ -125,7 +134,7 @@ def test_outliers_suspect_and_gated(gate, F):
 
 @pytest.mark.parametrize("gate", [None, 1e-6])
 @FILTERS
-def test_non_finite_updates_finish_with_the_step_loop(gate, F):
+def test_non_finite_updates_finish_with_the_step_loop(gate, F, window):
     """Suspect or gated steps, then an estimate clipped to an empty tank: the recovery
     (re-anchoring on the last trusted estimate) is the step loop's."""
     m = two_tanks()
@@ -149,7 +158,7 @@ def test_non_finite_updates_finish_with_the_step_loop(gate, F):
 
 
 @FILTERS
-def test_tuning_is_data(F):
+def test_tuning_is_data(F, window):
     sc = estim.scenarios.van_der_pol(n_steps=60)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
     est = F(sc.model, **sc.tuning, gate=1e-6)
@@ -167,4 +176,24 @@ def test_a_few_record_lengths_are_kept(F):
     est = F(sc.model, **sc.tuning)
     for T in range(5, 40, 3):
         _same(est, log.y[:T])
-    assert len(est._whole_records) == 8 and (38, True) in est._whole_records
+    assert len(est._whole_records) == 8 and (38, True, True) in est._whole_records
+
+
+@FILTERS
+def test_long_records_in_windows_equal_one_call(F, monkeypatch):
+    """Windows continued one from the other give the single Function's numbers bit for
+    bit, whatever the record's length, from two Functions (the first window and a
+    continued one)."""
+    sc = estim.scenarios.van_der_pol(n_steps=100)
+    log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
+    Y = _missing(log.y)
+    whole = [F(sc.model, **sc.tuning).filter(Y[:T]) for T in (23, 100)]
+    monkeypatch.setattr(fused_calls, "RECORD_WINDOW", 8)
+    est = F(sc.model, **sc.tuning)
+    for T, ref in zip((23, 100), whole, strict=True):
+        res = est.filter(Y[:T])
+        for a, b in ((res.x, ref.x), (res.P, ref.P), (res.nis, ref.nis),
+                     (res.innovation, ref.innovation)):
+            assert np.array_equal(a, b, equal_nan=True)
+        assert res.status == ref.status
+    assert set(est._whole_records) == {(8, True, True), (8, True, False)}

@@ -26,7 +26,7 @@ from estim._validate import as_inputs, as_intervals, as_record
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
 from estim.estimators.filtering import FilterResult
-from estim.estimators.fused_calls import filter_seeds, record_call, step_calls
+from estim.estimators.fused_calls import filter_seeds, record_call, scan_record, step_calls
 from estim.estimators.square_root import (
     P0_data,
     covariance,
@@ -200,7 +200,10 @@ class FusedKalman(Estimator):
         The fused step of :meth:`step` (prediction, update, clipping, the NIS and
         its flags) is scanned over the record by one CasADi Function (``mapaccum`` in
         blocks of about :math:`\sqrt T` steps, built once per record length and
-        kept), which gives what :func:`~estim.replay` or :meth:`step` at every sample
+        kept; a record longer than
+        :data:`~estim.estimators.fused_calls.RECORD_WINDOW` samples in windows of that
+        length, continued one from the other, two Functions whatever its length),
+        which gives what :func:`~estim.replay` or :meth:`step` at every sample
         gives, to rounding: the same inputs (held or sampled), missing outputs (NaN)
         and ``t``. A suspect step keeps its update; a step beyond ``gate`` keeps the
         prediction with ``P0`` added, inside the scan too. A failed update (not
@@ -239,8 +242,7 @@ class FusedKalman(Estimator):
         W = m.step_transitions(steps_u, None if dts is None else
                                np.concatenate([[m.dt], dts]))
         self.reset()
-        S, E, F = (a.reshape(T, -1).T for a in self._whole_record(T)(
-            self._s, Y.T, W.T, self._tun, self._P0_data))
+        S, E, F = (a.T for a in scan_record(self, Y, W))
         failed = np.flatnonzero(F[1] == 0)
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nd, nd), np.nan)

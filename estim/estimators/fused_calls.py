@@ -29,11 +29,18 @@ from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
 if TYPE_CHECKING:
     from estim.estimators.fused import FusedKalman
 
-__all__ = ["JitFunction", "SeedFilter", "filter_seeds", "record_call", "step_calls"]
+__all__ = ["RECORD_WINDOW", "JitFunction", "SeedFilter", "filter_seeds", "record_call",
+           "scan_record", "step_calls"]
 
 #: :meth:`~estim.estimators.fused.FusedKalman.filter` keeps its Function for this many
 #: record lengths.
 RECORD_LENGTHS_KEPT = 8
+#: A record longer than this many samples is filtered in windows of this length (the last
+#: one padded with missing outputs), continued one from the other: two Functions to build
+#: (the first window and a continued one), whatever the length, where one Function for
+#: the whole record takes time and memory that grow with it (10^6 samples of van der
+#: Pol's EKF: 63 s and 4.9 GB to build).
+RECORD_WINDOW = 4096
 
 
 class JitFunction(FastFunction):
@@ -77,19 +84,20 @@ def step_calls(est: FusedKalman, bound: list) -> tuple[FastFunction, FastFunctio
     return JitFunction(funs[0], bound), JitFunction(funs[1], bound)  # loaded: at once
 
 
-def record_call(est: FusedKalman, T: int, expand: bool = True) -> FastFunction:
+def record_call(est: FusedKalman, T: int, expand: bool = True, first: bool = True
+                ) -> FastFunction:
     """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
-    (:func:`estim.solvers.kalman.record_function`), kept in ``est`` for the last
-    :data:`RECORD_LENGTHS_KEPT` record lengths. ``expand``: inlined for CasADi's
-    interpreter, or, when ``est.jit``, compiled (the step's code once, called in
-    loops); not ``expand``: the form to compile, not compiled."""
+    (:func:`estim.solvers.kalman.record_function`; not ``first``: a record continued),
+    kept in ``est`` for the last :data:`RECORD_LENGTHS_KEPT` record lengths. ``expand``:
+    inlined for CasADi's interpreter, or, when ``est.jit``, compiled (the step's code
+    once, called in loops); not ``expand``: the form to compile, not compiled."""
     cache = est.__dict__.setdefault("_whole_records", {})
-    if (T, expand) in cache:
-        return cache[T, expand]
+    if (T, expand, first) in cache:
+        return cache[T, expand, first]
 
     def make(inlined: bool) -> ca.Function:
         return record_function(f"{est.name}_record", est.model, est._build, T,
-                               expand=inlined, sqrt=est._sqrt)
+                               expand=inlined, sqrt=est._sqrt, first=first)
 
     fun: FastFunction | None = None
     if est.jit and expand:
@@ -100,8 +108,39 @@ def record_call(est: FusedKalman, T: int, expand: bool = True) -> FastFunction:
         fun = FastFunction(make(expand))
     if len(cache) >= RECORD_LENGTHS_KEPT:  # the oldest length goes
         del cache[next(iter(cache))]
-    cache[T, expand] = fun
+    cache[T, expand, first] = fun
     return fun
+
+
+def scan_record(est: FusedKalman, Y: np.ndarray, W: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fused step over the record ``Y (T, ny)`` with the transitions' inputs ``W (T,
+    nw)`` from ``est``'s state: the filter states ``(T, ns)``, innovations ``(T, ny)``
+    and flags ``(T, 8)``, sample by sample (:func:`record_call`; in windows of
+    :data:`RECORD_WINDOW` samples beyond that length). After a window with a failed
+    update the later windows are not filtered: their rows stay NaN."""
+    T, ny = Y.shape
+    if T <= RECORD_WINDOW:
+        S, E, F = record_call(est, T)(est._s, Y.T, W.T, est._tun, est._P0_data)
+        return S.reshape(T, -1), E.reshape(T, -1), F.reshape(T, -1)
+    L = RECORD_WINDOW
+    n = -(-T // L)
+    Yp = np.full((n * L, ny), np.nan)  # missing outputs after the record: predictions
+    Yp[:T] = Y
+    Wp = np.empty((n * L, W.shape[1]))
+    Wp[:T], Wp[T:] = W, W[-1]
+    ns = est._s.size
+    out = [np.full((n * L, k), np.nan) for k in (ns, ny, 8)]
+    s = est._s.copy()
+    for k in range(n):
+        rows = slice(k * L, (k + 1) * L)
+        fun = record_call(est, L, first=k == 0)
+        fun.evaluate_on([s, Yp[rows].ravel(), Wp[rows].ravel(), est._tun, est._P0_data],
+                        [o[rows].reshape(-1) for o in out])
+        if (out[2][rows, 1] == 0).any():  # a failed update: the step loop takes over
+            break
+        s = out[0][(k + 1) * L - 1].copy()
+    return out[0][:T], out[1][:T], out[2][:T]
 
 
 class SeedFilter:

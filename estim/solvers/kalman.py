@@ -99,17 +99,20 @@ def fused_function(name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf, 
 
 
 def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Function], T: int,
-                    expand: bool = True, sqrt: bool = False) -> ca.Function:
+                    expand: bool = True, sqrt: bool = False, first: bool = True
+                    ) -> ca.Function:
     """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step ``build(predict)`` over
-    ``T`` samples (the first an update only), the filter state, innovation and flags of
-    every sample side by side; a gated step keeps the prediction with ``P0`` added.
+    ``T`` samples (the first an update only; not ``first``: every one a prediction and
+    an update, a record continued from the filter state ``s0``), the filter state,
+    innovation and flags of every sample side by side; a gated step keeps the prediction
+    with ``P0`` added.
     With ``sqrt``, the filter state holds the lower factor ``S`` of ``P`` and the input
     ``P0`` the Cholesky factor of ``P0``: a gated step keeps the factor
     ``tria([S_prior, chol(P0)])`` (:func:`estim.solvers.triangular.tria`).
     Scanned in blocks of about :math:`\\sqrt T` steps (:func:`estim._scan.blocked_scan`);
     not ``expand``: the step is called in loops instead of inlined (the form to compile
     to C). The Functions are named ``{prefix}_first``, ``{prefix}_step`` and
-    ``{prefix}_{T}``."""
+    ``{prefix}_{T}`` (not ``first``: ``{prefix}_then_{T}``)."""
     m = model
     nx, ny, nw, nd = m.nx, m.ny, m.nw, m.ndx
 
@@ -132,11 +135,16 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
     s0 = ca.MX.sym("s0", nx + nd * nd)
     Y, W = ca.MX.sym("Y", ny, T), ca.MX.sym("W", nw, T)
     tun, P0 = ca.MX.sym("tuning", nd * nd + ny * ny), ca.MX.sym("P0", nd * nd)
-    s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
-    S, E, F = s1, e0, f0
-    if T > 1:
-        scan = blocked_scan(scanned(True), T - 1, (1, 2), expand=expand)
-        _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
-        S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
-    return ca.Function(f"{prefix}_{T}", [s0, Y, W, tun, P0], [S, E, F],
+    name = f"{prefix}_{T}"
+    if not first:
+        _, S, E, F = blocked_scan(scanned(True), T, (1, 2), expand=expand)(s0, W, Y, tun, P0)
+        name = f"{prefix}_then_{T}"
+    else:
+        s1, _, e0, f0 = scanned(False)(s0, W[:, 0], Y[:, 0], tun, P0)
+        S, E, F = s1, e0, f0
+        if T > 1:
+            scan = blocked_scan(scanned(True), T - 1, (1, 2), expand=expand)
+            _, S1, E1, F1 = scan(s1, W[:, 1:], Y[:, 1:], tun, P0)
+            S, E, F = ca.horzcat(s1, S1), ca.horzcat(e0, E1), ca.horzcat(f0, F1)
+    return ca.Function(name, [s0, Y, W, tun, P0], [S, E, F],
                        ["s0", "Y", "W", "tuning", "P0"], ["S", "innovation", "flags"])
