@@ -106,10 +106,10 @@ class Chunked:
         self.link[-1] = 0.0
         self.a = np.zeros(N)
         # the inputs every slot shares, one vector: wq, xbar, w0 and a0 = W0^T W0
-        self.shared = np.zeros(3 * nx * nx + nx)
-        self._shared_parts = [self.shared[a:b] for a, b in itertools.pairwise(
-            carry_layout([nx * nx, nx, nx * nx, nx * nx]))]
-        self.a0 = self._shared_parts[3]
+        self._shared_layout = carry_layout([nx * nx, nx, nx * nx, nx * nx])
+        self.shared = np.zeros(self._shared_layout[-1])
+        self._shared_parts = [self.shared[a:b]
+                              for a, b in itertools.pairwise(self._shared_layout)]
         sl = gn._slices
         p = gn._pbuf
         self.views = {"y": p[sl["y"]], "wy": p[sl["wy"]], "u": p[sl["u"]], "up": p[sl["up"]],
@@ -178,10 +178,8 @@ class Chunked:
     def _shared_symbols(self):
         """The inputs every slot shares, as one vector (:attr:`shared`): ``wq``,
         ``xbar``, ``w0``, ``a0``."""
-        nx = self.nx
         sh = ca.SX.sym("shared", self.shared.size)
-        wq, xbar, w0, a0 = ca.vertsplit(sh, list(np.cumsum([0, nx * nx, nx, nx * nx,
-                                                             nx * nx])))
+        wq, xbar, w0, a0 = ca.vertsplit(sh, self._shared_layout)
         return sh, wq, xbar, w0, a0
 
     def _forward_chunk(self, step, L, n_carry, complete, damped, kind=None):
