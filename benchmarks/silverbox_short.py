@@ -13,18 +13,25 @@ on the model augmented with its five parameters, from the same start (the
 Each run is a fresh process (``--run``): the imports first (``from estim import
 FullInformation`` included), then least_squares (build and solve), then estim's
 first fit (model, estimator, graphs built, solve: what a first call costs) and a
-second fit of the same estimator. Printed per case: the median and range over the
+second fit of the same estimator. Each timed section starts after ``gc.collect()``
+(untimed), so that a full collection of the objects the imports left (about 10^5, 40-50
+ms here) does not land in whichever section happens to cross Python's threshold
+(``--no-collect`` times without; the script counts the full collections that start
+inside each section either way). Printed per case: the median and range over the
 runs of each wall time, of the ratios estim / least_squares measured within each
 process, and the agreement of the optima, :math:`\max_i |\theta_i^{estim} /
 \theta_i^{lsq} - 1|` (the five parameters; it should stay below 1e-4).
 
-Measured (2-CPU x86_64 shared with other work, casadi 3.8.2, scipy 1.17; three
-processes each, the machine's load moving every wall time by up to 2x, the ratios
-less), estim with ``ftol = 1e-10``: at 2000 samples (FOH) estim's first fit takes 1.10x
-least_squares' wall time [1.02-1.10] (0.14 s against 0.13 s; building 0.03 s), its
-second fit 0.45x; at 10 000 samples (ZOH) 1.03x [0.81-1.03] (10 iterations; 12 and
-1.19x with estim's default ftol), the second fit 0.65x. The parameters agree with
-least_squares' to 1.6e-5 and 3.1e-6. least_squares stops on its own ``ftol = 1e-8``.
+estim runs at least_squares' own relative-reduction tolerance, ``ftol = 1e-8``
+(``--ftol``). Measured (2-CPU x86_64 shared with other work, casadi 3.8.2, scipy
+1.17; three processes each, the machine's load moving every wall time by up to 2x,
+the ratios less): at 2000 samples (FOH) estim's first fit takes 0.91x least_squares'
+wall time [0.82-0.99] (0.137 s against 0.148 s; 4 iterations), its second fit 0.41x;
+at 10 000 samples (ZOH) 0.64x [0.63-0.69] (8 iterations), the second fit 0.51x.
+Without the collections 0.86x [0.79-0.92] and 0.77x [0.73-0.89] (a full collection
+started inside estim's fits at 10 000 samples in each process); at ``ftol = 1e-10``
+1.00x [0.95-1.00] and 0.80x [0.75-0.87]. The parameters agree with least_squares' to
+1.6e-5 and 6.4e-6 (3.1e-6 at 1e-10).
 
 Run from the repository root::
 

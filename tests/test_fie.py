@@ -94,9 +94,23 @@ def test_lorenz_gauss_newton_and_ipopt_reach_the_same_optimum():
     assert np.sqrt(np.mean((res["gauss-newton"].x - log.x) ** 2)) < 0.1
 
 
+def test_chunk_length_leaves_fewest_slots_over():
+    """The mapped mode's chunk length stays within a quarter of sqrt(n/5) (between 16 and
+    64 slots, at most 1024 chunks) and, within that, leaves the fewest single slots."""
+    from estim.solvers.gauss_newton import chunk_slots
+    for n in (5, 98, 148, 1998, 2000, 9998, 10000, 40000, 123457):
+        L = chunk_slots(n)
+        base = max(min(64, max(16, round((n / 5) ** 0.5))), -(-n // 1024))
+        near = range(base - base // 4, base + base // 4 + 1)
+        assert L in near
+        assert n % L == min(n % k for k in near)
+    assert chunk_slots(1998) == 18 and chunk_slots(2000) == 20  # 111 and 100 chunks
+
+
 def test_mapped_and_unrolled_modes_agree():
-    """The chunked mapped graph (64-slot chunks plus a remainder) solves the same
-    problem: complete data, missing outputs, and active bounds."""
+    """The chunked mapped graph (chunks of 16 slots plus 4 single ones on the Lorenz
+    record, of 16 alone on the reactor's) solves the same problem: complete data, missing
+    outputs, and active bounds."""
     log = _lorenz_record(150, seed=1)
     m = estim.models.lorenz()
     Y = log.y.copy()
