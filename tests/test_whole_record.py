@@ -179,17 +179,18 @@ def test_a_few_record_lengths_are_kept(F):
     assert len(est._whole_records) == 8 and (38, True, True) in est._whole_records
 
 
+@pytest.mark.parametrize("form", ["covariance", "sqrt"])
 @FILTERS
-def test_long_records_in_windows_equal_one_call(F, monkeypatch):
+def test_long_records_in_windows_equal_one_call(F, form, monkeypatch):
     """Windows continued one from the other give the single Function's numbers bit for
     bit, whatever the record's length, from two Functions (the first window and a
     continued one)."""
     sc = estim.scenarios.van_der_pol(n_steps=100)
     log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)
     Y = _missing(log.y)
-    whole = [F(sc.model, **sc.tuning).filter(Y[:T]) for T in (23, 100)]
+    whole = [F(sc.model, **sc.tuning, form=form).filter(Y[:T]) for T in (23, 100)]
     monkeypatch.setattr(fused_calls, "RECORD_WINDOW", 8)
-    est = F(sc.model, **sc.tuning)
+    est = F(sc.model, **sc.tuning, form=form)
     for T, ref in zip((23, 100), whole, strict=True):
         res = est.filter(Y[:T])
         for a, b in ((res.x, ref.x), (res.P, ref.P), (res.nis, ref.nis),
