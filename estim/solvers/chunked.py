@@ -301,11 +301,7 @@ class Chunked:
         self.xnext[:-nx] = x[nx:]
         self.xnext[-nx:] = x[-nx:]
         p, sl = gn._pbuf, gn._slices
-        if gn.full:
-            self.om[:-1] = 1.0
-            self.a[:] = 0.0
-            self.a[0] = 1.0
-        else:
+        if not gn.full:  # (a full record's bookkeeping is constant, no input)
             self.om[:-1] = p[sl["omega"]]
             self.a[:] = p[sl["a"]]
         W0 = self.views["w0"].reshape(nx, nx, order="F")
