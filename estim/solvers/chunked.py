@@ -58,15 +58,15 @@ def split(lo: int, hi: int, chunk: int) -> list[tuple[int, int]]:
                                                                 for a in range(full, hi)]
 
 
-def carry_layout(sizes: Sequence[int]) -> list[int]:
-    """The offsets of the parts of a packed carry vector of parts of ``sizes``."""
+def offsets(sizes: Sequence[int]) -> list[int]:
+    """Where the parts of ``sizes`` start in one vector packing them, and its length."""
     return [int(v) for v in np.cumsum([0, *sizes])]
 
 
 def unpack(packed: ca.SX, sparsities: Sequence[ca.Sparsity]) -> list[ca.SX]:
     """The parts of the vector ``packed`` in the (dense) shapes of ``sparsities``,
-    column-major, as :func:`carry_layout` lays them out."""
-    parts = ca.vertsplit(packed, carry_layout([sp.numel() for sp in sparsities]))
+    column-major, as :func:`offsets` lays them out."""
+    parts = ca.vertsplit(packed, offsets([sp.numel() for sp in sparsities]))
     return [ca.reshape(p, sp.size1(), sp.size2()) for p, sp in zip(parts, sparsities,
                                                                     strict=True)]
 
@@ -83,15 +83,19 @@ class Chunked:
     equal the unrolled graph's up to rounding.
     """
 
-    def __init__(self, gn: StructuredGaussNewton, chunk: int, jit: bool):
+    def __init__(self, gn: StructuredGaussNewton, chunk_length: Callable[[int], int],
+                 jit: bool):
+        """``chunk_length(n)``: the chunk length for ``n`` alike slots."""
         self.gn, self.st = gn, gn._stages
         m, N = gn.model, gn.N
         self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, m.nw, N
         if gn.full and N > 2:
             # the first and last slots alone (the arrival term, the missing link): the
             # chunks between are alike, one function for all of them
+            chunk = chunk_length(N - 2)
             self.chunks = [(0, 1)] + split(1, N - 1, chunk) + [(N - 1, N)]
         else:
+            chunk = chunk_length(N)
             self.chunks = split(0, N, chunk)
         # transitions 0..N-2 in chunks, for the backward pass and the rollout
         self.tchunks = split(0, N - 1, chunk)
@@ -106,7 +110,7 @@ class Chunked:
         self.link[-1] = 0.0
         self.a = np.zeros(N)
         # the inputs every slot shares, one vector: wq, xbar, w0 and a0 = W0^T W0
-        self._shared_layout = carry_layout([nx * nx, nx, nx * nx, nx * nx])
+        self._shared_layout = offsets([nx * nx, nx, nx * nx, nx * nx])
         self.shared = np.zeros(self._shared_layout[-1])
         self._shared_parts = [self.shared[a:b]
                               for a, b in itertools.pairwise(self._shared_layout)]
@@ -123,6 +127,7 @@ class Chunked:
         b, ev = self.st.last.buffer()
         bind(b, (S, z), (dl,))
         self.last_buf = (S, z, dl, ev, b)
+        self.parameters_written()
 
     # ---------------------------------------------------------------- building
     def _compiled(self, key, build):
@@ -185,13 +190,13 @@ class Chunked:
     def _forward_chunk(self, step, L, n_carry, complete, damped, kind=None):
         """``L`` slots of the fused forward step
         (:meth:`~estim.solvers.stages.StageFunctions.fused`), ``kind`` as
-        :meth:`_kind`. The carry in and out is one vector (:func:`carry_layout`), the
+        :meth:`_kind`. The carry in and out is one vector (:func:`offsets`), the
         shared inputs another (:meth:`_shared_symbols`), so that binding a chunk's
         buffer takes few calls."""
         def build():
-            sizes = [step.sparsity_in(i) for i in range(n_carry)]
-            packed = ca.SX.sym("carry", sum(sp.numel() for sp in sizes))
-            c = unpack(packed, sizes)
+            sparsities = [step.sparsity_in(i) for i in range(n_carry)]
+            packed = ca.SX.sym("carry", sum(sp.numel() for sp in sparsities))
+            c = unpack(packed, sparsities)
             seq, inputs = self._sequences(L, complete, kind)
             sh, wq, *rest = self._shared_symbols()
             lam = [ca.SX.sym("lam")] if damped else []
@@ -293,21 +298,26 @@ class Chunked:
                 out.append(partial(self._call, self._buffer(fun), args, res))
         return out
 
-    def prepare(self):
-        """The per-call data derived from the buffers (shifted states, window
-        bookkeeping, the arrival weight's Gram matrix)."""
-        gn, nx = self.gn, self.nx
-        x = gn._xbuf
-        self.xnext[:-nx] = x[nx:]
-        self.xnext[-nx:] = x[-nx:]
-        p, sl = gn._pbuf, gn._slices
+    def parameters_written(self) -> None:
+        """The data derived from the solver's parameters (window bookkeeping, the shared
+        vector with the arrival weight's Gram matrix): at construction and whenever the
+        solver writes them (:meth:`StructuredGaussNewton._set_parameters
+        <estim.solvers.gauss_newton.StructuredGaussNewton._set_parameters>`)."""
+        gn, nx, v = self.gn, self.nx, self.views
         if not gn.full:  # (a full record's bookkeeping is constant, no input)
+            p, sl = gn._pbuf, gn._slices
             self.om[:-1] = p[sl["omega"]]
             self.a[:] = p[sl["a"]]
-        W0 = self.views["w0"].reshape(nx, nx, order="F")
+        W0 = v["w0"].reshape(nx, nx, order="F")
         wq, xbar, w0, a0 = self._shared_parts
-        wq[:], xbar[:], w0[:] = self.views["wq"], self.views["xbar"], self.views["w0"]
+        wq[:], xbar[:], w0[:] = v["wq"], v["xbar"], v["w0"]
         a0[:] = (W0.T @ W0).ravel(order="F")
+
+    def prepare(self):
+        """The per-call data derived from the point: the shifted states."""
+        nx, x = self.nx, self.gn._xbuf
+        self.xnext[:-nx] = x[nx:]
+        self.xnext[-nx:] = x[-nx:]
 
     def _slot_args(self, lo, hi, complete):
         """The per-slot inputs of the chunk of slots ``lo:hi`` (see :meth:`_sequences`)."""
@@ -342,7 +352,7 @@ class ChunkedIteration:
         if self.bounded:
             init.append(np.ones(nx))
         # one vector each (see Chunked._forward_chunk), and views of the last one's parts
-        layout = carry_layout([a.size for a in init])
+        layout = offsets([a.size for a in init])
         self.carries = [np.concatenate(init)] + [np.zeros(layout[-1]) for _ in range(M)]
         self._last = [self.carries[-1][a:b] for a, b in itertools.pairwise(layout)]
         # per-slot outputs: per chain Vs, vs, L; then g, cost; with bounds free, diag

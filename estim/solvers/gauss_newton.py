@@ -234,6 +234,12 @@ class StructuredGaussNewton(Globalised):
         self._ridge = False  # set for good once a block was singular without it
         self._complete = False  # graphs of the current solve
 
+    def _set_parameters(self, p: np.ndarray) -> None:
+        """Write the parameters ``p``; the mapped mode's data derived from them follow."""
+        self._pbuf[:] = p
+        if self._chunked is not None:
+            self._chunked.parameters_written()
+
     # ------------------------------------------------------------------ graphs
     def _function(self, key: str, complete: bool | None = None):
         """The compiled function ``key`` ("gn", "gn_lam", "newton", "newton_lam",
@@ -300,9 +306,8 @@ class StructuredGaussNewton(Globalised):
     def _build_chunked(self, key: str, complete: bool):
         """The mapped mode's function ``key``: loops over chunks (see :class:`Chunked`)."""
         if self._chunked is None:
-            chunk = JIT_CHUNK_SLOTS if self.jit else chunk_slots(
-                self.N - 2 if self.full and self.N > 2 else self.N)
-            self._chunked = Chunked(self, chunk, self.jit)
+            self._chunked = Chunked(self, (lambda n: JIT_CHUNK_SLOTS) if self.jit
+                                    else chunk_slots, self.jit)
         ch, nx = self._chunked, self.model.nx
         if key == "cost":
             return ChunkedCost(ch, complete)
@@ -351,7 +356,7 @@ class StructuredGaussNewton(Globalised):
     def cost(self, x: np.ndarray, p: np.ndarray, complete: bool = False) -> float:
         """The cost ``||r(x)||^2`` at ``x`` (flat) for the parameters ``p``."""
         self._xbuf[:] = x
-        self._pbuf[:] = p
+        self._set_parameters(p)
         fun = self._function("cost", bool(complete))
         return float(fun.evaluate()[0][0])
 
@@ -380,7 +385,7 @@ class StructuredGaussNewton(Globalised):
         """
         nx = self.model.nx
         self._xbuf[:] = x
-        self._pbuf[:] = p
+        self._set_parameters(p)
         fun = self._function("covs", bool(complete))
         out = fun.evaluate()[0].reshape(self.N, nx, nx).transpose(0, 2, 1)
         return self.model.manifold.unpadded_matrix(out) if self._tangent else out.copy()
@@ -390,7 +395,7 @@ class StructuredGaussNewton(Globalised):
         for the parameters ``p`` (``complete`` as in :meth:`solve`)."""
         nx = self.model.nx
         self._xbuf[:] = x
-        self._pbuf[:] = p
+        self._set_parameters(p)
         fun = self._function("cov", bool(complete))
         out = fun.evaluate()[0].reshape(nx, nx, order="F")
         return self.model.manifold.unpadded_matrix(out) if self._tangent else out.copy()

@@ -78,6 +78,11 @@ class Globalised:
         """The compiled function ``key`` (see the class)."""
         raise NotImplementedError
 
+    def _set_parameters(self, p: np.ndarray) -> None:
+        """Write the parameters ``p`` into :attr:`_pbuf` (a solver refreshes here what it
+        derives from them)."""
+        self._pbuf[:] = p
+
     def solve(self, X0: np.ndarray, p: np.ndarray, complete: bool = False, reweight=None):
         r"""Minimise from ``X0`` (N, nx).
 
@@ -133,7 +138,7 @@ class Globalised:
         proj, bounded, xtol = self._project, self._bounded, self.xtol
         x = proj(np.array(X0, dtype=float).ravel())
         self._complete = bool(complete)
-        self._pbuf[:] = p  # fixed for the whole solve (but for reweight): written once
+        self._set_parameters(p)  # fixed for the whole solve (but for reweight): written once
         if reweight is not None:
             reweight(x)
         lam, newton, last_step, last_full, last_alpha = 0.0, self.newton, np.inf, np.inf, 0.0

@@ -326,5 +326,4 @@ class ParticleKernel:
         args.trace_X = None if trace is None else trace[0].ctypes.data
         args.trace_W = None if trace is None else trace[1].ctypes.data
         done = int(self._lib.pf_run(ctypes.byref(args)))
-        del held
         return self._record(buf, offsets, T, done)
