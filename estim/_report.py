@@ -19,6 +19,7 @@ from estim.simulate import FAILED_FRACTION
 
 if TYPE_CHECKING:
     from estim.compare import Comparison, ComparisonRow
+    from estim.verdicts import Consistency
 
 
 def row_notes(row: ComparisonRow) -> list[str]:
@@ -57,19 +58,14 @@ def notes(result: Comparison) -> list[str]:
     explained: dict[str, list[str]] = {}
     for r in result.rows:
         parts = []
-        if r.consistent is False and np.isfinite(r.nees_mean) and r.nees_mean > 0:
-            ratio = float(np.sqrt(r.nees_mean))
-            side = ("overconfident: its errors are" if r.nees_mean > 1 else
-                    "pessimistic: its errors are only")
-            what = "slightly " + ("overconfident" if r.nees_mean > 1 else "pessimistic") \
-                if abs(ratio - 1) <= SLIGHT else "inconsistent"
-            parts.append(f"{what}, NEES/n {r.nees_mean:.3g} ± {2 * r.nees_se:.2g} "
-                         f"({side} {ratio:.2g}× the σ it reports)")
+        v = r.consistency
+        if v is not None and (not v.consistent or v.diverged):
+            parts.append(_consistency_note(v))
         if best is not None and r is not best and r.rmse_mean > 3 * best.rmse_mean:
             parts.append(f"RMSE {r.rmse_mean / best.rmse_mean:.0f}× the best "
                          f"({best.name}); after the start-up its largest error is "
                          f"{r.largest_error}")
-        if parts and r.consistent is False and r.nees_mean < 1 and \
+        if parts and v is not None and v.direction == "pessimistic" and \
                 getattr(result, "augmented", None):
             parts.append(f"expected with the parameters {result.augmented} estimated as "
                          f"states: process noise on them in Q, which the plant's constant "
@@ -84,30 +80,37 @@ def notes(result: Comparison) -> list[str]:
     return out
 
 
-#: How far from 1 the ratio of the errors to the reported sigma, sqrt(NEES/n), may be for a
-#: row that fails the consistency test to be graded "slightly" off rather than off.
-SLIGHT = 0.1
+def _consistency_note(v: Consistency) -> str:
+    """The note of an inconsistent row, or of one whose seeds diverged: what the verdict
+    (:class:`~estim.verdicts.Consistency`) rests on."""
+    ratio = float(np.sqrt(max(v.nees_median, 0.0))) if np.isfinite(v.nees_median) else np.nan
+    lo, hi = v.interval
+    div = v.p_diverged <= (1 - v.level) / 2
+    level_off = not v.interval[0] <= 0.5 <= v.interval[1]
+    if v.consistent:
+        head = f"consistent at level {v.level:g} although it {v.divergence_text()}"
+    else:
+        head = "inconsistent: " + "; ".join(
+            ([v.direction if not div else ("overconfident" if v.mean_level > 0.5 else
+                                           "pessimistic") + " over its steps"]
+             if level_off else []) +
+            ([f"it {v.divergence_text()} (a consistent estimator, with probability <= "
+              f"{v.p_diverged:.2g})"] if div else []))
+    return (f"{head}; the median seed's errors are {ratio:.2g}× the σ it reports (NEES/n "
+            f"median {v.nees_median:.3g}, mean {v.nees_mean:.3g}); mean chi-square level "
+            f"{v.mean_level:.3f} (consistent: 0.5; interval [{lo:.3f}, {hi:.3f}])")
 
 
 def grade(row: Any) -> str:
-    """The consistency column: ``"yes"`` (NEES/n within two standard errors of 1),
-    ``"slightly pess."``/``"slightly over."`` (the errors within :data:`SLIGHT` of the
-    reported sigma), ``"pessimistic"``/``"overconfident"``, ``"-"`` without a
-    covariance."""
-    if row.consistent is None:
-        return "-"
-    if row.consistent:
-        return "yes"
-    over = row.nees_mean > 1
-    if abs(float(np.sqrt(max(row.nees_mean, 0.0))) - 1) <= SLIGHT:
-        return "slightly over." if over else "slightly pess."
-    return "overconfident" if over else "pessimistic"
+    """The consistency column: :meth:`Consistency.grade <estim.verdicts.Consistency.grade>`
+    of the row's verdict, ``"-"`` without a covariance."""
+    return "-" if row.consistency is None else row.consistency.grade()
 
 
 def table(result: Comparison) -> str:
     """Plain-text table, with the legend, the notes and how the runs were done."""
     w = max([22] + [len(r.name) + 2 for r in result.rows])
-    head = (f"{'estimator':<{w}}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>15}"
+    head = (f"{'estimator':<{w}}{'RMSE mean':>11}{'± std':>9}{'NEES/n':>9}{'cons.':>18}"
             f"{'step med':>11}{'step p90':>11}{'failed':>8}{'flagged':>9}")
     burn = getattr(result, "burn_in", 0)
     lines = [f"{result.scenario}: {len(result.seeds)} seed(s)"
@@ -116,7 +119,7 @@ def table(result: Comparison) -> str:
     for r in result.rows:
         cons = grade(r)
         lines.append(f"{r.name:<{w}}{r.rmse_mean:>11.4g}{r.rmse_std:>9.2g}"
-                     f"{r.nees_mean:>9.3g}{cons:>15}{_fmt_time(r.step_median):>11}"
+                     f"{r.nees_mean:>9.3g}{cons:>18}{_fmt_time(r.step_median):>11}"
                      f"{_fmt_time(r.step_p90):>11}{r.failures:>8}{r.flagged:>9}")
     lines += [""] + textwrap.wrap(result.LEGEND, width=len(head))
     remarks = notes(result)
@@ -139,7 +142,7 @@ def html_table(result: Comparison) -> str:
                                              "failed", "flagged"))
     body = "".join(
         f"<tr><td>{html.escape(r.name)}</td><td>{r.rmse_mean:.4g}</td>"
-        f"<td>{r.rmse_std:.2g}</td><td>{r.nees_mean:.3g}</td><td>{r.consistent}</td>"
+        f"<td>{r.rmse_std:.2g}</td><td>{r.nees_mean:.3g}</td><td>{html.escape(grade(r))}</td>"
         f"<td>{_fmt_time(r.step_median)}</td><td>{_fmt_time(r.step_p90)}</td>"
         f"<td>{r.failures}</td><td>{r.flagged}</td></tr>" for r in result.rows)
     items = "".join(f"<li>{html.escape(n)}</li>" for n in notes(result))

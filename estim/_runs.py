@@ -24,6 +24,7 @@ from estim.metrics import nees, peak_location, rmse, startup_samples
 from estim.model import Model
 from estim.scenarios import Scenario
 from estim.simulate import simulate
+from estim.verdicts import consistency, seed_scores
 
 if TYPE_CHECKING:
     from estim.batch import PlantBatch
@@ -34,9 +35,11 @@ Factory = Callable[[Model, dict], Estimator]
 #: What names an estimator in :func:`~estim.compare`: a class, a factory or an instance.
 Spec = Factory | type[Estimator] | Estimator
 #: One run's summary: ``seed`` and either ``error`` (``"ExceptionType: message"``) or
-#: ``rmse``, ``per_state``, ``nees``, ``times`` (or ``step``, one time for every step
-#: of a batched run), ``failures``, ``flagged``, ``steps``, ``peak``, ``kind`` and
-#: ``caveat``; ``log`` with ``keep_logs``, else None.
+#: ``rmse``, ``per_state``, ``nees`` (the time-averaged NEES/n), ``level``, ``batches``
+#: and ``diverged`` (the consistency scores of :func:`estim.verdicts.seed_scores`),
+#: ``times`` (or ``step``, one time for every step of a batched run), ``failures``,
+#: ``flagged``, ``steps``, ``peak``, ``kind`` and ``caveat``; ``log`` with ``keep_logs``,
+#: else None.
 Run = dict[str, Any]
 
 
@@ -73,13 +76,15 @@ def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
         log = simulate(scenario, est, seed=s, warn=False)
         r = rmse(log, burn_in=burn_in)
         has_p = bool(np.isfinite(log.P).any())
-        ne = float(np.nanmean(nees(log, burn_in=burn_in))) / scenario.model.nx \
-            if has_p else np.nan
+        scores = seed_scores(nees(log, burn_in=burn_in), log.P.shape[1]) if has_p else \
+            seed_scores(np.array([]), 1)
     except Exception as exc:  # noqa: BLE001 - recorded, the other runs go on
         return {"seed": s, "error": _error(exc),
                 "log": getattr(exc, "log", None) if keep_logs else None}
     return {
-        "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()), "nees": ne,
+        "seed": s, "rmse": float(r), "per_state": list(r.per_state.values()),
+        "nees": scores["ratio"], "level": scores["level"], "batches": scores["batches"],
+        "diverged": scores["diverged"],
         "times": log.solve_time.copy(), "failures": log.failures, "flagged": log.flagged,
         "steps": len(log), "log": log if keep_logs else None,
         "peak": _peak(log, s), "kind": type(est).__name__, "caveat": est.caveat,
@@ -135,10 +140,11 @@ def summary(runs: list[Run], names: list[str]) -> dict[str, Any]:
                 "failures": 0, "runs": 0, "errors": errors}
     errs = np.array([r["rmse"] for r in done])
     ne = np.array([r["nees"] for r in done])
-    consistent, se = None, float("nan")
+    verdict, se = None, float("nan")
     if np.isfinite(ne).all():
         se = float(np.std(ne, ddof=1) / np.sqrt(len(ne))) if len(ne) > 1 else np.inf
-        consistent = bool(abs(np.mean(ne) - 1.0) <= 2 * se)
+        verdict = consistency(ne, [r["level"] for r in done], [r["diverged"] for r in done],
+                              [r["seed"] for r in done], batches=done[0]["batches"])
     size, where = max((r["peak"] for r in done), key=lambda p: -np.inf if p[0] != p[0] else p[0])
     uniform = {r.get("step") for r in done}
     step = next(iter(uniform))
@@ -154,7 +160,8 @@ def summary(runs: list[Run], names: list[str]) -> dict[str, Any]:
         "rmse_per_state": dict(zip(names, np.mean([r["per_state"] for r in done], axis=0)
                                    .tolist(), strict=True)),
         "nees_mean": float(np.mean(ne)) if np.isfinite(ne).all() else nan,
-        "consistent": consistent, "step_median": median, "step_p90": p90,
+        "consistent": None if verdict is None else verdict.consistent,
+        "consistency": verdict, "step_median": median, "step_p90": p90,
         "failures": sum(r["failures"] for r in done),
         "runs": len(done), "flagged": sum(r["flagged"] for r in done),
         "steps": sum(r["steps"] for r in done), "errors": errors, "nees_se": se,

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import threading
 import time
-import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -61,6 +60,7 @@ from estim.metrics import nees_values
 from estim.scenarios import Scenario
 from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import CHUNK, seed_map, threads
+from estim.verdicts import seed_scores
 
 if TYPE_CHECKING:
     from estim.estimators.fused import FusedKalman
@@ -336,6 +336,8 @@ class _Scores:
 
     def __init__(self, S: int, nx: int):
         self.nees, self.has_p = np.full(S, np.nan), np.zeros(S, dtype=bool)
+        self.level, self.diverged = np.full(S, np.nan), np.zeros(S, dtype=bool)
+        self.batches: list[list[float]] = [[] for _ in range(S)]
         self.rmse, self.per_state = np.full(S, np.nan), np.full((S, nx), np.nan)
         self.peak, self.where = np.full(S, np.nan), np.zeros(S, dtype=int)
 
@@ -355,9 +357,10 @@ class _Scores:
         finite_P = np.isfinite(P)
         self.has_p[rows] = finite_P.any(axis=(1, 2, 3))
         ne = nees_values(err[:, burn_in:], P[:, burn_in:])
-        with warnings.catch_warnings():  # seeds without any covariance: NaN, not a warning
-            warnings.simplefilter("ignore", RuntimeWarning)
-            self.nees[rows] = np.nanmean(ne, axis=1) / nx
+        for i, row in enumerate(rows):  # the consistency scores, as run_seed's
+            scores = seed_scores(ne[i], nx)
+            self.nees[row], self.level[row] = scores["ratio"], scores["level"]
+            self.batches[row], self.diverged[row] = scores["batches"], scores["diverged"]
         # each seed's squared errors state by state, contiguous, as rmse() sums its copy
         # of them (err[:, states], column-major): over the whole run and per state
         squared = np.ascontiguousarray((err[:, burn_in:] ** 2).transpose(0, 2, 1))
@@ -407,6 +410,8 @@ class _Scores:
                 "seed": seed, "rmse": float(self.rmse[i]),
                 "per_state": self.per_state[i].tolist(),
                 "nees": float(self.nees[i]) if self.has_p[i] else np.nan,
+                "level": float(self.level[i]) if self.has_p[i] else np.nan,
+                "batches": self.batches[i], "diverged": bool(self.diverged[i]),
                 "step": per_step, "failures": 0,
                 "flagged": len(status), "steps": T, "log": log,
                 "peak": (float(peak), peak_location(m.state_names[n], plant.t[k], seed))

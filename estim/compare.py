@@ -49,6 +49,7 @@ from estim.scenarios import Scenario
 from estim.simulate import dimensions_message
 from estim.solvers.seeds import CHUNK
 from estim.solvers.seeds import threads as seed_threads
+from estim.verdicts import Consistency
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -65,9 +66,12 @@ class ComparisonRow:
 
     ``rmse_mean``/``rmse_std``: RMSE over all states, mean and standard
     deviation over seeds; ``rmse_per_state``: mean per state. ``nees_mean``:
-    time-averaged NEES divided by ``nx`` (1 for a consistent filter), mean over
-    seeds; ``consistent``: within two standard errors (over seeds) of 1
-    (None without covariance). ``step_median``/``step_p90``: seconds per step.
+    time-averaged NEES divided by the state dimension (1 for a consistent filter), mean
+    over seeds; ``consistent``: the verdict of :func:`estim.verdicts.consistency` at level
+    0.99 (no diverged seeds beyond chance, and the typical step's NEES calibrated; None
+    without covariance), which ``consistency`` holds in full (the diverged seeds, the
+    statistics) and :func:`estim.testing.assert_consistent` repeats.
+    ``step_median``/``step_p90``: seconds per step.
     ``failures``: steps that failed (``success`` False: the estimator re-anchored);
     ``flagged``: successful steps whose status was not ``"ok"`` (``"inexact"``,
     ``"suspect"``); ``steps``: steps of the completed runs. ``runs``: runs that
@@ -96,6 +100,7 @@ class ComparisonRow:
     largest_error: str = ""
     kind: str = ""
     caveat: str = ""
+    consistency: Consistency | None = None
 
     def notes(self) -> list[str]:
         """What went wrong in these runs, a line each (empty when nothing did)."""
@@ -136,6 +141,14 @@ class Comparison:
         The model's parameters estimated as states (``Model.augment``): a filter that
         gives them process noise the plant's constant parameters do not have is
         pessimistic by design, which the notes say.
+    nees_level : dict of str -> (n_seeds,) array
+        Every run's average chi-square probability level of its NEES (1/2 for a
+        consistent estimator; :func:`estim.verdicts.seed_scores`), NaN as ``nees``.
+    diverged : dict of str -> (n_seeds,) bool array
+        Whether each run diverged (its NEES beyond the 1e-8 tail of chi-square on at least
+        a tenth of its steps).
+    nees_batches : dict of str -> list of lists
+        Every run's levels in 10 batches of its steps (the verdict of a single seed).
     """
 
     scenario: str
@@ -149,15 +162,22 @@ class Comparison:
     nees: dict[str, np.ndarray] = field(default_factory=dict)
     burn_in: int = 0
     augmented: list[str] = field(default_factory=list)
+    nees_level: dict[str, np.ndarray] = field(default_factory=dict)
+    diverged: dict[str, np.ndarray] = field(default_factory=dict)
+    nees_batches: dict[str, list[list[float]]] = field(default_factory=dict)
 
     #: What the columns mean, printed under the table.
     LEGEND = ("RMSE: root mean square error over states, samples and seeds. NEES/n: "
               "normalised estimation error squared per state, averaged over time and seeds; "
               "1 when the reported covariance matches the errors, above 1 overconfident, "
-              "below 1 pessimistic. cons.: 'yes' when NEES/n is within two standard errors "
-              "(over the seeds) of 1; else 'slightly' when the errors are within 10 % of "
-              "the σ reported (0.81 <= NEES/n <= 1.21), 'pessimistic' or 'overconfident' "
-              "beyond; '-' without a covariance. step: wall time per step. failed: steps "
+              "below 1 pessimistic. cons.: the consistency verdict at level 0.99 "
+              "(estim.testing.assert_consistent): 'yes' when no more seeds diverged than "
+              "chance allows and the NEES of the typical step follows its chi-square "
+              "law ('k/S div.': k of S seeds diverged, too few to reject); 'diverged k/S' "
+              "when too many seeds diverged (errors beyond about 6 σ on a tenth of "
+              "their steps); else 'overconfident' or 'pessimistic', 'slightly' when the "
+              "median seed's errors are within 10 % of the σ reported; '-' without a "
+              "covariance. step: wall time per step. failed: steps "
               "that failed and were re-anchored; flagged: inexact or suspect steps.")
 
     def notes(self) -> list[str]:
@@ -405,6 +425,9 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
     rows: list[ComparisonRow] = []
     all_rmse: dict[str, np.ndarray] = {}
     all_nees: dict[str, np.ndarray] = {}
+    levels: dict[str, np.ndarray] = {}
+    diverged: dict[str, np.ndarray] = {}
+    batches: dict[str, list[list[float]]] = {}
     logs: dict[str, list[Log | None]] = {}
     m = scenario.model  # errors of quaternions and angles: in the tangent space
     names = m.state_names if m.manifold.euclidean_states else m.manifold.tangent_names
@@ -414,11 +437,15 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         rows.append(ComparisonRow(name, **summary(runs, names)))
         all_rmse[name] = np.array([r.get("rmse", np.nan) for r in runs])
         all_nees[name] = np.array([r.get("nees", np.nan) for r in runs])
+        levels[name] = np.array([r.get("level", np.nan) for r in runs])
+        diverged[name] = np.array([bool(r.get("diverged", False)) for r in runs])
+        batches[name] = [list(r.get("batches", [])) for r in runs]
         if keep_logs:
             logs[name] = [r["log"] for r in runs]
     return Comparison(scenario.name, seed_list, rows, all_rmse, logs, remarks=scenario.remarks,
                       parallel=note, batched=batch_note, nees=all_nees, burn_in=burn_in,
-                      augmented=list(scenario.model.augmented))
+                      augmented=list(scenario.model.augmented), nees_level=levels,
+                      diverged=diverged, nees_batches=batches)
 
 
 class _NoBar:

@@ -12,10 +12,13 @@ Options
 ``--estim-baseline DIR``
     Each named comparison's per-seed metrics are stored as ``DIR/<name>.json`` the first
     time (or with ``--estim-baseline-update``) and checked against later with
-    :func:`estim.testing.assert_no_regression`.
+    :func:`estim.testing.assert_no_regression`; the summary says what was stored and what
+    was checked (file, estimators, seeds, verdict).
 ``--estim-report PATH``
-    Write the tables of every comparison of the session and a box plot of each one's
-    per-seed RMSE to ``PATH`` (``.md`` or ``.html``; the figures beside it).
+    Write, test by test, the tables of every comparison of the session, a box plot of
+    each one's per-seed RMSE, and every assertion of :mod:`estim.testing` with its
+    statistics and whether it passed, to ``PATH`` (``.md`` or ``.html``; the figures
+    beside it).
 
 Fixtures
 --------
@@ -28,8 +31,9 @@ Fixtures
     The scenarios of :mod:`estim.scenarios`, one test per name (narrow it with
     ``@pytest.mark.parametrize("estim_scenario", ["van_der_pol"], indirect=True)``).
 
-The results travel with each test's report (``user_properties``), so the summary and
-the report are the same under ``pytest -n`` (pytest-xdist) as in a serial run.
+The comparisons and the assertions' outcomes (:func:`estim.testing.recording`) travel
+with each test's report (``user_properties``), so the summary and the report are the same
+under ``pytest -n`` (pytest-xdist) as in a serial run.
 """
 
 from __future__ import annotations
@@ -43,11 +47,17 @@ import numpy as np
 import pytest
 
 from estim import scenarios as _scenarios
+from estim import testing
 from estim.compare import Comparison, compare
 from estim.testing import assert_no_regression, save_baseline
+from estim.verdicts import seed_range_text
 
 #: The ``user_properties`` key of a recorded comparison.
 KEY = "estim_comparison"
+#: The ``user_properties`` key of a test's assertions (and baselines stored).
+ASSERTIONS = "estim_assertions"
+#: The assertions of one test the terminal summary shows (the report has all).
+SHOWN = 5
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -99,6 +109,10 @@ class _Runner:
             path = Path(folder) / f"{name}.json"
             if self.config.getoption("--estim-baseline-update") or not path.exists():
                 save_baseline(result, path)
+                testing.record("baseline", True, f"stored {str(path)!r} (estimators "
+                               f"{', '.join(result.rmse)}; seeds "
+                               f"{seed_range_text(result.seeds)}): later runs are checked "
+                               f"against it")
             else:
                 assert_no_regression(result, path)
         return result
@@ -117,36 +131,78 @@ def estim_scenario(request: pytest.FixtureRequest):
     return _scenarios.get(request.param)
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    """Record the outcome of every :mod:`estim.testing` assertion the test makes."""
+    records: list[dict] = []
+    previous = testing.recording(records)
+    try:
+        yield
+    finally:
+        testing.recording(previous)
+        if records:
+            item.user_properties.append((ASSERTIONS, {"test": item.nodeid,
+                                                      "records": records}))
+
+
 class _Collector:
-    """Gathers the comparisons from every test's report (also from pytest-xdist's
-    workers) and writes the summary and the report at the end of the session."""
+    """Gathers the comparisons and the assertions from every test's report (also from
+    pytest-xdist's workers) and writes the summary and the report at the end of the
+    session."""
 
     def __init__(self, config: pytest.Config):
         self.config = config
         self.results: list[dict] = []
+        self.assertions: dict[str, list[dict]] = {}
 
     def pytest_runtest_logreport(self, report: pytest.TestReport) -> None:
         if report.when == "call":
-            self.results += [value for key, value in report.user_properties
-                             if key == KEY and isinstance(value, dict)]
+            for key, value in report.user_properties:
+                if key == KEY and isinstance(value, dict):
+                    self.results.append(value)
+                elif key == ASSERTIONS and isinstance(value, dict):
+                    self.assertions.setdefault(value["test"], []).extend(value["records"])
 
     def pytest_terminal_summary(self, terminalreporter) -> None:
-        if not self.results:
+        if not self.results and not self.assertions:
             return
         terminalreporter.section("estim comparisons")
-        for r in sorted(self.results, key=lambda r: r["test"]):
-            terminalreporter.write_line(f"{r['name']} ({len(r['seeds'])} seeds; {r['test']})")
-            for line in r["table"].splitlines():
-                terminalreporter.write_line("  " + line)
+        for test in _tests(self.results, self.assertions):
+            for r in (r for r in self.results if r["test"] == test):
+                terminalreporter.write_line(f"{r['name']} ({len(r['seeds'])} seeds; {test})")
+                for line in r["table"].splitlines():
+                    terminalreporter.write_line("  " + line)
+            done = self.assertions.get(test, [])
+            for a in done[:SHOWN]:
+                terminalreporter.write_line(_outcome(a, test))
+            if len(done) > SHOWN:
+                failed = sum(not a["passed"] for a in done[SHOWN:])
+                terminalreporter.write_line(f"... and {len(done) - SHOWN} more assertions of "
+                                            f"{test} ({failed} of them failed; all are in "
+                                            f"--estim-report)")
         report = self.config.getoption("--estim-report")
         if report is not None:
-            written = write_report(self.results, Path(report))
+            written = write_report(self.results, Path(report), self.assertions)
             terminalreporter.write_line(f"estim report: {', '.join(map(str, written))}")
 
 
-def write_report(results: list[dict], path: Path) -> list[Path]:
-    """Write the tables and a box plot of each comparison's per-seed RMSE (if matplotlib
-    is there) to ``path`` (.md or .html); the files written."""
+def _tests(results: list[dict], assertions: Mapping[str, list[dict]]) -> list[str]:
+    """The tests that compared or asserted, in order of their node ids."""
+    return sorted({r["test"] for r in results} | set(assertions))
+
+
+def _outcome(a: dict, test: str) -> str:
+    """``"PASSED assert_better (test_x.py::test_y): 'mhe' is shown better ..."``."""
+    head = "STORED" if a["assertion"] == "baseline" else ("PASSED" if a["passed"] else "FAILED")
+    return f"{head} {a['assertion']} ({test}): {a['text']}"
+
+
+def write_report(results: list[dict], path: Path,
+                 assertions: Mapping[str, list[dict]] | None = None) -> list[Path]:
+    """Write, test by test, the tables and a box plot of each comparison's per-seed RMSE
+    (if matplotlib is there) and the outcome of every assertion (``assertions``: by test,
+    as recorded) to ``path`` (.md or .html); the files written."""
+    assertions = assertions or {}
     path.parent.mkdir(parents=True, exist_ok=True)
     figures: list[Path | None] = []
     plt: Any = None
@@ -156,7 +212,8 @@ def write_report(results: list[dict], path: Path) -> list[Path]:
         import matplotlib.pyplot as plt
     except ImportError:
         pass
-    results = sorted(results, key=lambda r: r["test"])
+    tests = _tests(results, assertions)
+    results = sorted(results, key=lambda r: tests.index(r["test"]))
     for i, r in enumerate(results):
         if plt is None:
             figures.append(None)
@@ -173,22 +230,40 @@ def write_report(results: list[dict], path: Path) -> list[Path]:
         drawing.savefig(figure, dpi=90)
         plt.close(drawing)
         figures.append(figure)
+    drawn = dict(zip(map(id, results), figures, strict=True))
+    passed = sum(a["passed"] for t in tests for a in assertions.get(t, [])
+                 if a["assertion"] != "baseline")
+    total = sum(a["assertion"] != "baseline" for t in tests for a in assertions.get(t, []))
+    tally = f"{passed} of {total} assertions passed"
     if path.suffix == ".html":
         parts = ["<html><head><meta charset='utf-8'><title>estim comparisons</title></head>"
-                 "<body><h1>estim comparisons</h1>"]
-        for r, fig in zip(results, figures, strict=True):
-            parts.append(f"<h2>{html.escape(r['name'])}</h2><p>{html.escape(r['test'])}, "
-                         f"{len(r['seeds'])} seeds</p><pre>{html.escape(r['table'])}</pre>")
-            if fig is not None:
-                parts.append(f"<img src='{fig.name}' alt='RMSE per seed'>")
+                 f"<body><h1>estim comparisons</h1><p>{tally}</p>"]
+        for test in tests:
+            parts.append(f"<h2>{html.escape(test)}</h2>")
+            for r in (r for r in results if r["test"] == test):
+                parts.append(f"<h3>{html.escape(r['name'])}</h3><p>{len(r['seeds'])} seeds</p>"
+                             f"<pre>{html.escape(r['table'])}</pre>")
+                fig = drawn[id(r)]
+                if fig is not None:
+                    parts.append(f"<img src='{fig.name}' alt='RMSE per seed'>")
+            items = "".join(f"<li><b>{html.escape(_outcome(a, test).split(' (')[0])}</b>: "
+                            f"{html.escape(a['text'])}</li>" for a in assertions.get(test, []))
+            if items:
+                parts.append(f"<ul>{items}</ul>")
         parts.append("</body></html>")
         path.write_text("\n".join(parts))
     else:
-        parts = ["# estim comparisons", ""]
-        for r, fig in zip(results, figures, strict=True):
-            parts += [f"## {r['name']}", "", f"{r['test']}, {len(r['seeds'])} seeds", "",
-                      "```", r["table"], "```", ""]
-            if fig is not None:
-                parts += [f"![RMSE per seed]({fig.name})", ""]
+        parts = ["# estim comparisons", "", tally, ""]
+        for test in tests:
+            parts += [f"## {test}", ""]
+            for r in (r for r in results if r["test"] == test):
+                parts += [f"### {r['name']}", "", f"{len(r['seeds'])} seeds", "",
+                          "```", r["table"], "```", ""]
+                fig = drawn[id(r)]
+                if fig is not None:
+                    parts += [f"![RMSE per seed]({fig.name})", ""]
+            parts += [f"- **{_outcome(a, test).split(' (')[0]}**: {a['text']}"
+                      for a in assertions.get(test, [])]
+            parts.append("")
         path.write_text("\n".join(parts))
     return [path, *[f for f in figures if f is not None]]

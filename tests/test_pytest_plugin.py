@@ -11,6 +11,7 @@ import pytest
 
 matplotlib.use("Agg")
 import matplotlib.pyplot  # noqa: E402,F401  (imported before pytester's in-process runs)
+import scipy.stats  # noqa: E402,F401  (likewise: estim.verdicts imports it when first used)
 
 pytest_plugins = ["pytester"]
 
@@ -24,7 +25,7 @@ SC = estim.scenarios.get("van_der_pol", n_steps=40)
 def test_filters(estim_compare):
     res = estim_compare(SC, {"ekf": estim.EKF, "ukf": estim.UKF,
                              "bad": lambda m, t: estim.EKF(m, **{**t, "R": FACTOR * t["R"]})},
-                        seeds=range(4), name="vdp")
+                        seeds=range(6), name="vdp")
     testing.assert_better(res, "ekf", "bad")
 
 
@@ -43,14 +44,21 @@ def test_fixtures_options_summary_and_report(pytester):
                                 "-p", "no:cacheprovider")
     result.assert_outcomes(passed=2)
     result.stdout.fnmatch_lines(["*estim comparisons*", "vdp (6 seeds; test_user.py::test_filters)",
-                                 "*ekf *", "test_other: van_der_pol (6 seeds;*",
+                                 "*ekf *", "PASSED assert_better (test_user.py::test_filters): "
+                                 "'ekf' is shown better than 'bad' in rmse at confidence 0.95 "
+                                 "(6 paired seeds): Wilcoxon signed-rank p = 0.0156, 6 of 6 *",
+                                 "test_other: van_der_pol (6 seeds;*",
                                  "estim report: out/report.md, out/report_1.png, *"])
     text = (pytester.path / "out" / "report.md").read_text()
-    assert "## vdp" in text and "![RMSE per seed](report_1.png)" in text
+    assert "### vdp" in text and "![RMSE per seed](report_1.png)" in text
+    assert "1 of 1 assertions passed" in text
+    assert "- **PASSED assert_better**: 'ekf' is shown better than 'bad'" in text
     assert (pytester.path / "out" / "report_2.png").stat().st_size > 5000
     html = pytester.runpytest("--estim-report", "r.html", "-q", "-p", "no:cacheprovider")
     html.assert_outcomes(passed=2)
-    assert "<pre>" in (pytester.path / "r.html").read_text()
+    page = (pytester.path / "r.html").read_text()
+    assert "<pre>" in page
+    assert "<li><b>PASSED assert_better</b>: &#x27;ekf&#x27; is shown better" in page
     bad = pytester.runpytest("--estim-report", "r.txt")
     assert bad.ret == pytest.ExitCode.USAGE_ERROR
     bad.stderr.fnmatch_lines(["*--estim-report must end in .md or .html*"])
@@ -65,20 +73,34 @@ def test_baselines_catch_a_regression(pytester):
     accepts it."""
     _write(pytester)
     args = ["--estim-baseline", "base", "-q", "-p", "no:cacheprovider"]
-    pytester.runpytest(*args).assert_outcomes(passed=2)
+    first = pytester.runpytest(*args)
+    first.assert_outcomes(passed=2)
+    first.stdout.fnmatch_lines(["STORED baseline (test_user.py::test_filters): stored "
+                                "'base/vdp.json' (estimators ekf, ukf, bad; seeds 0..5 (6)): "
+                                "later runs are checked against it"])
     stored = json.loads((pytester.path / "base" / "vdp.json").read_text())
-    assert stored["scenario"] == "van_der_pol" and stored["seeds"] == [0, 1, 2, 3]
+    assert stored["scenario"] == "van_der_pol" and stored["seeds"] == list(range(6))
     assert set(stored["metrics"]) == {"ekf", "ukf", "bad"}
-    pytester.runpytest(*args).assert_outcomes(passed=2)
+    same = pytester.runpytest(*args)
+    same.assert_outcomes(passed=2)
+    same.stdout.fnmatch_lines(["PASSED assert_no_regression (test_user.py::test_filters): no "
+                               "regression against 'base/vdp.json' (estimators ekf, ukf, bad; "
+                               "seeds 0..5 (6)) at confidence 0.95; 'ekf': unchanged on all 6 "
+                               "seeds; 'ukf': unchanged on all 6 seeds; 'bad': unchanged*"])
     _write(pytester, factor=100.0)  # 'bad' got worse
     worse = pytester.runpytest(*args)
     worse.assert_outcomes(passed=1, failed=1)
-    worse.stdout.fnmatch_lines(["*regression against *vdp.json* 'bad': rmse*"])
+    worse.stdout.fnmatch_lines(["*regression against *vdp.json* 'bad': rmse median * -> *, "
+                                "mean * -> *; 6 of 6 seeds worse, 0 better; Wilcoxon "
+                                "signed-rank p = 0.0156, Hodges-Lehmann *; the largest rises: "
+                                "seed *",
+                                "FAILED assert_no_regression (test_user.py::test_filters): "
+                                "regression against*"])
     pytester.runpytest(*args, "--estim-baseline-update").assert_outcomes(passed=2)
     pytester.runpytest(*args).assert_outcomes(passed=2)
     seeds = pytester.runpytest(*args, "--estim-seeds", "5")
     seeds.assert_outcomes(passed=1, failed=1)
-    seeds.stdout.fnmatch_lines(["*baseline: *vdp.json* has seeds 0..3 (4), the comparison "
+    seeds.stdout.fnmatch_lines(["*baseline: *vdp.json* has seeds 0..5 (6), the comparison "
                                 "0..4 (5)*"])
 
 
@@ -90,7 +112,8 @@ def test_xdist_gives_the_serial_results(pytester):
     parallel = pytester.runpytest_subprocess("-n", "2", "--estim-baseline", "parallel", "-q",
                                              "-p", "no:cacheprovider")
     parallel.assert_outcomes(passed=2)
-    parallel.stdout.fnmatch_lines(["*estim comparisons*", "vdp (4 seeds;*"])
+    parallel.stdout.fnmatch_lines(["*estim comparisons*", "vdp (6 seeds;*",
+                                   "PASSED assert_better (test_user.py::test_filters)*"])
     a = json.loads((pytester.path / "serial" / "vdp.json").read_text())
     b = json.loads((pytester.path / "parallel" / "vdp.json").read_text())
     assert a["metrics"] == b["metrics"]

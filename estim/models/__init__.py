@@ -22,10 +22,11 @@ from estim.models.satellite import (
     satellite,
     satellite_rates,
 )
+from estim.models.sine_pendulum import sine_pendulum
 from estim.models.van_der_pol import van_der_pol
 from estim.models.vertical_channel import vertical_channel
 
 __all__ = ["batch_reactor", "lorenz", "martinelli_simple", "odometry_circular",
            "odometry_noncircular", "pendulum", "quadrotor_ko2019", "runaway", "satellite",
-           "satellite_rates", "van_der_pol", "vertical_channel", "PDAttitudeController",
-           "nadir_in_body", "reference_attitude"]
+           "satellite_rates", "sine_pendulum", "van_der_pol", "vertical_channel",
+           "PDAttitudeController", "nadir_in_body", "reference_attitude"]
