@@ -192,8 +192,9 @@ def _tests(results: list[dict], assertions: Mapping[str, list[dict]]) -> list[st
 
 
 def _outcome(a: dict, test: str) -> str:
-    """``"PASSED assert_better (test_x.py::test_y): 'mhe' is shown better ..."``."""
-    head = "STORED" if a["assertion"] == "baseline" else ("PASSED" if a["passed"] else "FAILED")
+    """``"[passed] assert_better (test_x.py::test_y): 'mhe' is shown better ..."``."""
+    head = "[stored]" if a["assertion"] == "baseline" else \
+        ("[passed]" if a["passed"] else "[failed]")
     return f"{head} {a['assertion']} ({test}): {a['text']}"
 
 

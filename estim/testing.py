@@ -455,12 +455,36 @@ def load_baseline(path: str | os.PathLike[str]) -> dict:
     path = Path(path)
     try:
         data = json.loads(path.read_text())
-        assert isinstance(data, dict) and {"scenario", "seeds", "metrics"} <= set(data)
-    except (OSError, ValueError, AssertionError) as exc:
+    except (OSError, ValueError) as exc:
         raise ValueError(f"baseline {str(path)!r} is not an estim baseline (written by "
                          f"estim.testing.save_baseline): {exc}") from None
-    return data
+    return _checked_baseline(data, repr(str(path)))
 
+
+def _checked_baseline(data: object, where: str) -> dict:
+    """``data`` if it has the form :func:`save_baseline` writes (scenario, seeds, and per
+    estimator a value or null per seed for each metric), else a ``ValueError`` saying
+    what is wrong."""
+    def bad(what: str) -> ValueError:
+        return ValueError(f"baseline: {where} is not an estim baseline (written by "
+                          f"estim.testing.save_baseline): {what}")
+
+    if not isinstance(data, dict) or not {"scenario", "seeds", "metrics"} <= set(data):
+        raise bad("it needs the keys 'scenario', 'seeds' and 'metrics'")
+    seeds = data["seeds"]
+    if not isinstance(seeds, list) or not all(isinstance(s, int) for s in seeds):
+        raise bad("'seeds' must be a list of integers")
+    if not isinstance(data["metrics"], dict) or not data["metrics"]:
+        raise bad("'metrics' must map estimator labels to their per-seed metrics")
+    for name, metrics in data["metrics"].items():
+        if not isinstance(metrics, dict):
+            raise bad(f"'metrics'[{name!r}] must map {list(METRICS)} to per-seed values")
+        for key, values in metrics.items():
+            if not isinstance(values, list) or len(values) != len(seeds) or not all(
+                    v is None or isinstance(v, int | float) for v in values):
+                raise bad(f"'metrics'[{name!r}][{key!r}] must be a list of {len(seeds)} "
+                          f"numbers (null for a run that raised)")
+    return data
 
 
 
@@ -478,7 +502,10 @@ def assert_no_regression(comparison: Comparison, baseline: str | os.PathLike[str
     Returns
     -------
     dict
-        The test per estimator (its ``location``: the typical rise, positive: worse).
+        The test per estimator in both (its ``location``: the typical rise, positive:
+        worse; p-value 1 when unchanged). A baseline that is malformed or shares no
+        estimator with the comparison is a ``ValueError``: nothing passes having
+        compared nothing.
     """
     confidence, test = _level(confidence, "confidence"), _test_name(test)
     margin = as_float(margin, "margin", minimum=0.0)
@@ -486,7 +513,13 @@ def assert_no_regression(comparison: Comparison, baseline: str | os.PathLike[str
         raise TypeError(f"comparison must be an estim.Comparison, got "
                         f"{type(comparison).__name__}")
     where = "the baseline" if isinstance(baseline, dict) else repr(str(baseline))
-    data = baseline if isinstance(baseline, dict) else load_baseline(baseline)
+    data = _checked_baseline(baseline, where) if isinstance(baseline, dict) else \
+        load_baseline(baseline)
+    common = [name for name in comparison.rmse if name in data["metrics"]]
+    if not common:
+        raise ValueError(f"baseline: {where} holds the estimators {list(data['metrics'])}, "
+                         f"the comparison {list(comparison.rmse)}: nothing to compare "
+                         f"(update the baseline)")
     if data["scenario"] != comparison.scenario:
         raise ValueError(f"baseline: {where} is of scenario {data['scenario']!r}, not "
                          f"{comparison.scenario!r}")
@@ -501,6 +534,8 @@ def assert_no_regression(comparison: Comparison, baseline: str | os.PathLike[str
         if name not in data["metrics"]:
             lines.append(f"{name!r}: not in the baseline")
             continue
+        if metric not in data["metrics"][name]:
+            raise ValueError(f"baseline: {where} has no {metric!r} of {name!r}")
         old = np.array([np.nan if v is None else v for v in data["metrics"][name][metric]],
                        dtype=float)
         if metric == "nees":
@@ -512,6 +547,7 @@ def assert_no_regression(comparison: Comparison, baseline: str | os.PathLike[str
         lost = int(np.isfinite(old).sum() - ok.sum())
         lost_text = f"; {lost} seeds that completed before now raised" if lost > 0 else ""
         if not d.any() and not lost:
+            results[name] = paired(d, "greater", test)
             lines.append(f"{name!r}: unchanged on all {d.size} seeds")
             continue
         if d.size < _needed(confidence, test):

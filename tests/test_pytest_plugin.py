@@ -44,7 +44,7 @@ def test_fixtures_options_summary_and_report(pytester):
                                 "-p", "no:cacheprovider")
     result.assert_outcomes(passed=2)
     result.stdout.fnmatch_lines(["*estim comparisons*", "vdp (6 seeds; test_user.py::test_filters)",
-                                 "*ekf *", "PASSED assert_better (test_user.py::test_filters): "
+                                 "*ekf *", "[[]passed] assert_better (test_user.py::test_filters): "
                                  "'ekf' is shown better than 'bad' in rmse at confidence 0.95 "
                                  "(6 paired seeds): Wilcoxon signed-rank p = 0.0156, 6 of 6 *",
                                  "test_other: van_der_pol (6 seeds;*",
@@ -52,13 +52,13 @@ def test_fixtures_options_summary_and_report(pytester):
     text = (pytester.path / "out" / "report.md").read_text()
     assert "### vdp" in text and "![RMSE per seed](report_1.png)" in text
     assert "1 of 1 assertions passed" in text
-    assert "- **PASSED assert_better**: 'ekf' is shown better than 'bad'" in text
+    assert "- **[passed] assert_better**: 'ekf' is shown better than 'bad'" in text
     assert (pytester.path / "out" / "report_2.png").stat().st_size > 5000
     html = pytester.runpytest("--estim-report", "r.html", "-q", "-p", "no:cacheprovider")
     html.assert_outcomes(passed=2)
     page = (pytester.path / "r.html").read_text()
     assert "<pre>" in page
-    assert "<li><b>PASSED assert_better</b>: &#x27;ekf&#x27; is shown better" in page
+    assert "<li><b>[passed] assert_better</b>: &#x27;ekf&#x27; is shown better" in page
     bad = pytester.runpytest("--estim-report", "r.txt")
     assert bad.ret == pytest.ExitCode.USAGE_ERROR
     bad.stderr.fnmatch_lines(["*--estim-report must end in .md or .html*"])
@@ -75,7 +75,7 @@ def test_baselines_catch_a_regression(pytester):
     args = ["--estim-baseline", "base", "-q", "-p", "no:cacheprovider"]
     first = pytester.runpytest(*args)
     first.assert_outcomes(passed=2)
-    first.stdout.fnmatch_lines(["STORED baseline (test_user.py::test_filters): stored "
+    first.stdout.fnmatch_lines(["[[]stored] baseline (test_user.py::test_filters): stored "
                                 "'base/vdp.json' (estimators ekf, ukf, bad; seeds 0..5 (6)): "
                                 "later runs are checked against it"])
     stored = json.loads((pytester.path / "base" / "vdp.json").read_text())
@@ -83,7 +83,7 @@ def test_baselines_catch_a_regression(pytester):
     assert set(stored["metrics"]) == {"ekf", "ukf", "bad"}
     same = pytester.runpytest(*args)
     same.assert_outcomes(passed=2)
-    same.stdout.fnmatch_lines(["PASSED assert_no_regression (test_user.py::test_filters): no "
+    same.stdout.fnmatch_lines(["[[]passed] assert_no_regression (test_user.py::test_filters): no "
                                "regression against 'base/vdp.json' (estimators ekf, ukf, bad; "
                                "seeds 0..5 (6)) at confidence 0.95; 'ekf': unchanged on all 6 "
                                "seeds; 'ukf': unchanged on all 6 seeds; 'bad': unchanged*"])
@@ -94,7 +94,7 @@ def test_baselines_catch_a_regression(pytester):
                                 "mean * -> *; 6 of 6 seeds worse, 0 better; Wilcoxon "
                                 "signed-rank p = 0.0156, Hodges-Lehmann *; the largest rises: "
                                 "seed *",
-                                "FAILED assert_no_regression (test_user.py::test_filters): "
+                                "[[]failed] assert_no_regression (test_user.py::test_filters): "
                                 "regression against*"])
     pytester.runpytest(*args, "--estim-baseline-update").assert_outcomes(passed=2)
     pytester.runpytest(*args).assert_outcomes(passed=2)
@@ -113,7 +113,7 @@ def test_xdist_gives_the_serial_results(pytester):
                                              "-p", "no:cacheprovider")
     parallel.assert_outcomes(passed=2)
     parallel.stdout.fnmatch_lines(["*estim comparisons*", "vdp (6 seeds;*",
-                                   "PASSED assert_better (test_user.py::test_filters)*"])
+                                   "[[]passed] assert_better (test_user.py::test_filters)*"])
     a = json.loads((pytester.path / "serial" / "vdp.json").read_text())
     b = json.loads((pytester.path / "parallel" / "vdp.json").read_text())
     assert a["metrics"] == b["metrics"]

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.stats import binomtest, ttest_1samp, wilcoxon
 
 import estim
-from estim import testing
+from estim import testing, verdicts
 
 sys.path.insert(0, str(Path(__file__).parent))
 import verdict_cases as vc  # noqa: E402
@@ -38,6 +40,7 @@ def _rates(n_sets: int) -> None:
     (tests/verdict_cases.py): consistency of a filter that diverges on about 12 % of its
     seeds rejected in at least 97 % of sets of 50 seeds (the mean-based rule it replaces
     in at most half); the exact Kalman filter's false alarms consistent with at most 1 %,
+    also with two of every 50 seeds replaced by outlying (not diverged) ones,
     the well-tuned van der Pol EKF accepted in a share consistent with at least 98 %; the
     R x 10 regression of the pendulum's EKF detected in at least 95 % of sets of 50 seeds
     (the paired t-test in at most half), and in at least 70 % of sets of 20; equal
@@ -49,8 +52,11 @@ def _rates(n_sets: int) -> None:
     rejected = vc.consistency_rejections(pend, "ekf", S, n_sets)
     assert rejected >= 0.97 * n_sets, rejected
     assert vc.consistency_rejections(pend, "ekf", S, n_sets, rule="mean") <= n_sets / 2
-    exact = vc.consistency_rejections(vc.runs("linear", S * n_sets), "kf", S, n_sets)
+    linear = vc.runs("linear", S * n_sets)
+    exact = vc.consistency_rejections(linear, "kf", S, n_sets)
     assert _cp_allows(exact, n_sets, 0.01, "most"), exact
+    outlying = vc.consistency_rejections(linear, "kf", S, n_sets, outlying=2)
+    assert _cp_allows(outlying, n_sets, 0.01, "most"), outlying  # 2 bad seeds fake nothing
     tuned = vc.consistency_rejections(vc.runs("van_der_pol", 2 * S * n_sets), "ekf", S,
                                       n_sets)
     assert _cp_allows(n_sets - tuned, n_sets, 0.98, "least"), tuned
@@ -99,7 +105,17 @@ def test_the_pendulums_verdicts_and_messages():
                                              r"seed \d+: \+"):
         testing.assert_no_regression(worse, base)
     same = testing.assert_no_regression(res, base)
-    assert same == {}  # unchanged on every seed: exact
+    assert same["ekf"].p_value == 1.0 and same["ekf"].above == 0  # unchanged: exact
+    with pytest.raises(ValueError, match=r"holds the estimators \['ekf'\], the comparison "
+                                         r"\['EKF'\]: nothing to compare"):
+        testing.assert_no_regression(estim.compare(sc, {"EKF": estim.EKF}, seeds=range(50)),
+                                     base)
+    for broken, why in (({**base, "metrics": [1, 2]}, "'metrics' must map"),
+                        ({**base, "metrics": {"ekf": {"rmse": [0.1] * 3}}},
+                         r"'metrics'\['ekf'\]\['rmse'\] must be a list of 50 numbers"),
+                        ({"scenario": "x"}, "needs the keys")):
+        with pytest.raises(ValueError, match=why):
+            testing.assert_no_regression(res, broken)
 
 
 def test_messages_and_equivalence(vdp):
@@ -212,3 +228,21 @@ def test_assert_close(vdp):
                              estim.UKF(vdp.model, **vdp.tuning), record, atol=1e-9)
     with pytest.raises(TypeError, match="b must be an estim estimator"):
         testing.assert_close(estim.EKF(vdp.model, **vdp.tuning), object(), record)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(0.0, 1.0), min_size=3, max_size=40), st.integers(0, 39),
+       st.floats(0.0, 1.0))
+def test_no_seed_moves_the_level_by_more_than_its_share(levels, which, value):
+    """The verdict does not depend on the seeds' order, and one seed, whatever its value
+    (short of diverging), moves the mean level by at most 1/S."""
+    S = len(levels)
+    ratio, down = np.ones(S), np.zeros(S, dtype=bool)
+    v = verdicts.consistency(ratio, levels, down, list(range(S)))
+    order = np.random.default_rng(S).permutation(S)
+    w = verdicts.consistency(ratio, np.asarray(levels)[order], down, list(order))
+    assert w.consistent == v.consistent and w.mean_level == pytest.approx(v.mean_level)
+    moved = list(levels)
+    moved[which % S] = value
+    u = verdicts.consistency(ratio, moved, down, list(range(S)))
+    assert abs(u.mean_level - v.mean_level) <= 1 / S + 1e-12
