@@ -61,7 +61,7 @@ from filterpy.monte_carlo import systematic_resample
 from scipy import stats
 
 import estim
-from estim.solvers.particle_kernel import AHEAD_MIN as AHEAD
+from estim.solvers.sampling.particle_kernel import AHEAD_MIN as AHEAD
 
 A = np.array([[1.0, 0.1], [0.0, 1.0]])
 C = np.array([[1.0, 0.0]])

@@ -25,14 +25,14 @@ from estim.simulate import replay, simulate
 if TYPE_CHECKING:
     from estim import codegen as codegen  # not in __all__: imported on first use
     from estim import observability, records, smooth, tuning
-    from estim.estimators.ekf import EKF
-    from estim.estimators.enkf import EnKF
-    from estim.estimators.fie import FitResult, FullInformation
-    from estim.estimators.imm import IMM
-    from estim.estimators.mhe import MHE
-    from estim.estimators.particle import ParticleFilter
-    from estim.estimators.shooting import ShootingObserver
-    from estim.estimators.ukf import UKF
+    from estim.estimators.kalman.ekf import EKF
+    from estim.estimators.kalman.imm import IMM
+    from estim.estimators.kalman.ukf import UKF
+    from estim.estimators.sampling.enkf import EnKF
+    from estim.estimators.sampling.particle import ParticleFilter
+    from estim.estimators.window.fie import FitResult, FullInformation
+    from estim.estimators.window.mhe import MHE
+    from estim.estimators.window.shooting import ShootingObserver
     from estim.uncertainty import ParameterEstimates, parameter_uncertainty
 
 __all__ = [
@@ -47,12 +47,13 @@ __all__ = [
 
 #: Names imported on first use (PEP 562): the estimators and the modules that
 #: ``import estim`` does not need, so that it stays fast.
-_LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
-         "FitResult": "estim.estimators.fie",
-         "FullInformation": "estim.estimators.fie", "IMM": "estim.estimators.imm",
-         "MHE": "estim.estimators.mhe",
-         "ParticleFilter": "estim.estimators.particle",
-         "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf",
+_LAZY = {"EKF": "estim.estimators.kalman.ekf", "EnKF": "estim.estimators.sampling.enkf",
+         "FitResult": "estim.estimators.window.fie",
+         "FullInformation": "estim.estimators.window.fie", "IMM": "estim.estimators.kalman.imm",
+         "MHE": "estim.estimators.window.mhe",
+         "ParticleFilter": "estim.estimators.sampling.particle",
+         "ShootingObserver": "estim.estimators.window.shooting",
+         "UKF": "estim.estimators.kalman.ukf",
          "codegen": "estim.codegen", "observability": "estim.observability",
          "records": "estim.records",
          "smooth": "estim.smooth", "tuning": "estim.tuning",

@@ -28,7 +28,7 @@ from estim.verdicts import consistency, seed_scores
 
 if TYPE_CHECKING:
     from estim.batch import PlantBatch
-    from estim.estimators.fused import FusedKalman
+    from estim.estimators.kalman.fused import FusedKalman
 
 #: A factory ``(model, tuning) -> estimator``.
 Factory = Callable[[Model, dict], Estimator]

@@ -63,7 +63,7 @@ from estim.solvers.seeds import CHUNK, seed_map, threads
 from estim.verdicts import seed_scores
 
 if TYPE_CHECKING:
-    from estim.estimators.fused import FusedKalman
+    from estim.estimators.kalman.fused import FusedKalman
 
 
 def unsupported(scenario: Scenario) -> str:
@@ -265,7 +265,7 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     seconds of its filter calls (summed over the workers) and whether they were
     compiled (see :func:`~estim.solvers.seeds.seed_map`).
     """
-    from estim.estimators.fused_calls import SeedFilter
+    from estim.estimators.kalman.fused_calls import SeedFilter
 
     S = len(seeds)
     plant = _Plant(scenario)
@@ -345,7 +345,7 @@ class _Scores:
             burn_in: int) -> None:
         """Score the seeds ``lo, lo + 1, ...`` of a chunk whose plant stayed finite, from
         the filter's ``out`` (see :meth:`SeedFilter.results
-        <estim.estimators.fused_calls.SeedFilter.results>`) and the true states ``X``."""
+        <estim.estimators.kalman.fused_calls.SeedFilter.results>`) and the true states ``X``."""
         from estim.metrics import startup_samples
 
         keep = np.flatnonzero(finite)

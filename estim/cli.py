@@ -207,7 +207,7 @@ def _cmd_run(args) -> int:
 def _cmd_tune(args) -> int:
     import numpy as np
 
-    from estim.estimators.ekf import EKF
+    from estim.estimators.kalman.ekf import EKF
     from estim.metrics import rmse
     from estim.simulate import replay, simulate
 

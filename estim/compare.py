@@ -333,7 +333,7 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
     batch = as_bool(batch, "batch", allow_none=True)
     if batch is not False:
         from estim import batch as batching  # numpy/CasADi batches, loaded when used
-        from estim.estimators.fused import FusedKalman  # the filters that batch
+        from estim.estimators.kalman.fused import FusedKalman  # the filters that batch
 
         why = batching.unsupported(scenario)
         if why and batch:

@@ -10,7 +10,7 @@ import numpy as np
 from estim._validate import as_bool, as_float, as_int
 
 if TYPE_CHECKING:  # annotations only: a log is told by what it holds (see _is_log)
-    from estim.estimators.fie import FitResult
+    from estim.estimators.window.fie import FitResult
     from estim.log import Log
 
 

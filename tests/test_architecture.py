@@ -23,6 +23,9 @@ PACKAGE = ROOT / "estim"
 #: The largest module and the largest class, in lines, unless a comment at the top of the
 #: module says why it is longer (``# long module: <why>``, ``# long class <Name>: <why>``).
 MODULE_LINES, CLASS_LINES = 600, 300
+#: The most modules side by side in a package of the rooms that grow by family (their
+#: subpackages and ``__init__`` not counted): more, and they are split by family.
+FAMILY_ROOMS, ROOM_MODULES = ("estimators", "solvers", "inference"), 12
 
 try:
     import tomllib
@@ -156,7 +159,8 @@ def test_layers(contract):
     for level, layer in enumerate(reversed(contract["layers"])):
         independent = "|" in layer
         for sibling, part in enumerate(layer.replace("|", ":").split(":")):
-            where[f"{container}.{part.strip()}"] = (level, sibling, independent)
+            # "(name)": an optional layer, one that may not exist yet
+            where[f"{container}.{part.strip().strip('()')}"] = (level, sibling, independent)
 
     def layer_of(module: str):
         for prefix, place in where.items():
@@ -219,6 +223,20 @@ def test_no_room_too_big():
                 if size > CLASS_LINES and f"# long class {node.name}:" not in head:
                     too_big.append(f"class {name}.{node.name}: {size} lines")
     assert not too_big, "over the size limits (or say why at the top):\n" + "\n".join(too_big)
+
+
+def test_no_room_too_crowded():
+    """``estim/estimators``, ``estim/solvers``, ``estim/inference`` and every package inside
+    them hold at most :data:`ROOM_MODULES` modules side by side (docs/architecture.md:
+    families as subpackages)."""
+    crowded = []
+    for room in FAMILY_ROOMS:
+        inner = [p.parent for p in (PACKAGE / room).rglob("*/__init__.py")]
+        for folder in [PACKAGE / room, *inner]:
+            n = len([p for p in folder.glob("*.py") if p.name != "__init__.py"])
+            if n > ROOM_MODULES:
+                crowded.append(f"{folder.relative_to(ROOT)}: {n} modules")
+    assert not crowded, "group these by family:\n" + "\n".join(crowded)
 
 
 def test_import_linter_agrees():

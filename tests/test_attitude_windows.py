@@ -144,7 +144,7 @@ def test_each_mhe_window_is_the_intrinsic_optimum(arrival_cost):
 @pytest.mark.parametrize("solver", ["ipopt", "sqp", "fatrop"])
 def test_every_solver_finds_the_same_windows(solver):
     """Ipopt, SQP and fatrop move in the tangent space too (their variables are steps
-    from chart centres at the start, :func:`estim.solvers.builders.charted`): the same
+    from chart centres at the start, :func:`estim.solvers.least_squares.builders.charted`): the same
     trajectory as the Gauss-Newton solver, whose optimum is checked above, and the same
     MHE estimates and covariances, on the sphere."""
     sc = scenario(T=40, guess_angle=0.3)

@@ -11,7 +11,7 @@ import pytest
 from linear_gaussian import P0, X0, A, Q, R, kalman, linear_model, record
 
 import estim
-from estim.estimators.enkf import VARIANTS, EnKF
+from estim.estimators.sampling.enkf import VARIANTS, EnKF
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -97,7 +97,7 @@ def test_lorenz_gauss_newton_and_ipopt_reach_the_same_optimum():
 def test_chunk_length_leaves_fewest_slots_over():
     """The mapped mode's chunk length stays within a quarter of sqrt(n/5) (between 16 and
     64 slots, at most 1024 chunks) and, within that, leaves the fewest single slots."""
-    from estim.solvers.gauss_newton import chunk_slots
+    from estim.solvers.least_squares.gauss_newton import chunk_slots
     for n in (5, 98, 148, 1998, 2000, 9998, 10000, 40000, 123457):
         L = chunk_slots(n)
         base = max(min(64, max(16, round((n / 5) ** 0.5))), -(-n // 1024))

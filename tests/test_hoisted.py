@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import estim
-from estim.solvers import stages
-from estim.solvers.stages import StageFunctions, hoisted
+from estim.solvers.least_squares import stages
+from estim.solvers.least_squares.stages import StageFunctions, hoisted
 
 # the slot step's inputs after the carries: x, x_next, y, wy, up, a, u, omega, wq, link,
 # xbar, w0, A0 (and lam when damped); the weights, bookkeeping and damping are hoisted

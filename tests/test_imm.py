@@ -7,7 +7,7 @@ import pytest
 from filterpy.kalman import IMMEstimator, KalmanFilter
 
 import estim
-from estim.estimators.imm import IMM
+from estim.estimators.kalman.imm import IMM
 
 F = np.array([[1.0, 1.0], [0.0, 1.0]])  # constant velocity, unit sample time
 H = np.array([[1.0, 0.0]])

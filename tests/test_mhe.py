@@ -12,7 +12,7 @@ from scipy.optimize import least_squares
 from test_kalman import _kalman, _record
 
 import estim
-from estim.solvers.solution import Solution
+from estim.solvers.least_squares.solution import Solution
 
 SOLVERS = ["gauss-newton", "ipopt", "sqp", "fatrop"]
 

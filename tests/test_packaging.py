@@ -40,9 +40,9 @@ def test_import_estim_leaves_heavy_modules_alone():
     assert "estim" in modules and "casadi" in modules
     assert not {m for m in modules if m in HEAVY or m.startswith(tuple(f"{h}." for h in HEAVY))}
     # the estimator modules wait for their first use too
-    assert not {m for m in modules if m.startswith(("estim.estimators.ekf",
-                                                      "estim.estimators.shooting",
-                                                      "estim.estimators.ukf"))}
+    assert not {m for m in modules if m.startswith(("estim.estimators.kalman.ekf",
+                                                      "estim.estimators.window.shooting",
+                                                      "estim.estimators.kalman.ukf"))}
 
 
 def test_estimators_without_their_optional_dependencies():
@@ -56,7 +56,7 @@ def test_estimators_without_their_optional_dependencies():
 def test_cli_list_leaves_heavy_modules_alone():
     modules = _imported_by("import sys; from estim.cli import main; "
                            "sys.argv = ['estim', 'list']; main()")
-    assert "estim.estimators.shooting" in modules  # it lists every estimator
+    assert "estim.estimators.window.shooting" in modules  # it lists every estimator
     assert not {"filterpy", "matplotlib", "pandas", "scipy.stats", "scipy.optimize",
                 "scipy.special"} & modules
 
@@ -73,8 +73,8 @@ def test_lazy_names_are_public_names():
     assert set(estim.__all__) <= set(dir(estim))
     from estim import EKF, UKF, FitResult, FullInformation, observability, smooth
     from estim.estimators import ESTIMATORS
-    from estim.estimators.ekf import EKF as EKF_
-    from estim.estimators.fie import FitResult as FitResult_
+    from estim.estimators.kalman.ekf import EKF as EKF_
+    from estim.estimators.window.fie import FitResult as FitResult_
 
     assert EKF is EKF_ is estim.EKF is ESTIMATORS["ekf"] and FitResult is FitResult_
     assert UKF is ESTIMATORS["ukf"] and FullInformation is ESTIMATORS["fie"]
@@ -184,7 +184,7 @@ def test_user_script_type_checks(tmp_path):
     assert revealed[1].startswith('"numpy.ndarray')
     assert revealed[2] == '"estim.metrics.RMSE"'
     assert revealed[3].startswith('"numpy.ndarray')
-    assert "estim.estimators.fie.FullInformation" in revealed[4]
+    assert "estim.estimators.window.fie.FullInformation" in revealed[4]
     assert revealed[5] == '"estim.compare.Comparison"'
 
 

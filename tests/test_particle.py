@@ -14,7 +14,7 @@ from linear_gaussian import P0, X0, A, Q, R, kalman, linear_model, record
 
 import estim
 from estim._compile import compiler
-from estim.solvers.resampling import RESAMPLING, effective_sample_size, resample
+from estim.solvers.sampling.resampling import RESAMPLING, effective_sample_size, resample
 
 
 @pytest.fixture(params=[False, True], ids=["interpreted", "compiled"])

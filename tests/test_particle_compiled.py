@@ -21,7 +21,7 @@ import estim
 from estim._compile import compiler, shared_library
 from estim._vectorised import c_kernel
 from estim.exceptions import EstimationWarning
-from estim.solvers import particle_kernel as pk
+from estim.solvers.sampling import particle_kernel as pk
 
 pytestmark = pytest.mark.skipif(compiler() is None, reason="no C compiler")
 
@@ -215,7 +215,7 @@ def test_a_pickled_filter_goes_on_where_it_was():
 def test_innovations_by_pattern_of_measured_outputs():
     """The batched NIS over patterns of missing outputs equals the one-by-one formula,
     with NaN where nothing is measured or the prediction is not finite."""
-    from estim.estimators.particle_compiled import innovations
+    from estim.estimators.sampling.particle_compiled import innovations
 
     rng = np.random.default_rng(3)
     T, ny = 40, 3

@@ -12,7 +12,7 @@ import pytest
 from scipy.optimize import least_squares
 
 import estim
-from estim.solvers.robust import DEFAULT_SCALES, OUTLIER_SIGMA, RobustLoss
+from estim.solvers.least_squares.robust import DEFAULT_SCALES, OUTLIER_SIGMA, RobustLoss
 
 TUNING = dict(Q=0.01, R=1.0, x0=[0.0, 0.0], P0=1.0)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import estim
-from estim.estimators.shooting import derivative_filter
+from estim.estimators.window.shooting import derivative_filter
 
 
 def _runaway_observer(**kw):

@@ -16,7 +16,7 @@ import pytest
 from scipy.optimize import least_squares
 
 import estim
-from estim.estimators import shooting
+from estim.estimators.window import shooting
 
 W, N, R = 20, 2, 0.1**2
 TRUTH = [1.5, 1.5, 1.0]

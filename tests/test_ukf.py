@@ -13,7 +13,7 @@ from filterpy.kalman import JulierSigmaPoints, MerweScaledSigmaPoints, Unscented
 from scipy.linalg import cholesky
 
 import estim
-from estim.estimators.ukf import sigma_weights
+from estim.estimators.kalman.ukf import sigma_weights
 
 POINTS = {"merwe": {}, "julier": {"kappa": 1.0}, "cubature": {}}
 

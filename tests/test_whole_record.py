@@ -9,7 +9,7 @@ import pytest
 from models import two_tanks
 
 import estim
-from estim.estimators import fused_calls
+from estim.estimators.kalman import fused_calls
 
 TOL = 1e-12
 FILTERS = pytest.mark.parametrize("F", [estim.EKF, estim.UKF], ids=["ekf", "ukf"])

@@ -10,7 +10,7 @@ with ``<math.h>`` and ``<string.h>`` only: no allocation, no CasADi runtime.
 
 The real-time iteration of the moving horizon estimator (:class:`~estim.MHE` with
 ``rti=True``) is exported the same way: CasADi's generated code of the window's
-preparation, feedback and cost (:func:`estim.solvers.rti.build`), of the arrival
+preparation, feedback and cost (:func:`estim.solvers.least_squares.rti.build`), of the arrival
 covariance's step and of the model's transition, and a driver that does the window's
 bookkeeping as the Python estimator does, in the same order (see
 ``docs/deployment.md``).
@@ -27,9 +27,9 @@ from estim.codegen.files import CFLAGS as CFLAGS
 from estim.codegen.files import check_model
 
 if TYPE_CHECKING:
-    from estim.estimators.ekf import EKF
-    from estim.estimators.mhe import MHE
-    from estim.estimators.ukf import UKF
+    from estim.estimators.kalman.ekf import EKF
+    from estim.estimators.kalman.ukf import UKF
+    from estim.estimators.window.mhe import MHE
 
 __all__ = ["export"]
 
@@ -126,7 +126,7 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
-    from estim.estimators.mhe import MHE
+    from estim.estimators.window.mhe import MHE
 
     _exportable(estimator)
     m = estimator.model
@@ -160,7 +160,7 @@ def memory(estimator: EKF | UKF | MHE) -> int:
     of ``P0``; for the MHE also the window, the arrival cost and the real-time
     iteration's intermediate results). Refuses what :func:`export` refuses, with its
     errors."""
-    from estim.estimators.mhe import MHE
+    from estim.estimators.window.mhe import MHE
 
     _exportable(estimator)
     if isinstance(estimator, MHE):
@@ -171,8 +171,8 @@ def memory(estimator: EKF | UKF | MHE) -> int:
 def _exportable(estimator: object) -> None:
     """A ``TypeError`` or ``ValueError`` (as :func:`export` documents them) for an
     estimator the export does not handle."""
-    from estim.estimators.fused import FusedKalman
-    from estim.estimators.mhe import MHE
+    from estim.estimators.kalman.fused import FusedKalman
+    from estim.estimators.window.mhe import MHE
 
     if not isinstance(estimator, (FusedKalman, MHE)):
         raise TypeError(f"estimator must be an estim.EKF, estim.UKF or estim.MHE with "

@@ -25,11 +25,11 @@ from typing import TYPE_CHECKING
 import casadi as ca
 
 from estim.codegen.files import c_array, generate, renamed, work_sizes, write_driver
-from estim.solvers.triangular import tria
+from estim.solvers.kalman.triangular import tria
 
 if TYPE_CHECKING:
-    from estim.estimators.ekf import EKF
-    from estim.estimators.ukf import UKF
+    from estim.estimators.kalman.ekf import EKF
+    from estim.estimators.kalman.ukf import UKF
 
 #: Status codes of ``<name>_step`` (the C enum), with the Python status they stand for.
 STATUS = {0: "ok", 1: "suspect", 2: "rejected", 3: "failed: kept the prediction",
@@ -80,7 +80,7 @@ def factor_functions(estimator: EKF | UKF, name: str) -> list[ca.Function]:
         ``P0 -> vec(chol(P0))``, the factor after a reset.
     ``<name>_add_P0``
         ``(vec(S), vec(L0)) -> vec(tria([S, L0]))``, the factor of
-        :math:`S S^\top + L_0 L_0^\top` (:func:`~estim.solvers.triangular.tria`, as
+        :math:`S S^\top + L_0 L_0^\top` (:func:`~estim.solvers.kalman.triangular.tria`, as
         the Python gate and recovery form it).
     ``<name>_covariance``
         ``vec(S) -> vec(S S^T)``, the covariance a step reports.

@@ -2,7 +2,7 @@
 with ``rti=True``).
 
 CasADi's generated code of the window's preparation, feedback and cost
-(:func:`estim.solvers.rti.build`), of the arrival covariance's step and of the model's
+(:func:`estim.solvers.least_squares.rti.build`), of the arrival covariance's step and of the model's
 transition, and the driver of ``templates/mhe.c.in``, which does the window's
 bookkeeping as the Python estimator does, in the same order (see
 ``docs/deployment.md``). The struct ``<name>_t`` holds the window, the arrival cost and
@@ -31,7 +31,7 @@ from estim.codegen.files import (
 from estim.consistency import chi2_limit
 
 if TYPE_CHECKING:
-    from estim.estimators.mhe import MHE
+    from estim.estimators.window.mhe import MHE
 
 #: Status codes of the MHE's ``<name>_step`` and ``<name>_prepare``.
 STATUS = {0: "ok", 1: "inexact: the start-up's Gauss-Newton steps did not converge",
@@ -66,9 +66,9 @@ def check(estimator: MHE) -> None:
 
 def functions(estimator: MHE, name: str) -> list[ca.Function]:
     """The Functions of the real-time MHE under C names: ``prepare``, ``feedback`` and
-    ``cost`` of :func:`estim.solvers.rti.build`, the arrival covariance's step and the
+    ``cost`` of :func:`estim.solvers.least_squares.rti.build`, the arrival covariance's step and the
     model's transition ``F(x, u, p)``."""
-    from estim.solvers import rti
+    from estim.solvers.least_squares import rti
 
     m = estimator.model
     prepare, feedback, cost = rti.build(m, estimator.horizon)
@@ -158,7 +158,7 @@ def values(estimator: MHE, fields: str) -> dict[str, str]:
     ``P0``: zeros without one), the bounds, the model's parameters, the arrival cost,
     the start-up's tolerance and iterations, the :math:`\chi^2` limits of the suspect
     test by degrees of freedom, and the struct's ``fields``."""
-    from estim.estimators.mhe import RTI_STARTUP_ITERATIONS, RTI_STARTUP_XTOL
+    from estim.estimators.window.mhe import RTI_STARTUP_ITERATIONS, RTI_STARTUP_XTOL
 
     m = estimator.model
     nx, M = m.nx, m.manifold

@@ -14,26 +14,27 @@ from estim.estimators.base import Estimator, StepInfo
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from estim.estimators.ekf import EKF
-    from estim.estimators.enkf import EnKF
-    from estim.estimators.fie import FitResult, FullInformation
-    from estim.estimators.imm import IMM
-    from estim.estimators.mhe import MHE
-    from estim.estimators.particle import ParticleFilter
-    from estim.estimators.shooting import ShootingObserver
-    from estim.estimators.ukf import UKF
+    from estim.estimators.kalman.ekf import EKF
+    from estim.estimators.kalman.imm import IMM
+    from estim.estimators.kalman.ukf import UKF
+    from estim.estimators.sampling.enkf import EnKF
+    from estim.estimators.sampling.particle import ParticleFilter
+    from estim.estimators.window.fie import FitResult, FullInformation
+    from estim.estimators.window.mhe import MHE
+    from estim.estimators.window.shooting import ShootingObserver
 
     #: Estimator classes (or, for ``imm``, a constructor on one model) by short name
     #: (command line, comparisons): each is called as ``f(model, Q=, R=, x0=, P0=, ...)``.
     ESTIMATORS: dict[str, Callable[..., Estimator]]
 
 #: Where each lazily imported name is defined.
-_LAZY = {"EKF": "estim.estimators.ekf", "EnKF": "estim.estimators.enkf",
-         "FitResult": "estim.estimators.fie",
-         "FullInformation": "estim.estimators.fie", "IMM": "estim.estimators.imm",
-         "MHE": "estim.estimators.mhe",
-         "ParticleFilter": "estim.estimators.particle",
-         "ShootingObserver": "estim.estimators.shooting", "UKF": "estim.estimators.ukf"}
+_LAZY = {"EKF": "estim.estimators.kalman.ekf", "EnKF": "estim.estimators.sampling.enkf",
+         "FitResult": "estim.estimators.window.fie",
+         "FullInformation": "estim.estimators.window.fie", "IMM": "estim.estimators.kalman.imm",
+         "MHE": "estim.estimators.window.mhe",
+         "ParticleFilter": "estim.estimators.sampling.particle",
+         "ShootingObserver": "estim.estimators.window.shooting",
+         "UKF": "estim.estimators.kalman.ukf"}
 
 #: The short names of :data:`ESTIMATORS` and their classes.
 _SHORT_NAMES = {"ekf": "EKF", "ukf": "UKF", "mhe": "MHE", "fie": "FullInformation",

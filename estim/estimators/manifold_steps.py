@@ -43,7 +43,7 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-from estim.solvers.kalman import ekf_checks
+from estim.solvers.kalman.kalman import ekf_checks
 
 __all__ = ["check_manifold_options", "mekf_step", "output_jacobian", "refuse_manifold",
            "retracted", "sigma_offsets", "tangent_jacobian", "tangent_offsets",
@@ -143,7 +143,7 @@ def _updated(est: Any, xb: Any, Pb: Any, delta: Any, P_update: Any, e: Any, S: A
 
 def mekf_step(est: Any, predict: bool) -> ca.Function:
     """The multiplicative EKF's fused step (see the module), with the flags of
-    :func:`estim.solvers.kalman.fused_function`."""
+    :func:`estim.solvers.kalman.kalman.fused_function`."""
     m = est.model
     M, nd = m.manifold, m.ndx
     s, x, P, u, y, tun, Q, R, p, mask, y_inf = est._symbols()

@@ -28,7 +28,7 @@ import numpy as np
 from estim.model import Model
 
 if TYPE_CHECKING:
-    from estim.estimators.ekf import EKF
+    from estim.estimators.kalman.ekf import EKF
 
 
 @dataclass
@@ -205,7 +205,7 @@ def _run_filter(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: n
     the constant gain ``L`` on the nonlinear model, or ``ekf``, or an EKF with
     ``Q0, R0, x0, P0``.
     """
-    from estim.estimators.ekf import EKF
+    from estim.estimators.kalman.ekf import EKF
 
     nx = model.nx
     T = Y.shape[0]
@@ -254,7 +254,7 @@ def _whitened(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: np.
     ``(T, ny)`` of a filter with the estimates ``Q, R``: the steady-state Kalman filter
     of a linear model (when it exists and is stable), else an EKF from ``x0`` and the
     filter's ``P0``. ``R`` is raised to a positive definite matrix first."""
-    from estim.estimators.ekf import EKF
+    from estim.estimators.kalman.ekf import EKF
 
     nx, ny = model.nx, model.ny
     Rf = R.copy()

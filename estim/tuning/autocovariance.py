@@ -249,7 +249,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     W, Uh = _inputs(model, U)
 
     # ---- the filter
-    from estim.estimators.ekf import EKF
+    from estim.estimators.kalman.ekf import EKF
 
     ekf = gain if isinstance(gain, EKF) else None
     L = None

@@ -1,0 +1,343 @@
+r"""Unscented Kalman filter, fused into one compiled call per step."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estim._manifold import NP
+from estim._validate import as_bool, as_float
+from estim.estimators.kalman.fused import FusedKalman
+from estim.estimators.kalman.smoothing import SmoothResult, rts
+from estim.estimators.kalman.square_root import check_form, covariance, ukf_step
+from estim.estimators.manifold_steps import check_manifold_options, usque_step
+from estim.model import Model
+from estim.solvers.kalman.kalman import finite
+from estim.solvers.kalman.rts import transitions
+
+#: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
+POINTS = ("merwe", "julier", "cubature")
+
+
+class UKF(FusedKalman):
+    r"""Unscented Kalman filter (discrete time, additive noise).
+
+    Same constructor, ``step`` and ``reset`` as :class:`~estim.EKF`; the
+    prediction and update propagate sigma points through the model's :math:`F`
+    and :math:`h` instead of linearising. The sigma points of a mean :math:`x`
+    and covariance :math:`P` are :math:`x` (except for the cubature set) and
+    :math:`x \pm U_i`, with :math:`U_i` the rows of the upper Cholesky factor of
+    :math:`cP` (:func:`sigma_weights` gives :math:`c` and the weights
+    :math:`W^m, W^c`). The prediction, from the sigma points
+    :math:`\mathcal X^{(i)}` of :math:`(\hat x_{k-1}, P_{k-1})`,
+
+    .. math::
+        \bar x_k = \sum_i W^m_i F(\mathcal X^{(i)}, u_{k-1}), \qquad
+        \bar P_k = \sum_i W^c_i \,\delta F_i\, \delta F_i^\top + Q,
+
+    then the update with the sigma points :math:`\mathcal X^{(i)}` of
+    :math:`(\bar x_k, \bar P_k)` and :math:`\mathcal Z^{(i)} = h(\mathcal X^{(i)})`,
+
+    .. math::
+        \bar y = \sum_i W^m_i \mathcal Z^{(i)}, \quad
+        S = \sum_i W^c_i\, \delta\mathcal Z_i\, \delta\mathcal Z_i^\top + R, \quad
+        P_{xy} = \sum_i W^c_i (\mathcal X^{(i)} - \bar x_k)\, \delta\mathcal Z_i^\top, \\
+        K = P_{xy} S^{-1}, \quad \hat x_k = \bar x_k + K (y_k - \bar y), \quad
+        P_k = \bar P_k - K S K^\top
+
+    (kept symmetric; :math:`K` from a linear solve). This is filterpy's
+    :class:`~filterpy.kalman.UnscentedKalmanFilter`, step for step. On the
+    first step there is no prediction. Missing outputs (NaN in ``y``) drop
+    their rows of :math:`\mathcal Z`, :math:`y` and :math:`R` exactly.
+
+    The sigma points, the propagation through :math:`F` and :math:`h`, the
+    update, the checks and optional clipping are one CasADi Function evaluated
+    on preallocated buffers, as in the :class:`~estim.EKF`. A step fails when
+    a value is not finite or a covariance has no Cholesky factor (not
+    positive definite); it then keeps the prediction of a trusted estimate or
+    re-anchors, as the EKF does.
+
+    Parameters
+    ----------
+    model : Model
+    Q, R, x0, P0 :
+        As for every estimator.
+    points : {"merwe", "julier", "cubature"}
+        Sigma-point set: Van der Merwe's scaled points (default), Julier's, or
+        the :math:`2n_x` equally weighted points of the cubature Kalman filter.
+    alpha, beta, kappa : float
+        Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
+        distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
+        scaling (:math:`\kappa`, merwe and julier; :math:`n_x + \kappa > 0`).
+    clip : bool
+        Project the estimate onto the model bounds after each update.
+    gate : float, optional
+        Reject a measurement whose normalised innovation squared lies beyond this
+        tail probability of its chi-square distribution, as :class:`~estim.EKF` does.
+    form : {"covariance", "sqrt"}
+        ``"covariance"`` (default): the equations above. ``"sqrt"``: the square-root
+        UKF of van der Merwe and Wan, which carries the Cholesky factor of :math:`P`,
+        draws the sigma points from it and forms every factor by QR and rank-one
+        downdates: the same estimates to rounding, and a covariance that stays
+        positive semi-definite (:mod:`estim.estimators.kalman.square_root`, docs/ekf.md).
+    jit : bool
+        Compile the step and the whole-record scans (:meth:`filter`, the batched
+        seeds of :func:`~estim.compare`) to machine code through the per-machine
+        cache (a C compiler is needed; the first build takes a few tenths of a second
+        per Function, later processes load the library in milliseconds): the same
+        numbers, several times faster. Without a C compiler the filter stays
+        interpreted, with an :class:`~estim.EstimationWarning`. Default False.
+
+    References
+    ----------
+    R. van der Merwe, *Sigma-Point Kalman Filters for Probabilistic Inference
+    in Dynamic State-Space Models*, PhD thesis, OGI 2004;
+    E. A. Wan, R. van der Merwe, "The unscented Kalman filter for nonlinear
+    estimation", IEEE AS-SPCC 2000;
+    S. J. Julier, J. K. Uhlmann, "Unscented filtering and nonlinear estimation",
+    Proc. IEEE 92(3), 2004;
+    I. Arasaratnam, S. Haykin, "Cubature Kalman filters", IEEE TAC 54(6), 2009.
+    """
+
+    name = "ukf"
+    _manifold_aware = True
+    _checks_inf_itself = True
+
+    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
+                 P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
+                 kappa: float = 0.0, clip: bool = False, gate: float | None = None,
+                 form: str = "covariance", jit: bool = False):
+        super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
+        self.form, self._sqrt = check_form(form)
+        self.gate = self._gate(gate)
+        if not isinstance(points, str) or points not in POINTS:
+            raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
+                             f"got {points!r}")
+        self.points = points
+        self.alpha = as_float(alpha, "alpha", positive=True)
+        self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
+        self.clip = as_bool(clip, "clip")
+        self.lower, self.upper = model.lower, model.upper
+        check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
+        nx = model.ndx  # the sigma points spread in the tangent space
+        if points != "cubature" and nx + self.kappa <= 0:
+            raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
+                             f"got {self.kappa!r}")
+        self._scale, self._Wm, self._Wc = sigma_weights(points, nx, self.alpha, self.beta,
+                                                        self.kappa)
+        self.jit = as_bool(jit, "jit")
+        self._compile()
+
+    def _sigma_points(self, x, P) -> tuple[list, ca.SX]:
+        """The sigma points of ``(x, P)`` (columns) and whether ``P`` has a Cholesky
+        factor (positive definite)."""
+        L, definite = _cholesky(self._scale * P)
+        n = x.numel()
+        offsets = [L[:, k] for k in range(n)]  # the rows of the upper factor L^T
+        centre = [] if self.points == "cubature" else [x]
+        return centre + [x + d for d in offsets] + [x - d for d in offsets], definite
+
+    def _build(self, predict: bool) -> ca.Function:
+        if self._sqrt:
+            return ukf_step(self, predict)
+        if not self.model.manifold.trivial:  # quaternions, angles: tangent sigma points
+            return usque_step(self, predict, _cholesky)
+        m = self.model
+        Wm, Wc = self._Wm, self._Wc
+        s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
+
+        def mean(points, weights):
+            return sum((float(w) * v for w, v in zip(weights, points, strict=True)),
+                       ca.SX.zeros(points[0].numel()))
+
+        def cov(a, b, weights):
+            return sum((float(w) * (da @ db.T) for w, da, db in zip(weights, a, b,
+                                                                    strict=True)),
+                       ca.SX.zeros(a[0].numel(), b[0].numel()))
+
+        if predict:
+            sig, definite = self._sigma_points(x, P)
+            FX = [m.F(v, u, p) for v in sig]
+            xb = mean(FX, Wm)
+            dF = [v - xb for v in FX]
+            Pb = cov(dF, dF, Wc) + Q
+            ok_mean = ca.logic_and(definite, finite(ca.vertcat(*FX)))
+        else:
+            xb, Pb = x, P
+            ok_mean = ca.SX(1)
+        # the update draws the sigma points of the prediction again (as filterpy does)
+        sig, definite = self._sigma_points(xb, Pb)
+        ok_prior = ca.logic_and(ca.logic_and(ok_mean, definite),
+                                finite(ca.vertcat(xb, ca.vec(Pb))))
+        uy = m.measurement_input(u)  # the input at this measurement
+        Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]  # missing rows: 0
+        zp = mean(Z, Wm)
+        dZ = [v - zp for v in Z]
+        dX = [v - xb for v in sig]
+        D = ca.diag(mask)
+        S = cov(dZ, dZ, Wc) + D @ R @ D + ca.diag(1 - mask)
+        S = 0.5 * (S + S.T)
+        Pxz = cov(dX, dZ, Wc)
+        e = ca.if_else(mask, y - zp, 0)
+        K = ca.solve(S, Pxz.T).T
+        xh = xb + K @ e
+        if self.clip:
+            xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
+        Ph = Pb - K @ S @ K.T
+        Ph = 0.5 * (Ph + Ph.T)
+        nis = ca.dot(e, ca.solve(S, e))
+        s_new = ca.vertcat(xh, ca.vec(Ph))
+        s_prior = ca.vertcat(xb, ca.vec(Pb))
+        # finite, and a covariance the next sigma points can be drawn from
+        ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
+        name = "ukf_predict_update" if predict else "ukf_update"
+        return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
+                                    ok_mean, mask, s_prior)
+
+    def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
+        r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
+        (``(2 nx + 1, nx)``, ``(2 nx, nx)`` for ``points="cubature"``); with a stack
+        ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``.
+
+        The offsets are the rows of the upper Cholesky factor :math:`U` of
+        :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
+        x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+        L = np.linalg.cholesky(self._scale * P)
+        off = np.swapaxes(L, -1, -2)  # rows of U = L^T
+        xs = x[..., None, :]
+        centre = [] if self.points == "cubature" else [xs]
+        M = self.model.manifold
+        if not M.euclidean_states:  # x (+) the offsets, in the tangent space
+            return np.concatenate(centre + [M.retract(xs, off, NP), M.retract(xs, -off, NP)],
+                                  axis=-2)
+        return np.concatenate(centre + [xs + off, xs - off], axis=-2)
+
+    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               t: ArrayLike | None = None) -> SmoothResult:
+        r"""Unscented Rauch-Tung-Striebel smoother over a whole record (Särkkä 2008).
+
+        The filter runs forward over the record with :meth:`filter` (one compiled
+        call, equal to :meth:`step` at every sample after a :meth:`reset`; inputs,
+        missing outputs, gating and clipping as in :func:`~estim.replay`). Backwards
+        from :math:`x^s_{T-1} = \hat x_{T-1}`, :math:`P^s_{T-1} = P_{T-1}`: the
+        filter's sigma points
+        :math:`\mathcal X^{(i)}` of :math:`(\hat x_k, P_k)` (weights
+        :math:`W^m_i, W^c_i`) go through :math:`F` with the input :math:`u_k`,
+
+        .. math::
+            \bar x_{k+1} = \sum_i W^m_i F(\mathcal X^{(i)}), \quad
+            \bar P_{k+1} = \sum_i W^c_i\, \delta F_i\, \delta F_i^\top + Q, \quad
+            D_{k+1} = \sum_i W^c_i (\mathcal X^{(i)} - \hat x_k)\, \delta F_i^\top,
+
+        with :math:`\delta F_i = F(\mathcal X^{(i)}) - \bar x_{k+1}`, and
+
+        .. math::
+            G_k = D_{k+1} \bar P_{k+1}^{-1}, \quad
+            x^s_k = \hat x_k + G_k (x^s_{k+1} - \bar x_{k+1}), \quad
+            P^s_k = P_k + G_k (P^s_{k+1} - \bar P_{k+1}) G_k^\top .
+
+        This is filterpy's ``UnscentedKalmanFilter.rts_smoother`` with the
+        inputs passed to :math:`F` (filterpy's calls ``fx(x, dt)`` without them)
+        and a linear solve for :math:`G_k`. With ``clip``, each smoothed mean is
+        projected on the model's bounds too.
+
+        Parameters
+        ----------
+        Y : (T, ny) array
+            Measurements, NaN where missing.
+        U : (T-1, nu) or (T, nu) array, optional
+            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
+            the input at each sample), as in ``FullInformation.fit``; required
+            for a model with inputs (``U=0``: zero inputs, on purpose).
+        t : (T,) array, optional
+            Sample times, for a model built with ``variable_dt=True``.
+
+        Returns
+        -------
+        SmoothResult
+            ``x (T, nx)``, ``P (T, nx, nx)``, the filtered ``x_filtered``,
+            ``P_filtered``, the predictions, gains and statuses. The filter is
+            left at the end of the record.
+
+        References
+        ----------
+        S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
+        """
+        m, Q = self.model, self.Q
+        M = m.manifold
+
+        def predict(X, P, W):
+            n, ns, nx = len(X), len(self._Wm), m.nx
+            sig = self.sigma_points(X, P)  # (n, ns, nx)
+            Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
+                             ).reshape(n, ns, nx)
+            if M.euclidean_states:
+                xb = np.einsum("i,kij->kj", self._Wm, Fs)
+                dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
+            else:  # tangent deviations: the mean about F(x), as the filter's prediction
+                ref = transitions(m, X, W)[:, None, :]
+                xb = M.retract(ref[:, 0], np.einsum("i,kij->kj", self._Wm,
+                                                    M.local(ref, Fs, NP)), NP)
+                dF, dX = M.local(xb[:, None, :], Fs, NP), M.local(X[:, None, :], sig, NP)
+            Pb = np.einsum("i,kia,kib->kab", self._Wc, dF, dF) + Q
+            D = np.einsum("i,kia,kib->kab", self._Wc, dX, dF)
+            return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+
+        return rts(self, Y, U, t, predict, self.model.clip if self.clip else None)
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current estimate."""
+        return self._s[: self.model.nx].copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """Current covariance."""
+        return covariance(self._s[self.model.nx:], self.model.nx, self._sqrt)
+
+    def _failure_texts(self, flags) -> tuple[str, str]:
+        return ("failed: update non-finite or its covariance not positive definite; "
+                "kept the prediction",
+                "update non-finite or its covariance not positive definite" if flags[2]
+                else "prediction F(x, u): covariance not positive definite" if flags[5]
+                else "non-finite prediction F(x, u) at the sigma points")
+
+
+def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
+                  kappa: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
+    r"""The spread :math:`c` (the offsets are the rows of the Cholesky factor of
+    :math:`c P`) and the mean and covariance weights of a sigma-point set.
+
+    ``"merwe"``: :math:`c = \alpha^2 (n + \kappa)`, :math:`\lambda = c - n`,
+    :math:`W^m_0 = \lambda / c`, :math:`W^c_0 = W^m_0 + 1 - \alpha^2 + \beta`,
+    :math:`W_i = 1/(2c)` (filterpy's ``MerweScaledSigmaPoints``); ``"julier"``:
+    :math:`c = n + \kappa`, :math:`W_0 = \kappa / c`, :math:`W_i = 1/(2c)`
+    (``JulierSigmaPoints``); ``"cubature"``: :math:`c = n`, :math:`2n` points of
+    weight :math:`1/(2n)`, no centre point (the cubature Kalman filter's).
+    """
+    if points == "cubature":
+        W = np.full(2 * n, 0.5 / n)
+        return float(n), W, W.copy()
+    c = alpha ** 2 * (n + kappa) if points == "merwe" else n + kappa
+    Wm = np.full(2 * n + 1, 0.5 / c)
+    Wm[0] = (c - n) / c if points == "merwe" else kappa / c
+    Wc = Wm.copy()
+    if points == "merwe":
+        Wc[0] += 1 - alpha ** 2 + beta
+    return c, Wm, Wc
+
+
+def _cholesky(A) -> tuple[ca.SX, ca.SX]:
+    r"""Lower Cholesky factor :math:`L` (:math:`L L^\top = A`, from the upper triangle of
+    ``A`` as LAPACK's upper factorisation reads it) and whether every pivot is positive."""
+    n = A.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    definite = ca.SX(1)
+    for j in range(n):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
+        definite = ca.logic_and(definite, d > 0)
+        L[j][j] = ca.sqrt(d)
+        for i in range(j + 1, n):
+            L[i][j] = (A[j, i] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
+    return ca.vertcat(*[ca.horzcat(*row) for row in L]), definite
