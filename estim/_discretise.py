@@ -45,6 +45,12 @@ _CVODES_OPTIONS = {"abstol": 1e-10, "reltol": 1e-10}
 def as_column(expr, size: int, argname: str) -> ca.SX:
     """Turn what a user equation returned into a ``(size, 1)`` expression."""
     if isinstance(expr, list | tuple):
+        for i, entry in enumerate(expr):
+            if not isinstance(entry, ca.SX | ca.MX | ca.DM | int | float | np.number) and \
+                    not (isinstance(entry, np.ndarray) and entry.size == 1):
+                raise TypeError(f"{argname} must return a CasADi expression or a list of "
+                                f"them: its entry {i} is {type(entry).__name__} "
+                                f"({entry!r:.40})")
         expr = ca.vertcat(*expr)
     elif isinstance(expr, np.ndarray):
         expr = ca.SX(expr) if expr.dtype != object else ca.vertcat(*expr.ravel().tolist())

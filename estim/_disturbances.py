@@ -159,9 +159,12 @@ def augment(model: Any, inputs: Sequence[str] | None, outputs: Sequence[str] | N
         hold=model.hold, variable_dt=model.variable_dt, time_unit=model.time_unit,
         **model.manifold.declared, **_equations(model, E_u, E_y))
     new.augmented = dict(model.augmented)
-    new.disturbances = {"inputs": dict(zip(ins, names[:len(ins)], strict=True)),
-                        "outputs": dict(zip(outs, names[len(ins):], strict=True)),
-                        "kind": kind}
+    old = model.disturbances  # a model that has disturbances already keeps them
+    new.disturbances = {
+        "inputs": {**old.get("inputs", {}), **dict(zip(ins, names[:len(ins)], strict=True))},
+        "outputs": {**old.get("outputs", {}),
+                    **dict(zip(outs, names[len(ins):], strict=True))},
+        "kind": kind}
     if at is None:
         x_at, u_at = np.zeros(model.nx), np.zeros(model.nu)
     else:

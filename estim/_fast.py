@@ -58,7 +58,10 @@ class FastFunction:
     Notes
     -----
     ``args[i]`` is a flat float array of ``fun.numel_in(i)`` entries
-    (column-major for matrices), ``out[i]`` likewise. :meth:`__call__`
+    (column-major for matrices), ``out[i]`` likewise. An evaluation that fails inside
+    (a Newton solve of a model's algebraic equations that breaks down, an external call)
+    leaves every output NaN, never what the buffers held: the estimators' checks of
+    non-finite values then fail the step instead of reading zeros. :meth:`__call__`
     copies its arguments in, evaluates and returns views of the outputs,
     which are overwritten by the next call: copy what must be kept.
     Instances pickle by rebuilding the buffer (the Function is serialised).
@@ -86,6 +89,12 @@ class FastFunction:
         self._buf, self._eval = fun.buffer()
         self._build_views()
 
+    def _failed(self, out: list[np.ndarray]) -> None:
+        """After an evaluation: ``out`` all NaN if it failed (CasADi's return code)."""
+        if self._buf.ret():
+            for r in out:
+                r.fill(np.nan)
+
     def _build_views(self) -> None:
         """Point the buffer at :attr:`args` and :attr:`out`."""
         self._point(self.args, self.out)
@@ -105,11 +114,13 @@ class FastFunction:
         for dst, src in zip(self.args, args, strict=True):
             dst[:] = np.ravel(src, order="F")
         self._eval()
+        self._failed(self.out)
         return self.out
 
     def evaluate(self) -> list[np.ndarray]:
         """Evaluate on whatever is currently in :attr:`args`."""
         self._eval()
+        self._failed(self.out)
         return self.out
 
     def evaluate_on(self, args: list[np.ndarray], out: list[np.ndarray]) -> None:
@@ -119,6 +130,7 @@ class FastFunction:
         try:
             self._point(args, out)
             self._eval()
+            self._failed(out)
         finally:
             self._point(self.args, self.out)
 

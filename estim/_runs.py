@@ -49,7 +49,12 @@ def _make(spec: Spec, scenario: Scenario) -> Estimator:
         return copy.deepcopy(spec)
     if isinstance(spec, type):  # an estimator class: compare refuses any other class
         return spec(scenario.model, **scenario.tuning)
-    return spec(scenario.model, dict(scenario.tuning))
+    est = spec(scenario.model, dict(scenario.tuning))
+    if not isinstance(est, Estimator):
+        raise TypeError(f"the factory {getattr(spec, '__name__', repr(spec))} returned "
+                        f"{type(est).__name__}, not an estimator: a factory is "
+                        f"(model, tuning) -> estimator (did it forget to return it?)")
+    return est
 
 
 def _error(exc: BaseException) -> str:

@@ -65,5 +65,8 @@ def function_to_sympy(fun: ca.Function):
         elif op in binary:
             work[outs[0]] = binary[op](work[ins[0]], work[ins[1]])
         else:
-            raise NotImplementedError(f"CasADi operation {op} has no sympy translation")
+            names = {getattr(ca, n): n[3:].lower() for n in dir(ca) if n.startswith("OP_")}
+            raise NotImplementedError(
+                f"the CasADi operation {names.get(op, op)!r} (operation {op}) has no sympy "
+                f"translation: use method='numeric' for this model")
     return inputs, outputs

@@ -112,9 +112,24 @@ class FilterpyEstimator(_Wrapped):
         if not isinstance(filt, FILTERPY):
             raise TypeError(f"filt must be a filterpy KalmanFilter, ExtendedKalmanFilter or "
                             f"UnscentedKalmanFilter, got {type(filt).__name__}")
+        if not isinstance(model, Model):
+            raise TypeError(f"model must be an estim.Model (the system the filter "
+                            f"estimates), got {type(model).__name__}")
         if filt.x.size != model.nx:
             raise ValueError(f"filt has {filt.x.size} states but {model.name} has "
                              f"{model.nx} ({model.state_names})")
+        if getattr(filt, "dim_z", model.ny) != model.ny:
+            raise ValueError(f"filt measures {filt.dim_z} outputs (dim_z) but {model.name} "
+                             f"has {model.ny} ({model.output_names})")
+        if isinstance(filt, ExtendedKalmanFilter) and np.ndim(filt.x) != 2:
+            raise ValueError(f"filt.x must be an ({model.nx}, 1) column for filterpy's "
+                             f"ExtendedKalmanFilter (its update turns a 1-D x of shape "
+                             f"({model.nx},) into ({model.nx}, {model.nx})); note that it "
+                             f"predicts x = F x unless predict_x is overridden")
+        for arg, fn in (("hx", hx), ("HJacobian", HJacobian)):
+            if fn is not None and not callable(fn):
+                raise TypeError(f"{arg} must be a function (x, u) -> array, got "
+                                f"{type(fn).__name__}")
         super().__init__(model, np.asarray(filt.x, dtype=float).ravel(), name,
                          f"filterpy {type(filt).__name__}")
         self._initial = copy.deepcopy(filt)
@@ -122,6 +137,19 @@ class FilterpyEstimator(_Wrapped):
         p = model.p
         self._hx = hx or (lambda x, u: np.asarray(model.H(np.ravel(x), u, p)))
         self._HJ = HJacobian or (lambda x, u: np.asarray(model.H_x(np.ravel(x), u, p)))
+        x0, u0 = filt.x, np.zeros(model.nu)
+        for arg, fn, shape in (("hx", hx, (model.ny,)), ("HJacobian", HJacobian,
+                                                         (model.ny, model.nx))):
+            if fn is None:
+                continue
+            try:  # called once here, so that a wrong one says so now, by name
+                out = np.asarray(fn(x0, u0), dtype=float)
+            except Exception as exc:  # noqa: BLE001 - re-raised naming the argument
+                raise TypeError(f"{arg}: calling {arg}(x, u) at filt.x failed: "
+                                f"{type(exc).__name__}: {exc}") from exc
+            if out.size != int(np.prod(shape)):
+                raise ValueError(f"{arg}(x, u) must give {shape} values, got shape "
+                                 f"{out.shape}")
 
     def _reset(self) -> None:
         self.filter = copy.deepcopy(self._initial)

@@ -134,7 +134,12 @@ def load_scenario(target: str) -> scenarios.Scenario:
     or a function of no arguments returning one."""
     if ".py" not in target:
         return scenarios.get(target)
-    stem, _, rest = target.partition(".py")
+    # the file is what ends in ".py" (a folder may have ".py" in its name): the last
+    # ".py" followed by ":name" or the end
+    stem, _, rest = target.rpartition(".py")
+    if rest and not rest.startswith(":"):
+        raise ValueError(f"scenario target {target!r}: write path/to/file.py or "
+                         f"path/to/file.py:name")
     path, name = Path(stem + ".py"), rest.lstrip(":") or "scenario"
     if not path.is_file():
         raise ValueError(f"scenario file {str(path)!r} does not exist")

@@ -550,6 +550,16 @@ def _check_compare(scenario: Scenario, estimators: object, seeds: object, n_jobs
                     importlib.util.find_spec("dask.distributed") is None:
                 raise ImportError('backend="dask" needs dask.distributed: '
                                   'pip install "estim[dask]"')
+            from dask.distributed import default_client
+
+            try:
+                default_client()
+            except ValueError:
+                raise ValueError('backend="dask" submits the runs to the active '
+                                 'dask.distributed client, and there is none: create one '
+                                 'first (from dask.distributed import Client; client = '
+                                 'Client() for a local cluster, or Client("tcp://...")'
+                                 ')') from None
         elif importlib.util.find_spec("joblib") is None:
             raise ImportError(f"n_jobs={jobs} runs in parallel through joblib: "
                               "pip install joblib (a dependency of estim)")

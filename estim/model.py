@@ -246,6 +246,11 @@ class Model(TransitionInputs):
         self.substeps = as_int(substeps, "substeps", minimum=1)
         self.dt = _sample_time(dt, continuous=ode is not None)
         values = _parameters(params, self.state_names)
+        for other, names in (("states", self.state_names), ("params", list(values))):
+            clash = sorted(set(self.algebraic_names) & set(names))
+            if clash:
+                raise ValueError(f"algebraic and {other} share names {clash}: each name "
+                                 f"must stand for one quantity")
         self.name = _text(name, "name")
         self.time_unit = _text(time_unit, "time_unit")
         self.param_names = list(values)

@@ -80,6 +80,10 @@ def pytest_configure(config: pytest.Config) -> None:
     seeds = config.getoption("--estim-seeds")
     if seeds is not None and seeds < 2:
         raise pytest.UsageError(f"--estim-seeds must be at least 2, got {seeds}")
+    baseline = config.getoption("--estim-baseline")
+    if baseline is not None and Path(baseline).exists() and not Path(baseline).is_dir():
+        raise pytest.UsageError(f"--estim-baseline must be a folder (the baselines are "
+                                f"<folder>/<name>.json), got the file {baseline!r}")
     report = config.getoption("--estim-report")
     if report is not None and Path(report).suffix not in (".md", ".html"):
         raise pytest.UsageError(f"--estim-report must end in .md or .html, got {report!r}")

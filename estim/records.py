@@ -95,6 +95,18 @@ class MergedRecord:
         return R
 
 
+def seconds(t: Any) -> np.ndarray:
+    """Time stamps as float seconds: numbers as they are; ``numpy.datetime64`` (and pandas
+    timestamps) as seconds since 1970-01-01, ``numpy.timedelta64`` as seconds, whatever
+    their unit (read as numbers, milliseconds or nanoseconds would pass for seconds)."""
+    t = np.asarray(t)
+    if np.issubdtype(t.dtype, np.datetime64):
+        return (t - np.datetime64(0, "s")) / np.timedelta64(1, "s")
+    if np.issubdtype(t.dtype, np.timedelta64):
+        return t / np.timedelta64(1, "s")
+    return np.asarray(t, dtype=float)
+
+
 def _stream(sensor: str, stream: Any, outputs: list[str], time: str
             ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """One stream as ``(t (k,), Y (k, m), names)``, checked."""
@@ -103,7 +115,7 @@ def _stream(sensor: str, stream: Any, outputs: list[str], time: str
     if hasattr(stream, "columns") and hasattr(stream, "to_numpy"):  # a DataFrame
         if time not in stream.columns:
             raise ValueError(f"{where}: a DataFrame needs a time column {time!r} (time=...)")
-        t = stream[time].to_numpy(dtype=float)
+        t = stream[time].to_numpy()
         names = [str(c) for c in stream.columns if c != time]
         Y = stream[names].to_numpy(dtype=float)
     elif isinstance(stream, tuple | list) and len(stream) in (2, 3):
@@ -124,7 +136,7 @@ def _stream(sensor: str, stream: Any, outputs: list[str], time: str
         raise TypeError(f"{where} must be (t, Y), (t, Y, names) or a DataFrame with a "
                         f"{time!r} column, got {type(stream).__name__}")
     try:
-        t = np.asarray(t, dtype=float)
+        t = seconds(t)
         Y = np.asarray(Y, dtype=float)
     except (TypeError, ValueError):
         raise TypeError(f"{where}: t and Y must be numeric arrays") from None
@@ -179,6 +191,9 @@ def merge(streams: Mapping[str, Any], outputs: Sequence[str], *,
     if isinstance(outputs, str) or not all(isinstance(n, str) for n in outputs):
         raise TypeError("outputs must be a list of output names (model.output_names)")
     outputs = list(outputs)
+    twice = sorted({n for n in outputs if outputs.count(n) > 1})
+    if twice:
+        raise ValueError(f"outputs names {twice} more than once: one column per output")
     parts = {str(s): _stream(str(s), stream, outputs, time) for s, stream in streams.items()}
     t = np.unique(np.concatenate([p[0] for p in parts.values()]))
     Y = np.full((len(t), len(outputs)), np.nan)

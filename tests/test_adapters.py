@@ -108,7 +108,13 @@ def test_bad_adapters_are_named():
         adapters.from_function("my filter", m)
     with pytest.raises(ValueError, match=r"filt has 3 states but model has 2"):
         adapters.from_filterpy(KalmanFilter(3, 1), m)
-    wrapped = adapters.from_filterpy(_kf(), estim.Model(
+    two = KalmanFilter(dim_x=2, dim_z=2)  # both states measured
+    two.F, two.H = A, np.eye(2)
+    with pytest.raises(ValueError, match=r"filt measures 1 outputs \(dim_z\) but model has 2"):
+        adapters.from_filterpy(_kf(), estim.Model(
+            states=["p", "v"], outputs=["y1", "y2"], dynamics=lambda x, u, p: A @ x,
+            output=lambda x, u, p: x))
+    wrapped = adapters.from_filterpy(two, estim.Model(
         states=["p", "v"], outputs=["y1", "y2"], dynamics=lambda x, u, p: A @ x,
         output=lambda x, u, p: x))
     with pytest.raises(ValueError, match=r"update with every output; y has NaN in \[1\]"):

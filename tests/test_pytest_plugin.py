@@ -59,6 +59,10 @@ def test_fixtures_options_summary_and_report(pytester):
     page = (pytester.path / "r.html").read_text()
     assert "<pre>" in page
     assert "<li><b>[passed] assert_better</b>: &#x27;ekf&#x27; is shown better" in page
+    (pytester.path / "afile").write_text("")
+    bad = pytester.runpytest("--estim-baseline", "afile")
+    assert bad.ret == pytest.ExitCode.USAGE_ERROR
+    bad.stderr.fnmatch_lines(["*--estim-baseline must be a folder*got the file 'afile'*"])
     bad = pytester.runpytest("--estim-report", "r.txt")
     assert bad.ret == pytest.ExitCode.USAGE_ERROR
     bad.stderr.fnmatch_lines(["*--estim-report must end in .md or .html*"])

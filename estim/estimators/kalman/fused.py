@@ -34,6 +34,14 @@ from estim.estimators.kalman.square_root import (
     noise_factors,
     with_P0,
 )
+from estim.estimators.kalman.statuses import (
+    BLOWN_UP,
+    blown_up,
+    failed_linearisation,
+    linearisation_probes,
+    overflowing,
+    record_statuses,
+)
 from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
 
@@ -83,6 +91,7 @@ class FusedKalman(Estimator):
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
         self._variable_dt, self._nx = m.variable_dt, nx
+        self._probes = linearisation_probes(self)
         self._tuning_changed()
         self._reset()
 
@@ -99,6 +108,7 @@ class FusedKalman(Estimator):
 
     def _tuning_changed(self) -> None:
         nd = self.model.ndx
+        self._blown = BLOWN_UP * max(np.trace(self.P0), np.trace(self.Q), 1e-300)
         Q, R = noise_factors(self.Q, self.R, self._diagonal) if self._sqrt else (self.Q, self.R)
         self._tun[:nd * nd] = Q.ravel(order="F")
         self._tun[nd * nd:] = R.ravel(order="F")
@@ -129,6 +139,10 @@ class FusedKalman(Estimator):
         flags = flag_array.tolist()
         if flags[3]:
             raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
+        why = "" if self._probes is None else failed_linearisation(self, first, s_prior)
+        if why:  # failed; the prediction is usable unless dF/dx failed
+            return self._recover([0, 0, flags[2] and "dF/dx" not in why, *flags[3:]],
+                                 s_prior, why)
         if not flags[1]:
             return self._recover(flag_array, s_prior)
         nx = self._nx
@@ -141,13 +155,14 @@ class FusedKalman(Estimator):
             self._s[nx:] = with_P0(self._s[nx:], self._P0_data, self._sqrt)
         else:
             np.copyto(self._s, s_new)
-        P = self._P_view
-        info = StepInfo._fast(P=P @ P.T if self._sqrt else P.copy(),
-                              innovation=e.copy(),
+        P = self._P_view @ self._P_view.T if self._sqrt else self._P_view.copy()
+        info = StepInfo._fast(P=P, innovation=e.copy(),
                               nis=flags[0] if flags[4] else float("nan"))  # no output
         if suspect:
             info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
                                                         bool(flags[7]))
+        elif P.trace() > self._blown:  # finite, but the filter has lost the state
+            self._trusted, info.__dict__["status"] = False, blown_up(P.trace())
         return self._s[:nx].copy(), info
 
     def _failure_texts(self, flags) -> tuple[str, str]:
@@ -161,10 +176,13 @@ class FusedKalman(Estimator):
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
                 f"kept the prediction with P + P0")
 
-    def _recover(self, flags, s_prior):
+    def _recover(self, flags, s_prior, why: str = ""):
         """A failed update: keep the prediction of a trusted estimate, or re-anchor on
-        the last trusted estimate with ``P + P0`` and update with this measurement."""
-        kept, what = self._failure_texts(flags)
+        the last trusted estimate with ``P + P0`` and update with this measurement
+        (``why``: what failed, when not what the flags say)."""
+        why = why or overflowing(self.model, self._y)
+        kept, what = (f"failed: {why}; kept the prediction", why) if why else \
+            self._failure_texts(flags)
         where = after_failure(self.model, self._s[:self._nx], s_prior[:self._nx], self._u)
         if self._trusted:
             self._s_trusted[:] = self._s
@@ -180,6 +198,7 @@ class FusedKalman(Estimator):
                 nd = self.model.ndx
                 x, P = self._anchor(self._s_trusted[:nx],
                                     self._s_trusted[nx:].reshape(nd, nd, order="F"))
+                assert P is not None  # (a covariance given, a covariance returned)
                 self._s[nx:] = P.ravel(order="F")
             self._s[:nx] = x
             s_new, _, flags, _ = self._update.evaluate()
@@ -242,9 +261,13 @@ class FusedKalman(Estimator):
         W = m.step_transitions(steps_u, None if dts is None else
                                np.concatenate([[m.dt], dts]))
         self.reset()
-        S, E, F = (a.T for a in scan_record(self, Y, W))
-        failed = np.flatnonzero(F[1] == 0)
-        n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
+        if self._probes is None:
+            S, E, F = (a.T for a in scan_record(self, Y, W))
+            failed = np.flatnonzero(F[1] == 0)
+            n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
+        else:  # each step asks the model's Jacobians directly: the step loop throughout
+            S, E, F = np.zeros((len(self._s), 0)), np.zeros((ny, 0)), np.zeros((8, 0))
+            n = 0
         X, P = np.empty((T, nx)), np.full((T, nd, nd), np.nan)
         X[:n] = S[:nx, :n].T
         P[:n] = S[nx:, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major
@@ -254,11 +277,8 @@ class FusedKalman(Estimator):
         innovation[:n] = E[:, :n].T
         measured = F[4, :n] > 0
         nis[:n][measured] = F[0, :n][measured]
-        suspect = (F[6, :n] + F[7, :n]) > 0
-        status = np.full(n, "ok", dtype=object)
-        for i in np.flatnonzero(suspect):
-            status[i] = self._consistency(float(F[0, i]), int(F[4, i]), bool(F[7, i]))
-        status = status.tolist()
+        flagged, suspect = record_statuses(self, F[:, :n].T, P[:n])
+        status = [flagged.get(k, "ok") for k in range(n)]
         if n:  # the filter as the step loop leaves it after sample n - 1
             trusted = np.flatnonzero(~suspect)
             self._s[:] = S[:, n - 1]
@@ -326,3 +346,4 @@ class FusedKalman(Estimator):
             :func:`estim.solvers.seeds.seed_map`).
         """
         return filter_seeds(self, Y, u_step)
+

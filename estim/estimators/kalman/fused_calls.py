@@ -23,6 +23,7 @@ import numpy as np
 
 from estim._fast import FastFunction, jitted
 from estim.estimators.kalman.square_root import covariances
+from estim.estimators.kalman.statuses import record_statuses
 from estim.solvers.kalman.kalman import record_function
 from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
@@ -201,12 +202,8 @@ class SeedFilter:
         if est._sqrt:
             P = covariances(P)
         failed = (F[:, :, 1] == 0).any(axis=1)
-        suspect = (F[:, :, 6] + F[:, :, 7]) > 0
-        status: list[dict[int, str] | None] = []
-        for i in range(n):
-            status.append(None if failed[i] else {
-                int(k): est._consistency(float(F[i, k, 0]), int(F[i, k, 4]), bool(F[i, k, 7]))
-                for k in np.flatnonzero(suspect[i])})
+        status = [None if failed[i] else record_statuses(est, F[i], P[i])[0]
+                  for i in range(n)]
         return {"x": Sx[:, :, :nx], "P": P, "nis": np.where(F[:, :, 4] > 0, F[:, :, 0], np.nan),
                 "status": status}
 

@@ -128,12 +128,25 @@ class IMM(Estimator):
         modes = list(estimators.values())
         first = modes[0]
         for key, est in estimators.items():
-            for what in ("state_names", "output_names"):
+            for what in ("state_names", "output_names", "input_names"):
                 if list(getattr(est.model, what)) != list(getattr(first.model, what)):
                     raise ValueError(
                         f"estimators[{key!r}] has other {what.replace('_', ' ')} than "
                         f"the first mode: {list(getattr(est.model, what))} against "
                         f"{list(getattr(first.model, what))}")
+            # what every mode's prediction must share: the interval it predicts over, the
+            # inputs' hold and the tangent space the covariances live in
+            for what, mine, theirs in (
+                    ("dt", est.model.dt, first.model.dt),
+                    ("variable_dt", est.model.variable_dt, first.model.variable_dt),
+                    ("hold", est.model.hold, first.model.hold),
+                    ("quaternion and angle states", est.model.manifold.declared,
+                     first.model.manifold.declared)):
+                if mine != theirs:
+                    raise ValueError(
+                        f"estimators[{key!r}]: its model's {what} is {mine!r}, the first "
+                        f"mode's {theirs!r}; the modes of an IMM predict over the same "
+                        f"interval from the same inputs, on the same states")
         if len({id(est) for est in modes}) != len(modes):
             raise ValueError("estimators must be distinct objects (one filter per mode)")
         super().__init__(first.model, Q=first.Q, R=first.R, x0=first.x0, P0=first.P0)

@@ -167,8 +167,13 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])
     pre = ca.vertcat(ca.horzcat(LRm, C @ Sb), ca.horzcat(ca.SX(nx, LRm.shape[1]), Sb))
     post = tria(pre)
-    Sy, Kb, Sh = post[:ny, :ny], post[ny:, :ny], post[ny:, ny:]
+    Sy, Kb = post[:ny, :ny], post[ny:, :ny]
     z = solve_lower(Sy, e)
+    # the posterior factor in Joseph's form, tria([(I - K C) Sb, K L_R]) with the gain
+    # K = Kb Sy^-1: the block tria leaves beside Kb is the same in exact arithmetic, but
+    # it loses K R K^T where R is far below P (R = 1e-300: a zero factor, a failed step)
+    K = solve_lower(Sy, Kb.T, transpose=True).T
+    Sh = tria(ca.horzcat((ca.SX.eye(nx) - K @ C) @ Sb, K @ LRm))
     if M.euclidean_states:
         xh = xb + Kb @ z
     else:  # the retraction, and the factor carried by the reset Jacobian

@@ -64,7 +64,12 @@ from estim.estimators.sampling.particle_graphs import (
 )
 from estim.estimators.sampling.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
-from estim.solvers.sampling.resampling import RESAMPLING, effective_sample_size, resample
+from estim.solvers.sampling.resampling import (
+    RESAMPLING,
+    distinct_particles,
+    effective_sample_size,
+    resample,
+)
 
 __all__ = ["ParticleFilter", "ParticleFilterResult"]
 
@@ -402,8 +407,9 @@ class ParticleFilter(CompiledParticles):
             y0 = np.where(observed, y, 0.0)
             Yh = y0[:, None] - m.manifold.output_difference(y0, Yh.T, NP).T
         e, nis = _innovation(y, observed, Yh, self._W, Ro)
-        if success:  # the weights' collapse, the measurement against the prediction
-            status = step_status(ess, nis, int(observed.sum()), N)
+        if success:  # the weights' or the cloud's collapse, the measurement's NIS
+            status = step_status(ess, nis, int(observed.sum()), N,
+                                 distinct_particles(X))
         if status == "ok":
             self._trusted = (x_hat, P)
         if self._trace is not None:

@@ -33,14 +33,22 @@ __all__ = ["CompiledParticles", "innovations", "measured_patterns", "step_status
 #: an effective sample size below this fraction of the particles (and below 2) is a
 #: collapse of the weights, reported as ``"suspect: ..."``
 COLLAPSE = 0.01
+#: fewer distinct particles than this fraction of them is a collapse of the cloud (copies
+#: of a few ancestors that a transition without noise never spreads), ``"suspect: ..."``
+DISTINCT = 0.1
 
 
-def step_status(ess: float, nis: float, dof: int, N: int) -> str:
+def step_status(ess: float, nis: float, dof: int, N: int, distinct: int | None = None
+                ) -> str:
     """A particle filter step's status: a collapse of the weights (an effective sample
-    size ``ess`` below 1 % of the ``N`` particles and below 2), else the measurement
+    size ``ess`` below 1 % of the ``N`` particles and below 2) or of the cloud (fewer
+    than 10 % ``distinct`` particles, whatever their weights), else the measurement
     against the particles' prediction (its ``nis`` beyond the chi-square tail)."""
     if ess < max(2.0, COLLAPSE * N):
         return f"suspect: effective sample size {ess:.1f} of {N}"
+    if distinct is not None and distinct < DISTINCT * N:
+        return (f"suspect: only {distinct} distinct particles of {N}, the cloud collapsed "
+                f"(copies of a few ancestors that no process noise spreads)")
     return consistency_status(nis, dof) if nis == nis else "ok"
 
 
@@ -206,11 +214,13 @@ class CompiledParticles(Estimator):
         dof = observed.sum(axis=1)
         limit = np.array([chi2_limit(int(d)) for d in dof]) if len(set(dof)) > 1 else \
             np.full(done, chi2_limit(int(dof[0])))
-        collapsed = rec.ess[:done] < max(2.0, COLLAPSE * N)
+        collapsed = (rec.ess[:done] < max(2.0, COLLAPSE * N)) | \
+            (rec.distinct[:done] < DISTINCT * N)
         beyond = ~collapsed & (nis > limit)  # (NaN: not beyond)
         status = ["ok"] * done
         for j in np.flatnonzero(collapsed | beyond):
-            status[j] = step_status(float(rec.ess[j]), float(nis[j]), int(dof[j]), N)
+            status[j] = step_status(float(rec.ess[j]), float(nis[j]), int(dof[j]), N,
+                                    int(rec.distinct[j]))
         ok = np.flatnonzero(~(collapsed | beyond))
         if ok.size:
             self._trusted = (rec.x[ok[-1]], rec.P[ok[-1]])
@@ -253,7 +263,8 @@ class CompiledParticles(Estimator):
                 except np.linalg.LinAlgError:
                     pass
         ess = float(rec.ess[0])
-        status = step_status(ess, nis, int(observed.sum()), self.n_particles)
+        status = step_status(ess, nis, int(observed.sum()), self.n_particles,
+                             int(rec.distinct[0]))
         if status == "ok":
             self._trusted = (rec.x[0], rec.P[0])
         info = StepInfo._fast(status=status, success=True, P=rec.P[0], innovation=e, nis=nis)

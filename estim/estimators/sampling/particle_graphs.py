@@ -98,7 +98,20 @@ def graphs(model: Model, loglik: Callable | None, proposal: str) -> Graphs:
             return yhat, -0.5 * ca.sumsqr(ca.reshape(WR, ny, ny) @ e)
         y = (1 - miss) * y0 + miss * yhat
         params = {n: ca.SX(val) for n, val in model.params.items()}
-        return yhat, scalar(loglik(y, yhat, params))
+        try:
+            value = loglik(y, yhat, params)
+        except Exception as exc:  # noqa: BLE001 - re-raised naming the argument
+            raise TypeError(f"loglik: calling loglik(y, yhat, p) on symbols (y, yhat: "
+                            f"({ny}, 1) CasADi columns, p: dict of the parameters) failed: "
+                            f"{type(exc).__name__}: {exc}" + (
+                                " (write it with ca.* or numpy functions, not math.*)"
+                                if "real number" in str(exc) else "")) from exc
+        ell = scalar(value)
+        if ell.is_constant():
+            raise ValueError(f"loglik must depend on y or yhat, got the constant {ell} (a "
+                             f"math.* function evaluates once to a number: use ca.* or "
+                             f"numpy functions)")
+        return yhat, ell
 
     yhat, ell = measure(x)
     weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])

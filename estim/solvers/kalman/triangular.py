@@ -50,11 +50,16 @@ def tria(A: ca.SX) -> ca.SX:
         x = W[i, i:]
         r = ca.sqrt(ca.sumsqr(x))
         s = ca.if_else(x[0] >= 0, 1, -1)
-        v = ca.horzcat(x[0] + s * r, x[1:]) if m - i > 1 else x[0] + s * r
         if i + 1 < n:
-            beta = ca.if_else(r > 0, 1 / (r * (r + ca.fabs(x[0]))), 0)  # 2 / v'v
+            # the reflection I - 2 v v' / v'v with v = x + s r e_1, written with v / r
+            # (entries at most 2) and 2 r^2 / v'v = 1 / (1 + |x_1| / r): no square of a
+            # tiny r to overflow (a measurement noise of 1e-300 leaves the rows below
+            # of order 1 and this row of order 1e-150)
+            scaled = ca.if_else(r > 0, x / r, ca.DM.zeros(1, m - i))
+            w = ca.horzcat(scaled[0] + s, scaled[1:]) if m - i > 1 else scaled[0] + s
+            gain = ca.if_else(r > 0, 1 / (1 + ca.fabs(scaled[0])), 0)
             rows = W[i + 1:, i:]
-            rows = rows - ((rows @ v.T) * beta) @ v
+            rows = rows - ((rows @ w.T) * gain) @ w
             W[i + 1:, i:] = rows
             W[i + 1:, i] = -s * W[i + 1:, i]  # the diagonal entry -s r made r >= 0
         W[i, i] = r

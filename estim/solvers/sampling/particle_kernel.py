@@ -90,7 +90,7 @@ class _Args(ctypes.Structure):
         [(name, ctypes.c_void_p) for name in (
             "k_first", "k_advance", "lower", "upper", "x0", "tun0", "w", "tun", "y0", "WR",
             "miss", "measured", "X", "lw", "Wp", "equal", "rng", "work", "iwork", "xh", "P",
-            "ess", "inc", "yb", "Syy", "resampled", "trace_X", "trace_W")]
+            "ess", "inc", "yb", "Syy", "resampled", "distinct", "trace_X", "trace_W")]
 
 
 #: the kernels' file: the two Functions of a model, compiled for AVX-512, AVX2 and the
@@ -129,9 +129,9 @@ def _driver() -> ctypes.CDLL:
     return lib
 
 
-#: the outputs of a call, in this order in one buffer: x, P, ess, inc, yb, Syy and the
-#: resampling flags (int64, the same size as a double)
-_OUTPUTS = ("xh", "P", "ess", "inc", "yb", "Syy", "resampled")
+#: the outputs of a call, in this order in one buffer: x, P, ess, inc, yb, Syy, the
+#: resampling flags and the distinct particles (int64, the same size as a double)
+_OUTPUTS = ("xh", "P", "ess", "inc", "yb", "Syy", "resampled", "distinct")
 
 
 @dataclass
@@ -146,6 +146,7 @@ class KernelRecord:
     yb: np.ndarray
     Syy: np.ndarray
     resampled: np.ndarray
+    distinct: np.ndarray
 
 
 class ParticleKernel:
@@ -262,7 +263,7 @@ class ParticleKernel:
         """One buffer for the outputs of ``T`` steps (see :data:`_OUTPUTS`) and the
         offsets of its parts."""
         nx, ny = self.nx, self.ny
-        offsets = np.cumsum([0, T * nx, T * nx * nx, T, T, T * ny, T * ny * ny, T])
+        offsets = np.cumsum([0, T * nx, T * nx * nx, T, T, T * ny, T * ny * ny, T, T])
         return np.empty(offsets[-1]), offsets
 
     @staticmethod
@@ -279,7 +280,7 @@ class ParticleKernel:
         part = [buf[offsets[i]:offsets[i + 1]] for i in range(len(_OUTPUTS))]
         return KernelRecord(done, part[0].reshape(T, nx), part[1].reshape(T, nx, nx), part[2],
                             part[3], part[4].reshape(T, ny), part[5].reshape(T, ny, ny),
-                            part[6].view(np.int64))
+                            part[6].view(np.int64), part[7].view(np.int64))
 
     def seed(self, seed: int) -> None:
         """Start the ten streams of ``seed`` again."""

@@ -33,7 +33,7 @@ from functools import lru_cache
 
 import numpy as np
 
-__all__ = ["RESAMPLING", "effective_sample_size", "resample"]
+__all__ = ["distinct_particles", "RESAMPLING", "effective_sample_size", "resample"]
 
 #: The resampling schemes by name.
 RESAMPLING = ("systematic", "stratified", "residual", "multinomial")
@@ -43,6 +43,14 @@ def effective_sample_size(W: np.ndarray) -> float:
     r"""Kish's effective sample size :math:`1 / \sum_i W_i^2` of normalised weights
     ``W`` ``(N,)``: :math:`N` for equal weights, 1 when one particle holds them all."""
     return float(1.0 / (W * W).sum())  # (not np.dot: no threaded BLAS call)
+
+
+def distinct_particles(X: np.ndarray) -> int:
+    """The number of distinct particles among the columns of ``X`` ``(nx, N)``: the
+    distinct values of one fixed generic combination of the rows (two different
+    particles have the same combination with probability zero)."""
+    weights = np.sqrt(np.arange(2.0, 2.0 + X.shape[0]))  # square roots of 2, 3, ...
+    return int(np.unique(weights @ X).size)
 
 
 @lru_cache(maxsize=8)

@@ -1,0 +1,90 @@
+"""What a step of the Kalman family says when it did not do its work, or did it on data
+or a covariance that cannot be trusted: the statuses
+:class:`~estim.estimators.kalman.fused.FusedKalman` reports beyond the chi-square test
+(docs/failures.md, "What estim promises when data go wrong")."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from estim._fast import FastFunction
+
+if TYPE_CHECKING:
+    from estim.estimators.kalman.fused import FusedKalman
+
+__all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "failed_linearisation",
+           "linearisation_probes", "overflowing", "record_statuses"]
+
+#: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
+#: ``Q`` makes a step ``"suspect"``: the filter has lost the state (an absorbed outlier
+#: that threw the estimate where the model's Jacobians explode), even when its NIS, on
+#: that huge covariance, looks fine
+BLOWN_UP = 1e8
+#: a measurement beyond this magnitude overflows the update's squares (a failed update
+#: then says so, rather than blaming the output function)
+HUGE_MEASUREMENT = 1e150
+
+
+def linearisation_probes(est: FusedKalman) -> tuple[FastFunction, FastFunction] | None:
+    """The model's Jacobians ``(F_x, H_x)`` for :func:`failed_linearisation`, for a filter
+    that linearises (``est.linearises``) a model whose Functions its step calls (MX
+    Functions: algebraic states solved by Newton's method, IDAS); None otherwise."""
+    m = est.model
+    if not getattr(est, "linearises", False) or not (
+            m.F_x.is_a("MXFunction") or m.H_x.is_a("MXFunction")):
+        return None  # written into the step's graph: a failure there shows as NaN
+    return FastFunction(m.F_x), FastFunction(m.H_x)
+
+
+def failed_linearisation(est: FusedKalman, first: bool, s_prior: np.ndarray) -> str:
+    """What failed of a step's linearisation (empty when nothing did), asked directly of
+    the model's Jacobians (``est._probes``): ``F_x`` at the previous estimate, ``H_x`` at
+    the prediction. For a model whose Functions the step calls rather than writes into
+    its graph (algebraic states solved by Newton's method, IDAS), a call that fails
+    inside the step's graph gives zeros without saying so (CasADi reports the failure
+    only to a direct caller)."""
+    assert est._probes is not None
+    F_x, H_x = est._probes
+    nx, p = est._nx, est.model.p
+    if not first:
+        F_x(est._s[:nx], est._u, p)
+        if F_x._buf.ret():
+            return "Jacobian dF/dx not evaluated (a solve inside the model failed)"
+    H_x(s_prior[:nx], est._u_now if est.model.nu else np.zeros(0), p)
+    if H_x._buf.ret():
+        return "Jacobian dh/dx not evaluated (a solve inside the model failed)"
+    return ""
+
+
+def blown_up(trace: float) -> str:
+    """The status of a step whose covariance blew up (see :data:`BLOWN_UP`)."""
+    return (f"suspect: the covariance blew up (trace {trace:.3g}, over {BLOWN_UP:g} times "
+            f"the larger of P0's and Q's): the filter has lost the state")
+
+
+def overflowing(model: Any, y: np.ndarray) -> str:
+    """What a failed update says when the measurement itself is absurd (beyond
+    :data:`HUGE_MEASUREMENT`: its squares overflow), else empty."""
+    huge = np.flatnonzero(np.abs(np.nan_to_num(y)) > HUGE_MEASUREMENT)
+    if not huge.size:
+        return ""
+    return ("non-finite update: the measurement " + ", ".join(
+        f"{model.output_names[i]} = {y[i]:.3g}" for i in huge) +
+        " overflows the update (an absurd value: check the data)")
+
+
+def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
+                    ) -> tuple[dict[int, str], np.ndarray]:
+    """The statuses that are not ``"ok"`` of a record's steps, ``{sample: status}``, as
+    :meth:`~estim.estimators.kalman.fused.FusedKalman.step` reports them, from the flags
+    ``F (T, 8)`` and covariances ``P (T, n, n)`` of the compiled scan, and which steps
+    leave the filter untrusted ``(T,)``."""
+    suspect = (F[:, 6] + F[:, 7]) > 0
+    traces = np.trace(P, axis1=1, axis2=2)
+    blown = ~suspect & (traces > est._blown)
+    out = {int(k): est._consistency(float(F[k, 0]), int(F[k, 4]), bool(F[k, 7]))
+           for k in np.flatnonzero(suspect)}
+    out.update({int(k): blown_up(float(traces[k])) for k in np.flatnonzero(blown)})
+    return out, suspect | blown
