@@ -125,7 +125,9 @@ def _newton(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: c
     scale = 1 + ca.mmax(ca.fabs(ca.vertcat(xm, zs)))
     zs = ca.if_else(ca.mmax(ca.fabs(r)) <= RESIDUAL_TOL * scale, zs, ca.DM.nan(z.numel()))
     args, names = [xm, um, pm], ["x", "u", "p"]
-    Z = ca.Function("Z", args, [zs], names, ["z"], _CALLED)
+    Z = ca.Function("Z", args, [zs], names, ["z"],
+                    {**_CALLED, "custom_jacobian": _implicit_jacobian(x, z, u, p, g),
+                     "jac_penalty": 0})
     f_xz = ca.Function("f_xz", [x, z, u, p], [ode])
     h_xz = ca.Function("h_xz", [x, z, u, p], [y])
     yh = h_xz(xm, Z(xm, um, pm), um, pm)
@@ -133,6 +135,22 @@ def _newton(model: Any, x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX, ode: c
                            _CALLED),
             ca.Function("h", args, [yh], names, ["y"], _CALLED),
             ca.Function("H_x", args, [ca.jacobian(yh, xm)], names, ["C"], _CALLED))
+
+
+def _implicit_jacobian(x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX) -> ca.Function:
+    r"""The Jacobians of :math:`Z(x, u; p)` by the implicit function theorem, written out:
+    :math:`\partial Z/\partial v = -g_z^{-1} g_v` at the solution, for ``v`` each of
+    ``x, u, p`` (CasADi's ``custom_jacobian`` form: the inputs, then the nominal output).
+    CasADi's own derivative of the Newton solve fails where :math:`g_z` is singular, and
+    called inside another graph such a failure reads as zeros; written out it gives
+    NaN there, which every estimator sees as a failed step."""
+    gz = ca.jacobian(g, z)
+    jacs = [-ca.solve(gz, ca.jacobian(g, v)) for v in (x, u, p)]
+    D = ca.Function("dZ", [x, u, p, z], jacs)
+    xm, um, pm = (ca.MX.sym(n, v.numel()) for n, v in (("x", x), ("u", u), ("p", p)))
+    zm = ca.MX.sym("out_z", z.numel())
+    return ca.Function("jac_Z", [xm, um, pm, zm], D(xm, um, pm, zm),
+                       ["x", "u", "p", "out_z"], ["jac_z_x", "jac_z_u", "jac_z_p"])
 
 
 def _transition(model: Any, f_c: ca.Function, Z: ca.Function,
