@@ -23,7 +23,14 @@ from estim.scenarios import Record, Scenario
 from estim.simulate import replay, simulate
 
 if TYPE_CHECKING:
-    from estim import codegen as codegen  # not in __all__: imported on first use
+    from estim import adapters as adapters  # not in __all__: imported on first use
+    from estim import codegen as codegen
+    from estim import consistency as consistency
+    from estim import exceptions as exceptions
+    from estim import inference as inference
+    from estim import plotting as plotting
+    from estim import testing as testing
+    from estim import verdicts as verdicts
     from estim import observability, records, smooth, tuning
     from estim.estimators.kalman.ekf import EKF
     from estim.estimators.kalman.imm import IMM
@@ -55,7 +62,11 @@ _LAZY = {"EKF": "estim.estimators.kalman.ekf", "EnKF": "estim.estimators.samplin
          "ShootingObserver": "estim.estimators.window.shooting",
          "UKF": "estim.estimators.kalman.ukf",
          "codegen": "estim.codegen", "observability": "estim.observability",
-         "records": "estim.records",
+         "records": "estim.records", "adapters": "estim.adapters",
+         "testing": "estim.testing", "plotting": "estim.plotting",
+         "verdicts": "estim.verdicts", "inference": "estim.inference",
+         "consistency": "estim.consistency", "exceptions": "estim.exceptions",
+         "uncertainty": "estim.uncertainty",
          "smooth": "estim.smooth", "tuning": "estim.tuning",
          "ParameterEstimates": "estim.uncertainty",
          "parameter_uncertainty": "estim.uncertainty"}

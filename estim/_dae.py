@@ -149,7 +149,7 @@ def _implicit_jacobian(x: ca.SX, z: ca.SX, u: ca.SX, p: ca.SX, g: ca.SX) -> ca.F
     D = ca.Function("dZ", [x, u, p, z], jacs)
     xm, um, pm = (ca.MX.sym(n, v.numel()) for n, v in (("x", x), ("u", u), ("p", p)))
     zm = ca.MX.sym("out_z", z.numel())
-    return ca.Function("jac_Z", [xm, um, pm, zm], D(xm, um, pm, zm),
+    return ca.Function("jac_Z", [xm, um, pm, zm], list(D(xm, um, pm, zm)),
                        ["x", "u", "p", "out_z"], ["jac_z_x", "jac_z_u", "jac_z_p"])
 
 

@@ -226,3 +226,18 @@ def test_the_command_line_splits_the_file_at_its_own_py(tmp_path):
     assert load_scenario(f"{folder}/b.py:mine").n_steps == 5
     with pytest.raises(ValueError, match="write path/to/file.py or path/to/file.py:name"):
         load_scenario(f"{folder}/b.pyc")
+
+
+def test_consistency_of_runs_without_covariances_is_refused():
+    """Logs without covariances gave a NaN interval (a pass or a failure that said
+    nothing); now a ValueError says there is nothing to test."""
+    from estim import adapters, testing
+
+    vdp = estim.scenarios.get("van_der_pol", n_steps=30)
+    blind = adapters.from_function(lambda y, u: np.zeros(2), vdp.model, name="zero")
+    logs = [estim.simulate(vdp, blind, seed=s) for s in range(3)]
+    with pytest.raises(ValueError, match="no log with a covariance to test"):
+        testing.assert_consistent(logs)
+    res = estim.compare(vdp, {"zero": blind}, seeds=range(3))
+    with pytest.raises(ValueError, match="no seed with a covariance to test"):
+        testing.assert_consistent(res)
