@@ -28,10 +28,10 @@ if TYPE_CHECKING:
     from estim import consistency as consistency
     from estim import exceptions as exceptions
     from estim import inference as inference
+    from estim import observability, records, smooth, tuning
     from estim import plotting as plotting
     from estim import testing as testing
     from estim import verdicts as verdicts
-    from estim import observability, records, smooth, tuning
     from estim.estimators.kalman.ekf import EKF
     from estim.estimators.kalman.imm import IMM
     from estim.estimators.kalman.ukf import UKF
