@@ -65,13 +65,39 @@ def _option_value(cls, name: str, key: str, text: str):
     return value
 
 
+def _options(text: str, spec: str) -> list[str]:
+    """``key=value`` items of a spec's options, split at the commas outside brackets and
+    quotes (``Q=[1e-6, 0.01],horizon=20`` is two items)."""
+    items, depth, quote, start = [], 0, "", 0
+    for i, c in enumerate(text):
+        if quote:
+            quote = "" if c == quote else quote
+        elif c in "'\"":
+            quote = c
+        elif c in "([{":
+            depth += 1
+        elif c in ")]}":
+            depth -= 1
+        elif c == "," and depth == 0:
+            items.append(text[start:i])
+            start = i + 1
+        if depth < 0:
+            raise ValueError(f"estimator spec {spec!r}: a {c!r} closes no bracket")
+    if depth or quote:
+        raise ValueError(f"estimator spec {spec!r}: an unclosed "
+                         f"{'quote' if quote else 'bracket'}")
+    return [*items, text[start:]]
+
+
 def parse_estimator(spec: str):
     """``"[label=]name:key=value,key=value"`` to ``(label, class, kwargs)``.
 
     Each value is converted by the type of the estimator's parameter: booleans
     from ``true/false``, ``yes/no``, ``on/off`` or ``1/0`` (any case), integers,
     numbers and strings as such, ``none`` for an optional parameter, anything
-    else (covariances, bounds) as a Python literal where possible. An unknown
+    else (covariances, bounds) as a Python literal where possible: lists, tuples and
+    dicts, nested, with commas inside their brackets (``mhe:Q=[1e-6, 0.01],horizon=20``;
+    quote the whole spec in the shell). An unknown
     option name or a value of the wrong type is a ``ValueError`` or
     ``TypeError`` naming the option. The label (default: the whole spec) names
     the row of the table.
@@ -93,7 +119,7 @@ def parse_estimator(spec: str):
     known = [k for k, p in inspect.signature(cls).parameters.items()
              if k != "model" and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)]
     kwargs = {}
-    for item in filter(None, (p.strip() for p in rest.split(","))):
+    for item in filter(None, (p.strip() for p in _options(rest, spec))):
         key, eq, val = item.partition("=")
         key = key.strip()
         if not eq:
@@ -193,20 +219,24 @@ def _cmd_run(args) -> int:
             raise ValueError(f"estimator label {label!r} is given twice; labels must be "
                              f"unique (-e label=name:...)")
         factories[label] = _factory(cls, kwargs)
-        factories[label](sc.model, sc.tuning)  # a bad option fails here, before any run
+    # an estimator that cannot be built (or raises) is a row with its reason, the others run
     result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot),
                      n_jobs=args.jobs)
     print(result.table())
+    broken = [r.name for r in result.rows if r.errors and not r.runs]
+    if broken:
+        print(f"estim run: {', '.join(broken)} raised on every seed (see the notes)",
+              file=sys.stderr)
     if args.plot:
         from estim.plotting import plot_comparison, plot_errors, plot_solve_times
 
         plot_comparison(result, args.plot)
         stem = args.plot[:-4] if args.plot.endswith(".png") else args.plot
-        first = {name: logs[0] for name, logs in result.logs.items()}
+        first = {name: logs[0] for name, logs in result.logs.items() if logs[0] is not None}
         plot_errors(first, f"{stem}_errors.png")
         plot_solve_times(first, f"{stem}_times.png")
         print(f"plots written to {args.plot}, {stem}_errors.png and {stem}_times.png")
-    return 0
+    return 1 if broken else 0
 
 
 def _cmd_tune(args) -> int:
@@ -314,7 +344,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("scenario", nargs="?", default="batch_reactor", type=_scenario_arg,
                      help=f"the experiment (default batch_reactor): {where}")
     run.add_argument("--estimator", "-e", action="append",
-                     help="[label=]name[:key=value,...], repeatable (default: "
+                     help="[label=]name[:key=value,...], repeatable; a value is a word "
+                          "(true/false, a number, a string, none) or a Python literal: "
+                          "lists, tuples, dicts, nested, e.g. \"mhe:horizon=20,Q=[1e-6, "
+                          "0.01]\" (quote it in the shell); an estimator that cannot be "
+                          "built is a row with its reason and exit status 1 (default: "
                           + " ".join(f"-e {e}" for e in DEFAULT_ESTIMATORS) + ")")
     run.add_argument("--seeds", type=_int_arg(1), default=5, help="number of seeds (default 5)")
     run.add_argument("--steps", type=_int_arg(1), default=None,

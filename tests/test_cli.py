@@ -52,6 +52,23 @@ def test_parse_estimator():
         cli.parse_estimator("ekf:clip")
 
 
+def test_options_are_literals_and_a_broken_estimator_is_a_row(capsys):
+    """Lists and dicts, nested, inside an option (the commas inside their brackets do not
+    split the spec); an estimator whose constructor refuses its options is a row with the
+    reason, the others run, and the exit status is 1."""
+    _, cls, kwargs = cli.parse_estimator('m=mhe:horizon=20,Q=[1e-6, 0.01],'
+                                         'solver_options={"max_iter": [5, {"a": 1}]}')
+    assert kwargs == {"horizon": 20, "Q": [1e-6, 0.01],
+                      "solver_options": {"max_iter": [5, {"a": 1}]}}
+    with pytest.raises(ValueError, match="an unclosed bracket"):
+        cli.parse_estimator("mhe:Q=[1, 2")
+    assert cli.main(["run", "van_der_pol", "--seeds", "2", "--steps", "20", "--plot", "",
+                     "-e", "ekf", "-e", "bad=mhe:horizon=0"]) == 1
+    out, err = capsys.readouterr()
+    assert "bad: 2 of 2 runs raised and are left out (seed 0: ValueError: horizon" in out
+    assert "ekf " in out and "estim run: bad raised on every seed" in err
+
+
 def test_bad_option_is_an_error_not_a_traceback(capsys):
     assert cli.main(["run", "van_der_pol", "--estimator", "nope", "--plot", ""]) == 2
     assert "unknown estimator" in capsys.readouterr().err
