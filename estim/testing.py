@@ -236,9 +236,10 @@ def assert_better(comparison: Comparison | Mapping[str, ArrayLike], a: str, b: s
     d = mb - ma - shift
     r = paired(d, "greater", test)
     passed = r.p_value < 1 - confidence
-    text = (f"{a!r} {'is' if passed else 'is not'} shown better than {b!r} in {metric} at "
-            f"confidence {confidence:g} ({r.n} paired seeds"
-            + (f", margin {shift:.4g}" if margin else "") + f"): {r.text()}; median "
+    claim = (f"no worse than {b!r} by more than {-shift:.4g}" if margin < 0 else
+             f"better than {b!r}" + (f" by more than {shift:.4g}" if margin else ""))
+    text = (f"{a!r} {'is' if passed else 'is not'} shown {claim} in {metric} at "
+            f"confidence {confidence:g} ({r.n} paired seeds): {r.text()}; median "
             f"{metric} {np.median(ma):.4g} against {np.median(mb):.4g}, mean {np.mean(ma):.4g} "
             f"against {np.mean(mb):.4g}; the seeds where {a!r} did worst: {_changes(d, seeds)}")
     _verdict("assert_better", passed, text, p_value=r.p_value)
