@@ -219,7 +219,16 @@ def _cmd_run(args) -> int:
             raise ValueError(f"estimator label {label!r} is given twice; labels must be "
                              f"unique (-e label=name:...)")
         factories[label] = _factory(cls, kwargs)
-    # an estimator that cannot be built (or raises) is a row with its reason, the others run
+    # an estimator that cannot be built is a row with its reason and the others run; when
+    # none can be built the command line itself is wrong: its first error, exit status 2
+    refused = []
+    for make in factories.values():
+        try:
+            make(sc.model, sc.tuning)
+        except (TypeError, ValueError) as exc:
+            refused.append(exc)
+    if len(refused) == len(factories):
+        raise refused[0]
     result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot),
                      n_jobs=args.jobs)
     print(result.table())
@@ -348,7 +357,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                           "(true/false, a number, a string, none) or a Python literal: "
                           "lists, tuples, dicts, nested, e.g. \"mhe:horizon=20,Q=[1e-6, "
                           "0.01]\" (quote it in the shell); an estimator that cannot be "
-                          "built is a row with its reason and exit status 1 (default: "
+                          "built is a row with its reason and exit status 1 (none built: an error) (default: "
                           + " ".join(f"-e {e}" for e in DEFAULT_ESTIMATORS) + ")")
     run.add_argument("--seeds", type=_int_arg(1), default=5, help="number of seeds (default 5)")
     run.add_argument("--steps", type=_int_arg(1), default=None,
