@@ -357,7 +357,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                           "(true/false, a number, a string, none) or a Python literal: "
                           "lists, tuples, dicts, nested, e.g. \"mhe:horizon=20,Q=[1e-6, "
                           "0.01]\" (quote it in the shell); an estimator that cannot be "
-                          "built is a row with its reason and exit status 1 (none built: an error) (default: "
+                          "built is a row with its reason and exit status 1 (none built: "
+                          "an error) (default: "
                           + " ".join(f"-e {e}" for e in DEFAULT_ESTIMATORS) + ")")
     run.add_argument("--seeds", type=_int_arg(1), default=5, help="number of seeds (default 5)")
     run.add_argument("--steps", type=_int_arg(1), default=None,
