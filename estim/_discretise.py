@@ -53,7 +53,12 @@ def as_column(expr, size: int, argname: str) -> ca.SX:
                                 f"({entry!r:.40})")
         expr = ca.vertcat(*expr)
     elif isinstance(expr, np.ndarray):
-        expr = ca.SX(expr) if expr.dtype != object else ca.vertcat(*expr.ravel().tolist())
+        if expr.dtype.kind not in "iufbO" or expr.ndim > 2:
+            raise TypeError(f"{argname} must return a CasADi expression or a list of them, "
+                            f"got a numpy array of {expr.ndim} dimensions and dtype "
+                            f"{expr.dtype} (real numbers, at most 2 dimensions)")
+        expr = ca.SX(expr.astype(float)) if expr.dtype != object else \
+            as_column(expr.ravel().tolist(), size, argname)
     elif isinstance(expr, int | float):
         expr = ca.SX(expr)
     if not isinstance(expr, ca.SX | ca.MX | ca.DM):

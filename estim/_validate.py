@@ -38,6 +38,10 @@ def as_vector(value, n: int, name: str, *, allow_nan: bool = False) -> np.ndarra
     return arr.copy()
 
 
+#: The largest entry of a covariance (beyond, products of covariances overflow).
+HUGE_COVARIANCE = 1e150
+
+
 def as_covariance(value, n: int, name: str, *, definite: bool = True) -> np.ndarray:
     """Return a symmetric ``(n, n)`` covariance from a scalar, variances or a matrix.
 
@@ -54,6 +58,12 @@ def as_covariance(value, n: int, name: str, *, definite: bool = True) -> np.ndar
     if value is None:
         raise ValueError(f"{name} is required (a scalar, a vector of variances or a matrix)")
     arr = _numeric_array(value, name)
+    if not np.all(np.isfinite(arr)):  # (before inf * eye, whose zeros would give NaN)
+        raise ValueError(f"{name} must be finite")
+    if arr.size and np.max(np.abs(arr)) > HUGE_COVARIANCE:
+        raise ValueError(f"{name} must have entries below {HUGE_COVARIANCE:g} (the filters' "
+                         f"products of covariances overflow beyond), got "
+                         f"{np.max(np.abs(arr)):.3g}")
     if arr.ndim == 0:
         mat = float(arr) * np.eye(n)
     elif arr.ndim == 1 and arr.shape == (n,):
@@ -65,12 +75,11 @@ def as_covariance(value, n: int, name: str, *, definite: bool = True) -> np.ndar
             f"{name} must be a scalar, a ({n},) vector of variances or a ({n}, {n}) matrix, "
             f"got shape {arr.shape}"
         )
-    if not np.all(np.isfinite(mat)):
-        raise ValueError(f"{name} must be finite")
     scale = max(1.0, float(np.max(np.abs(mat)))) if n else 1.0
     if not np.allclose(mat, mat.T, rtol=1e-10, atol=1e-12 * scale):
         raise ValueError(f"{name} must be symmetric")
-    mat = 0.5 * (mat + mat.T)
+    with np.errstate(over="ignore"):
+        mat = 0.5 * mat + 0.5 * mat.T  # (halved first: no overflow near 1.8e308)
     if n == 0:
         return mat
     eig = np.linalg.eigvalsh(mat)
@@ -207,6 +216,9 @@ def _numeric_array(value, name: str) -> np.ndarray:
         raise TypeError(f"{name} must be numeric, got {type(value).__name__} {_show(value)}")
     try:
         return np.asarray(raw, dtype=float)
+    except OverflowError:  # a Python integer beyond the float range
+        raise ValueError(f"{name} must be within the float range, got {_show(value)}"
+                         ) from None
     except (TypeError, ValueError) as exc:
         raise TypeError(f"{name} must be numeric, got {type(value).__name__} "
                         f"{_show(value)}") from exc
@@ -444,7 +456,10 @@ def as_float(value, name: str, *, minimum: float | None = None, maximum: float |
             value = value[()]
         if isinstance(value, bool | np.bool_) or not isinstance(value, Real):
             raise TypeError(message())
-    out = float(value)
+    try:
+        out = float(value)
+    except OverflowError:  # a Python integer beyond the float range
+        raise ValueError(message()) from None
     if out != out or (finite and abs(out) == np.inf) or (positive and out <= 0) \
             or (minimum is not None and out < minimum) \
             or (maximum is not None and out > maximum):

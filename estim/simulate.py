@@ -357,8 +357,8 @@ def simulate(target: Scenario | Model, estimator: Estimator | None, seed: int | 
     if model.sampled and controller is not None:
         raise ValueError("a model with hold='foh' interpolates its inputs between samples, "
                          "so it needs them in advance: give inputs=, not a controller")
-    feedback = feedback or "estimate"
-    if feedback not in ("estimate", "truth"):
+    feedback = "estimate" if feedback is None else feedback
+    if not isinstance(feedback, str) or feedback not in ("estimate", "truth"):
         raise ValueError(f"feedback must be 'estimate' or 'truth', got {feedback!r}")
     if estimator is None and controller is not None and feedback != "truth":
         raise ValueError("estimator=None simulates the plant alone: its controller needs "

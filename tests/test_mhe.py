@@ -212,7 +212,7 @@ def test_all_failures_keep_the_loop_running():
 
 def test_bad_input():
     sc = estim.scenarios.van_der_pol()
-    with pytest.raises(ValueError, match="horizon must be a positive integer"):
+    with pytest.raises(ValueError, match="horizon must be an integer >= 2"):
         estim.MHE(sc.model, horizon=0, **sc.tuning)
     with pytest.raises(ValueError, match=r"\['mode'\] apply to solver='gauss-newton' only"):
         estim.MHE(sc.model, horizon=5, solver="ipopt", solver_options={"mode": "mapped"},

@@ -30,7 +30,6 @@ from estim.estimators.kalman.fused_calls import filter_seeds, record_call, scan_
 from estim.estimators.kalman.square_root import (
     P0_data,
     covariance,
-    covariances,
     noise_factors,
     with_P0,
 )
@@ -41,6 +40,8 @@ from estim.estimators.kalman.statuses import (
     linearisation_probes,
     overflowing,
     record_statuses,
+    reported,
+    state_trace,
 )
 from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
@@ -108,7 +109,7 @@ class FusedKalman(Estimator):
 
     def _tuning_changed(self) -> None:
         nd = self.model.ndx
-        self._blown = BLOWN_UP * max(np.trace(self.P0), np.trace(self.Q), 1e-300)
+        self._blown = BLOWN_UP * float(max(np.trace(self.P0), np.trace(self.Q), 1e-300))
         Q, R = noise_factors(self.Q, self.R, self._diagonal) if self._sqrt else (self.Q, self.R)
         self._tun[:nd * nd] = Q.ravel(order="F")
         self._tun[nd * nd:] = R.ravel(order="F")
@@ -147,22 +148,23 @@ class FusedKalman(Estimator):
             return self._recover(flag_array, s_prior)
         nx = self._nx
         suspect = flags[6] or flags[7]
-        if suspect and self._trusted:
+        trace = 0.0 if suspect else state_trace(s_new, nx, self._sqrt)
+        untrusted = suspect or trace > self._blown  # (blown up: the filter lost the state)
+        if untrusted and self._trusted:
             self._s_trusted[:] = self._s
-        self._trusted = not suspect
+        self._trusted = not untrusted
         if flags[7]:  # gated: the prediction, with P0 added
             self._s[:] = s_prior
             self._s[nx:] = with_P0(self._s[nx:], self._P0_data, self._sqrt)
         else:
             np.copyto(self._s, s_new)
-        P = self._P_view @ self._P_view.T if self._sqrt else self._P_view.copy()
-        info = StepInfo._fast(P=P, innovation=e.copy(),
+        info = StepInfo._fast(P=reported(self._P_view, self._sqrt), innovation=e.copy(),
                               nis=flags[0] if flags[4] else float("nan"))  # no output
         if suspect:
             info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
                                                         bool(flags[7]))
-        elif P.trace() > self._blown:  # finite, but the filter has lost the state
-            self._trusted, info.__dict__["status"] = False, blown_up(P.trace())
+        elif untrusted:
+            info.__dict__["status"] = blown_up(trace)
         return self._s[:nx].copy(), info
 
     def _failure_texts(self, flags) -> tuple[str, str]:
@@ -177,9 +179,8 @@ class FusedKalman(Estimator):
                 f"kept the prediction with P + P0")
 
     def _recover(self, flags, s_prior, why: str = ""):
-        """A failed update: keep the prediction of a trusted estimate, or re-anchor on
-        the last trusted estimate with ``P + P0`` and update with this measurement
-        (``why``: what failed, when not what the flags say)."""
+        """A failed update (``why``, when the flags do not say it): keep the prediction of
+        a trusted estimate, or re-anchor on the last trusted one with ``P + P0``."""
         why = why or overflowing(self.model, self._y)
         kept, what = (f"failed: {why}; kept the prediction", why) if why else \
             self._failure_texts(flags)
@@ -272,7 +273,7 @@ class FusedKalman(Estimator):
         X[:n] = S[:nx, :n].T
         P[:n] = S[nx:, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major
         if self._sqrt:
-            P[:n] = covariances(P[:n])
+            P[:n] = reported(P[:n], True)
         innovation, nis = np.full((T, ny), np.nan), np.full(T, np.nan)
         innovation[:n] = E[:, :n].T
         measured = F[4, :n] > 0

@@ -22,8 +22,7 @@ import casadi as ca
 import numpy as np
 
 from estim._fast import FastFunction, jitted
-from estim.estimators.kalman.square_root import covariances
-from estim.estimators.kalman.statuses import record_statuses
+from estim.estimators.kalman.statuses import record_statuses, reported
 from estim.solvers.kalman.kalman import record_function
 from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
@@ -200,7 +199,7 @@ class SeedFilter:
         n, T, nx, nd = len(Sx), self.T, est.model.nx, est.model.ndx
         P = Sx[:, :, nx:].reshape(n, T, nd, nd).transpose(0, 1, 3, 2)  # column-major
         if est._sqrt:
-            P = covariances(P)
+            P = reported(P, True)
         failed = (F[:, :, 1] == 0).any(axis=1)
         status = [None if failed[i] else record_statuses(est, F[i], P[i])[0]
                   for i in range(n)]

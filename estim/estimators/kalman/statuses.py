@@ -15,7 +15,8 @@ if TYPE_CHECKING:
     from estim.estimators.kalman.fused import FusedKalman
 
 __all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "failed_linearisation",
-           "linearisation_probes", "overflowing", "record_statuses"]
+           "linearisation_probes", "overflowing", "record_statuses", "reported",
+           "state_trace"]
 
 #: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
 #: ``Q`` makes a step ``"suspect"``: the filter has lost the state (an absorbed outlier
@@ -82,9 +83,32 @@ def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
     ``F (T, 8)`` and covariances ``P (T, n, n)`` of the compiled scan, and which steps
     leave the filter untrusted ``(T,)``."""
     suspect = (F[:, 6] + F[:, 7]) > 0
-    traces = np.trace(P, axis1=1, axis2=2)
+    with np.errstate(invalid="ignore"):  # (inf - inf in a blown-up covariance)
+        traces = np.trace(P, axis1=1, axis2=2)
     blown = ~suspect & (traces > est._blown)
     out = {int(k): est._consistency(float(F[k, 0]), int(F[k, 4]), bool(F[k, 7]))
            for k in np.flatnonzero(suspect)}
     out.update({int(k): blown_up(float(traces[k])) for k in np.flatnonzero(blown)})
     return out, suspect | blown
+
+
+def state_trace(s: np.ndarray, nx: int, sqrt: bool) -> float:
+    """The trace of the covariance in the filter state ``s = [x; vec(P)]`` (or ``[x;
+    vec(S)]``, :math:`\\operatorname{tr} S S^\top = \\|S\\|_F^2`, with ``sqrt``), inf
+    rather than an overflow warning for a factor beyond 1e154."""
+    v = s[nx:]
+    if sqrt:
+        with np.errstate(over="ignore", invalid="ignore"):
+            return float(v @ v)
+    nd = int(round(np.sqrt(v.size)))
+    return float(v[::nd + 1].sum())
+
+
+def reported(P: np.ndarray, sqrt: bool) -> np.ndarray:
+    """The covariance(s) a filter reports from its stored ``P`` (a copy), or ``S S^T`` of
+    its factor(s) ``(..., n, n)`` with ``sqrt``: inf rather than an overflow warning for
+    a factor that blew up."""
+    if not sqrt:
+        return P.copy()
+    with np.errstate(over="ignore", invalid="ignore"):
+        return P @ np.swapaxes(P, -1, -2)

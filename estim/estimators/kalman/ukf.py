@@ -115,7 +115,7 @@ class UKF(FusedKalman):
             raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
                              f"got {points!r}")
         self.points = points
-        self.alpha = as_float(alpha, "alpha", positive=True)
+        self.alpha = as_float(alpha, "alpha", positive=True, maximum=1e3)
         self.beta, self.kappa = as_float(beta, "beta"), as_float(kappa, "kappa")
         self.clip = as_bool(clip, "clip")
         self.lower, self.upper = model.lower, model.upper

@@ -76,7 +76,7 @@ class MHE(RealTimeIteration):
     ----------
     model : Model
     horizon : int
-        :math:`N`, the number of measurements in a full window (>= 1).
+        :math:`N`, the number of measurements in a full window (>= 2: one has no transition).
     Q : float, (nx,) or (nx, nx)
         Process-noise covariance; must be positive definite (weights are
         :math:`Q^{-1}`; give parameters a small variance).
@@ -176,13 +176,13 @@ class MHE(RealTimeIteration):
         self.max_lag = as_int(max_lag, "max_lag", minimum=0)
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        horizon = as_int(horizon, "horizon", minimum=1)
+        self.horizon = as_int(horizon, "horizon", minimum=2, expected="an integer >= 2 "
+                              "(a window of one sample holds no transition)")
         if np.linalg.eigvalsh(self.Q)[0] <= 0:
             raise ValueError("Q must be positive definite for MHE (the weights are Q^-1); "
                              "give every state, parameters included, a small variance")
         solver = resolve_solver(solver, solver_options)
         solver_options = check_solver_options(solver, solver_options)
-        self.horizon = horizon
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
