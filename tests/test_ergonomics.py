@@ -125,9 +125,13 @@ def test_comparison_plot_kinds(record):
 @pytest.mark.skipif(any(importlib.util.find_spec(m) is None
                         for m in ("nbclient", "nbformat", "ipykernel", "matplotlib")),
                     reason="needs nbclient, nbformat, ipykernel and matplotlib")
-def test_figures_are_drawn_once_in_jupyter(tmp_path):
+def test_figures_are_drawn_once_in_jupyter(tmp_path, monkeypatch):
     import nbclient
     import nbformat
+
+    # the kernel's own (inline) backend: a headless MPLBACKEND=Agg in the environment
+    # would be inherited by the kernel and draw nothing
+    monkeypatch.delenv("MPLBACKEND", raising=False)
 
     cells = ["import estim\nsc = estim.scenarios.van_der_pol().replace(n_steps=30)\n"
              "log = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=0)",
