@@ -52,3 +52,12 @@ def make_linear(seed: int = 0, nx: int = 4, nu: int = 1, ny: int = 2) -> LinearS
 @pytest.fixture
 def linear() -> LinearSystem:
     return make_linear()
+
+
+@pytest.fixture(scope="module")
+def fresh_cache(tmp_path_factory):
+    """A library cache of the module's own (a new directory: nothing compiled by other
+    runs) for the compiled filters."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("ESTIM_CACHE_DIR", str(tmp_path_factory.mktemp("estim-cache")))
+        yield

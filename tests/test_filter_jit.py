@@ -17,14 +17,6 @@ from estim.solvers import seeds
 needs_cc = pytest.mark.skipif(compiler() is None, reason="jit needs a C compiler")
 
 
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    """One library cache for the module (a new directory: nothing from other runs)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("ESTIM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
-        yield
-
-
 def _record(T: int = 120):
     sc = estim.scenarios.van_der_pol(n_steps=T)
     Y = estim.simulate(sc, estim.EKF(sc.model, **sc.tuning), seed=3).y
@@ -43,7 +35,7 @@ def _same(a, b, atol=1e-12):
 @needs_cc
 @pytest.mark.parametrize("form", ["covariance", "sqrt"])
 @pytest.mark.parametrize("kind", ["EKF", "UKF"])
-def test_the_compiled_filter_is_the_interpreted_one(cache, kind, form):
+def test_the_compiled_filter_is_the_interpreted_one(fresh_cache, kind, form):
     """filter(), the step loop, reset and set_tuning: compiled as interpreted."""
     sc, Y = _record()
     make = getattr(estim, kind)
@@ -66,7 +58,7 @@ def test_the_compiled_filter_is_the_interpreted_one(cache, kind, form):
 
 
 @needs_cc
-def test_compare_with_jit_is_compare_without(cache):
+def test_compare_with_jit_is_compare_without(fresh_cache):
     sc = estim.scenarios.van_der_pol(n_steps=80)
     est = {"EKF": lambda m, tun: estim.EKF(m, jit=True, **tun),
            "UKF": lambda m, tun: estim.UKF(m, form="sqrt", jit=True, **tun)}

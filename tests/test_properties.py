@@ -381,18 +381,10 @@ def test_sqrt_form_is_the_covariance_form_over_a_linear_record(case, kind):
 needs_cc = pytest.mark.skipif(compiler() is None, reason="jit needs a C compiler")
 
 
-@pytest.fixture(scope="module")
-def jit_cache(tmp_path_factory):
-    """A fresh library cache for the compiled filters (nothing from other runs)."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("ESTIM_CACHE_DIR", str(tmp_path_factory.mktemp("estim-cache")))
-        yield
-
-
 @needs_cc
 @settings(max_examples=3, **SETTINGS)  # the cache fixture is module-scoped: one for all
 @given(data=st.data(), name=st.sampled_from(["van_der_pol", "forced_pendulum"]))
-def test_jit_is_interpreted(jit_cache, data, name):
+def test_jit_is_interpreted(fresh_cache, data, name):
     """A compiled build costs about a second (step and one record length), so three
     examples of one record length (the compiled scan is built per length)."""
     m = model(name)
