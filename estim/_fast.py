@@ -87,11 +87,13 @@ class FastFunction:
                      for i, b in enumerate(self._bound)]
         self.out = [np.zeros(fun.numel_out(i)) for i in range(fun.n_out())]
         self._buf, self._eval = fun.buffer()
+        self._may_fail = may_fail(fun)
         self._build_views()
 
     def _failed(self, out: list[np.ndarray]) -> None:
-        """After an evaluation: ``out`` all NaN if it failed (CasADi's return code)."""
-        if self._buf.ret():
+        """After an evaluation: ``out`` all NaN if it failed (CasADi's return code; asked
+        only of a Function that can fail, :func:`may_fail`)."""
+        if self._may_fail and self._buf.ret():
             for r in out:
                 r.fill(np.nan)
 
@@ -141,6 +143,12 @@ class FastFunction:
         self.fun = ca.Function.deserialize(state["fun"])
         self._bound = state["bound"]
         self._build()
+
+
+def may_fail(fun: ca.Function) -> bool:
+    """Whether an evaluation of ``fun`` can fail: an MX Function or one that calls other
+    Functions (a Newton solve, an integrator, a callback); a plain SX graph cannot."""
+    return not fun.is_a("SXFunction") or bool(fun.find_functions())
 
 
 def _densified(fun: ca.Function) -> ca.Function:

@@ -93,6 +93,9 @@ class FusedKalman(Estimator):
         self._u_prev = self._u[:nu] if m.sampled else None
         self._variable_dt, self._nx = m.variable_dt, nx
         self._probes = linearisation_probes(self)
+        # the entries of each step's new filter state whose sum (of squares) is the trace
+        self._traced = {id(f.out[0]): f.out[0][nx:] if self._sqrt else f.out[0][nx::nd + 1]
+                        for f in (self._update, self._predict_update)}
         self._tuning_changed()
         self._reset()
 
@@ -148,7 +151,7 @@ class FusedKalman(Estimator):
             return self._recover(flag_array, s_prior)
         nx = self._nx
         suspect = flags[6] or flags[7]
-        trace = 0.0 if suspect else state_trace(s_new, nx, self._sqrt)
+        trace = 0.0 if suspect else state_trace(self._traced[id(s_new)], self._sqrt)
         untrusted = suspect or trace > self._blown  # (blown up: the filter lost the state)
         if untrusted and self._trusted:
             self._s_trusted[:] = self._s

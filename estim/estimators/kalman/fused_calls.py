@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from estim._fast import FastFunction, jitted
+from estim._fast import FastFunction, jitted, may_fail
 from estim.estimators.kalman.statuses import record_statuses, reported
 from estim.solvers.kalman.kalman import record_function
 from estim.solvers.seed_threads import evaluate
@@ -69,6 +69,7 @@ class JitFunction(FastFunction):
                      for i, b in enumerate(self._bound)]
         self.out = [np.zeros(self.fun.numel_out(i)) for i in range(self.fun.n_out())]
         self._buf, self._eval = self.library.buffer()
+        self._may_fail = may_fail(self.fun)
         self._build_views()
 
 

@@ -92,16 +92,14 @@ def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
     return out, suspect | blown
 
 
-def state_trace(s: np.ndarray, nx: int, sqrt: bool) -> float:
-    """The trace of the covariance in the filter state ``s = [x; vec(P)]`` (or ``[x;
-    vec(S)]``, :math:`\\operatorname{tr} S S^\top = \\|S\\|_F^2`, with ``sqrt``), inf
-    rather than an overflow warning for a factor beyond 1e154."""
-    v = s[nx:]
+def state_trace(part: np.ndarray, sqrt: bool) -> float:
+    r"""The trace of a filter state's covariance from ``part``: its diagonal, or with
+    ``sqrt`` every entry of its factor :math:`S` (:math:`\operatorname{tr} S S^\top =
+    \|S\|_F^2`), inf rather than an overflow warning for a factor beyond 1e154."""
     if sqrt:
         with np.errstate(over="ignore", invalid="ignore"):
-            return float(v @ v)
-    nd = int(round(np.sqrt(v.size)))
-    return float(v[::nd + 1].sum())
+            return float(part @ part)
+    return sum(part.tolist())  # (a handful of numbers: faster than numpy's reduction)
 
 
 def reported(P: np.ndarray, sqrt: bool) -> np.ndarray:

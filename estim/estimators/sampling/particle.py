@@ -332,6 +332,9 @@ class ParticleFilter(CompiledParticles):
         if self.proposal != "bootstrap":
             definite(self.Q)
         self._LQ = square_root(self.Q).ravel(order="F")
+        # copies of a particle stay copies only where the transition adds no noise: with
+        # a definite Q every particle is distinct after a step, and none need counting
+        self._may_collapse = bool(np.linalg.eigvalsh(self.Q)[0] <= 0)
         self._whitening: dict[bytes, tuple[np.ndarray, float, np.ndarray, np.ndarray,
                                            np.ndarray]] = {}
 
@@ -409,7 +412,7 @@ class ParticleFilter(CompiledParticles):
         e, nis = _innovation(y, observed, Yh, self._W, Ro)
         if success:  # the weights' or the cloud's collapse, the measurement's NIS
             status = step_status(ess, nis, int(observed.sum()), N,
-                                 distinct_particles(X))
+                                 distinct_particles(X) if self._may_collapse else N)
         if status == "ok":
             self._trusted = (x_hat, P)
         if self._trace is not None:
