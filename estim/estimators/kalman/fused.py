@@ -42,6 +42,7 @@ from estim.estimators.kalman.statuses import (
     record_statuses,
     reported,
     state_trace,
+    traced_parts,
 )
 from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
@@ -92,10 +93,7 @@ class FusedKalman(Estimator):
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
         self._variable_dt, self._nx = m.variable_dt, nx
-        self._probes = linearisation_probes(self)
-        # the entries of each step's new filter state whose sum (of squares) is the trace
-        self._traced = {id(f.out[0]): f.out[0][nx:] if self._sqrt else f.out[0][nx::nd + 1]
-                        for f in (self._update, self._predict_update)}
+        self._probes, self._traced = linearisation_probes(self), traced_parts(self)
         self._tuning_changed()
         self._reset()
 

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 __all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "failed_linearisation",
            "linearisation_probes", "overflowing", "record_statuses", "reported",
-           "state_trace"]
+           "state_trace", "traced_parts"]
 
 #: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
 #: ``Q`` makes a step ``"suspect"``: the filter has lost the state (an absorbed outlier
@@ -90,6 +90,15 @@ def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
            for k in np.flatnonzero(suspect)}
     out.update({int(k): blown_up(float(traces[k])) for k in np.flatnonzero(blown)})
     return out, suspect | blown
+
+
+def traced_parts(est: FusedKalman) -> dict[int, np.ndarray]:
+    """For each of the filter's two steps, by the identity of its output's filter state,
+    the entries whose sum (of squares, with a factor) is the trace of its covariance:
+    views kept from the start, read by :func:`state_trace` at every step."""
+    nx, nd = est.model.nx, est.model.ndx
+    return {id(f.out[0]): f.out[0][nx:] if est._sqrt else f.out[0][nx::nd + 1]
+            for f in (est._update, est._predict_update)}
 
 
 def state_trace(part: np.ndarray, sqrt: bool) -> float:
