@@ -42,7 +42,6 @@ from estim.estimators.kalman.statuses import (
     record_statuses,
     reported,
     state_trace,
-    traced_parts,
 )
 from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
@@ -93,7 +92,7 @@ class FusedKalman(Estimator):
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
         self._variable_dt, self._nx = m.variable_dt, nx
-        self._probes, self._traced = linearisation_probes(self), traced_parts(self)
+        self._probes, self._diagonal_stride = linearisation_probes(self), nd + 1
         self._tuning_changed()
         self._reset()
 
@@ -149,7 +148,7 @@ class FusedKalman(Estimator):
             return self._recover(flag_array, s_prior)
         nx = self._nx
         suspect = flags[6] or flags[7]
-        trace = 0.0 if suspect else state_trace(self._traced[id(s_new)], self._sqrt)
+        trace = 0.0 if suspect else state_trace(s_new, nx, self._diagonal_stride, self._sqrt)
         untrusted = suspect or trace > self._blown  # (blown up: the filter lost the state)
         if untrusted and self._trusted:
             self._s_trusted[:] = self._s

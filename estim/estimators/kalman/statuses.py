@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 __all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "failed_linearisation",
            "linearisation_probes", "overflowing", "record_statuses", "reported",
-           "state_trace", "traced_parts"]
+           "state_trace"]
 
 #: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
 #: ``Q`` makes a step ``"suspect"``: the filter has lost the state (an absorbed outlier
@@ -92,23 +92,16 @@ def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
     return out, suspect | blown
 
 
-def traced_parts(est: FusedKalman) -> dict[int, np.ndarray]:
-    """For each of the filter's two steps, by the identity of its output's filter state,
-    the entries whose sum (of squares, with a factor) is the trace of its covariance:
-    views kept from the start, read by :func:`state_trace` at every step."""
-    nx, nd = est.model.nx, est.model.ndx
-    return {id(f.out[0]): f.out[0][nx:] if est._sqrt else f.out[0][nx::nd + 1]
-            for f in (est._update, est._predict_update)}
-
-
-def state_trace(part: np.ndarray, sqrt: bool) -> float:
-    r"""The trace of a filter state's covariance from ``part``: its diagonal, or with
-    ``sqrt`` every entry of its factor :math:`S` (:math:`\operatorname{tr} S S^\top =
-    \|S\|_F^2`), inf rather than an overflow warning for a factor beyond 1e154."""
+def state_trace(s: np.ndarray, nx: int, stride: int, sqrt: bool) -> float:
+    r"""The trace of the covariance in a filter state ``s = [x; vec(P)]``: the sum of its
+    diagonal (every ``stride``-th entry after ``nx``), or with ``sqrt`` of the squares
+    of its factor's entries (:math:`\operatorname{tr} S S^\top = \|S\|_F^2`), inf
+    rather than an overflow warning for a factor beyond 1e154."""
     if sqrt:
+        part = s[nx:]
         with np.errstate(over="ignore", invalid="ignore"):
             return float(part @ part)
-    return sum(part.tolist())  # (a handful of numbers: faster than numpy's reduction)
+    return sum(s[nx::stride].tolist())  # (a handful of numbers: faster than numpy's sum)
 
 
 def reported(P: np.ndarray, sqrt: bool) -> np.ndarray:
