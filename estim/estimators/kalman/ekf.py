@@ -95,10 +95,6 @@ class EKF(FusedKalman):
     R. S. Bucy, P. D. Joseph, *Filtering for Stochastic Processes*, 1968.
     """
 
-    #: It linearises the model: a Jacobian that cannot be evaluated fails the step
-    #: (:func:`~estim.estimators.kalman.statuses.failed_linearisation`).
-    linearises = True
-
     name = "ekf"
     _checks_inf_itself = True
     _manifold_aware = True

@@ -36,8 +36,6 @@ from estim.estimators.kalman.square_root import (
 from estim.estimators.kalman.statuses import (
     BLOWN_UP,
     blown_up,
-    failed_linearisation,
-    linearisation_probes,
     overflowing,
     record_statuses,
     reported,
@@ -92,7 +90,7 @@ class FusedKalman(Estimator):
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
         self._variable_dt, self._nx = m.variable_dt, nx
-        self._probes, self._diagonal_stride = linearisation_probes(self), nd + 1
+        self._diagonal_stride = nd + 1  # (of P's diagonal in the filter state)
         self._tuning_changed()
         self._reset()
 
@@ -140,10 +138,6 @@ class FusedKalman(Estimator):
         flags = flag_array.tolist()
         if flags[3]:
             raise ValueError(f"y must not contain inf, got {y} (NaN marks a missing output)")
-        why = "" if self._probes is None else failed_linearisation(self, first, s_prior)
-        if why:  # failed; the prediction is usable unless dF/dx failed
-            return self._recover([0, 0, flags[2] and "dF/dx" not in why, *flags[3:]],
-                                 s_prior, why)
         if not flags[1]:
             return self._recover(flag_array, s_prior)
         nx = self._nx
@@ -178,10 +172,10 @@ class FusedKalman(Estimator):
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
                 f"kept the prediction with P + P0")
 
-    def _recover(self, flags, s_prior, why: str = ""):
-        """A failed update (``why``, when the flags do not say it): keep the prediction of
-        a trusted estimate, or re-anchor on the last trusted one with ``P + P0``."""
-        why = why or overflowing(self.model, self._y)
+    def _recover(self, flags, s_prior):
+        """A failed update: keep the prediction of a trusted estimate, or re-anchor on
+        the last trusted estimate with ``P + P0`` and update with this measurement."""
+        why = overflowing(self.model, self._y)
         kept, what = (f"failed: {why}; kept the prediction", why) if why else \
             self._failure_texts(flags)
         where = after_failure(self.model, self._s[:self._nx], s_prior[:self._nx], self._u)
@@ -262,13 +256,9 @@ class FusedKalman(Estimator):
         W = m.step_transitions(steps_u, None if dts is None else
                                np.concatenate([[m.dt], dts]))
         self.reset()
-        if self._probes is None:
-            S, E, F = (a.T for a in scan_record(self, Y, W))
-            failed = np.flatnonzero(F[1] == 0)
-            n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
-        else:  # each step asks the model's Jacobians directly: the step loop throughout
-            S, E, F = np.zeros((len(self._s), 0)), np.zeros((ny, 0)), np.zeros((8, 0))
-            n = 0
+        S, E, F = (a.T for a in scan_record(self, Y, W))
+        failed = np.flatnonzero(F[1] == 0)
+        n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nd, nd), np.nan)
         X[:n] = S[:nx, :n].T
         P[:n] = S[nx:, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major

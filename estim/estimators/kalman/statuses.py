@@ -9,13 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from estim._fast import FastFunction
-
 if TYPE_CHECKING:
     from estim.estimators.kalman.fused import FusedKalman
 
-__all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "failed_linearisation",
-           "linearisation_probes", "overflowing", "record_statuses", "reported",
+__all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "overflowing", "record_statuses", "reported",
            "state_trace"]
 
 #: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
@@ -26,37 +23,6 @@ BLOWN_UP = 1e8
 #: a measurement beyond this magnitude overflows the update's squares (a failed update
 #: then says so, rather than blaming the output function)
 HUGE_MEASUREMENT = 1e150
-
-
-def linearisation_probes(est: FusedKalman) -> tuple[FastFunction, FastFunction] | None:
-    """The model's Jacobians ``(F_x, H_x)`` for :func:`failed_linearisation`, for a filter
-    that linearises (``est.linearises``) a model whose Functions its step calls (MX
-    Functions: algebraic states solved by Newton's method, IDAS); None otherwise."""
-    m = est.model
-    if not getattr(est, "linearises", False) or not (
-            m.F_x.is_a("MXFunction") or m.H_x.is_a("MXFunction")):
-        return None  # written into the step's graph: a failure there shows as NaN
-    return FastFunction(m.F_x), FastFunction(m.H_x)
-
-
-def failed_linearisation(est: FusedKalman, first: bool, s_prior: np.ndarray) -> str:
-    """What failed of a step's linearisation (empty when nothing did), asked directly of
-    the model's Jacobians (``est._probes``): ``F_x`` at the previous estimate, ``H_x`` at
-    the prediction. For a model whose Functions the step calls rather than writes into
-    its graph (algebraic states solved by Newton's method, IDAS), a call that fails
-    inside the step's graph gives zeros without saying so (CasADi reports the failure
-    only to a direct caller)."""
-    assert est._probes is not None
-    F_x, H_x = est._probes
-    nx, p = est._nx, est.model.p
-    if not first:
-        F_x(est._s[:nx], est._u, p)
-        if F_x._buf.ret():
-            return "Jacobian dF/dx not evaluated (a solve inside the model failed)"
-    H_x(s_prior[:nx], est._u_now if est.model.nu else np.zeros(0), p)
-    if H_x._buf.ret():
-        return "Jacobian dh/dx not evaluated (a solve inside the model failed)"
-    return ""
 
 
 def blown_up(trace: float) -> str:
