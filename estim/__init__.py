@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from estim import consistency as consistency
     from estim import exceptions as exceptions
     from estim import inference as inference
-    from estim import observability, records, smooth, tuning
+    from estim import observability, records, smooth, soft, tuning
     from estim import plotting as plotting
     from estim import testing as testing
     from estim import verdicts as verdicts
@@ -49,7 +49,7 @@ __all__ = [
     "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
     "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
     "parameter_uncertainty", "records", "replay", "rmse", "scenarios", "simulate", "smooth",
-    "tuning",
+    "soft", "tuning",
 ]
 
 #: Names imported on first use (PEP 562): the estimators and the modules that
@@ -67,7 +67,7 @@ _LAZY = {"EKF": "estim.estimators.kalman.ekf", "EnKF": "estim.estimators.samplin
          "verdicts": "estim.verdicts", "inference": "estim.inference",
          "consistency": "estim.consistency", "exceptions": "estim.exceptions",
          "uncertainty": "estim.uncertainty",
-         "smooth": "estim.smooth", "tuning": "estim.tuning",
+         "soft": "estim.soft", "smooth": "estim.smooth", "tuning": "estim.tuning",
          "ParameterEstimates": "estim.uncertainty",
          "parameter_uncertainty": "estim.uncertainty"}
 

@@ -78,7 +78,7 @@ def as_column(expr, size: int, argname: str) -> ca.SX:
 _EQUATION_HINTS = (
     ("truth value", "a Python if/and/or/max/min on a symbol: the equations are built once "
                     "with symbols, so branch with ca.if_else(cond, a, b), ca.fmax/ca.fmin, "
-                    "or the smooth helpers of estim.smooth"),
+                    "or the smooth helpers of estim.soft"),
     ("must be real number", "a math.* function on a symbol: use ca.* (ca.sqrt, ca.exp, "
                             "ca.log, ...) or numpy ufuncs"),
     ("Wrong number or type of arguments", "an entry that is not a number or a CasADi "

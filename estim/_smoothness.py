@@ -12,7 +12,7 @@ Private functions for the estimators (which decide whether and how to warn):
   of the dynamics and of the output is exactly zero at every sample of a record: a
   gradient-based fit cannot move them (a threshold inside ``if_else``).
 * :func:`advice` turns both into a warning text that names the operation, the state or
-  parameter, and the :mod:`estim.smooth` helper that replaces it.
+  parameter, and the :mod:`estim.soft` helper that replaces it.
 
 The graphs are read from CasADi's SX instruction list: ``model.f_c`` for a continuous
 model (each operation once, not once per Runge-Kutta stage; this also covers CVODES
@@ -46,20 +46,20 @@ _KIND = {**dict.fromkeys(_KINKS.values(), "kink"), **dict.fromkeys(_JUMPS.values
 
 # what to write instead, per operation
 _FIX = {
-    "fmin": "replace ca.fmin(a, b) by estim.smooth.min(a, b, width)",
-    "fmax": "replace ca.fmax(a, b) by estim.smooth.max(a, b, width) "
-            "(ca.fmax(a, 0) by estim.smooth.relu(a, width))",
-    "fabs": "replace ca.fabs(a) (or abs(a)) by estim.smooth.abs(a, width)",
-    "if_else": "replace ca.if_else(s > 0, a, b) by b + estim.smooth.step(s, width) * (a - b) "
-               "(or by estim.smooth.max / min / relu / clip when the branches are a max, "
+    "fmin": "replace ca.fmin(a, b) by estim.soft.min(a, b, width)",
+    "fmax": "replace ca.fmax(a, b) by estim.soft.max(a, b, width) "
+            "(ca.fmax(a, 0) by estim.soft.relu(a, width))",
+    "fabs": "replace ca.fabs(a) (or abs(a)) by estim.soft.abs(a, width)",
+    "if_else": "replace ca.if_else(s > 0, a, b) by b + estim.soft.step(s, width) * (a - b) "
+               "(or by estim.soft.max / min / relu / clip when the branches are a max, "
                "a min or a saturation)",
-    "sign": "replace ca.sign(s) by 2 * estim.smooth.step(s, width) - 1",
-    "copysign": "replace ca.copysign(a, s) by estim.smooth.abs(a, width) * "
-                "(2 * estim.smooth.step(s, width) - 1)",
+    "sign": "replace ca.sign(s) by 2 * estim.soft.step(s, width) - 1",
+    "copysign": "replace ca.copysign(a, s) by estim.soft.abs(a, width) * "
+                "(2 * estim.soft.step(s, width) - 1)",
     "comparison": "a comparison used as a number, e.g. (s > 0) * a, is a step: write "
-                  "estim.smooth.step(s, width) * a",
+                  "estim.soft.step(s, width) * a",
     "logic": "a logical operation used as a number is a step: write products of "
-             "estim.smooth.step(s, width) instead",
+             "estim.soft.step(s, width) instead",
     "floor": "floor has no smooth counterpart: keep it out of the estimated quantities "
              "(e.g. a quantised sensor: model it as y plus noise)",
     "ceil": "ceil has no smooth counterpart: keep it out of the estimated quantities",

@@ -69,16 +69,19 @@ def test_lazy_names_are_public_names():
         "Record", "Scenario", "ShootingObserver", "StepInfo", "chi2_bounds",
         "compare", "convergence_time", "errors", "models", "nees", "nis", "observability",
         "parameter_uncertainty", "records", "replay", "rmse", "scenarios", "simulate", "smooth",
-        "tuning"]
+        "soft", "tuning"]
     assert set(estim.__all__) <= set(dir(estim))
-    from estim import EKF, UKF, FitResult, FullInformation, observability, smooth
+    from estim import EKF, UKF, FitResult, FullInformation, observability, smooth, soft
     from estim.estimators import ESTIMATORS
     from estim.estimators.kalman.ekf import EKF as EKF_
     from estim.estimators.window.fie import FitResult as FitResult_
 
     assert EKF is EKF_ is estim.EKF is ESTIMATORS["ekf"] and FitResult is FitResult_
     assert UKF is ESTIMATORS["ukf"] and FullInformation is ESTIMATORS["fie"]
-    assert observability.__name__ == "estim.observability" and smooth.__name__ == "estim.smooth"
+    assert observability.__name__ == "estim.observability" and soft.__name__ == "estim.soft"
+    # the switches' helpers' former name still works, the very functions
+    assert smooth.__name__ == "estim.smooth" and smooth.relu is soft.relu
+    assert all(getattr(smooth, name) is getattr(soft, name) for name in soft.__all__)
     from estim import ParameterEstimates, parameter_uncertainty
     from estim.uncertainty import ParameterEstimates as ParameterEstimates_
 

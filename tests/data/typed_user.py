@@ -66,7 +66,7 @@ def main() -> None:
 
     report: estim.observability.ObservabilityReport = estim.observability.analyze(model)
     assert report is not None
-    soft = estim.smooth.max(np.array([-1.0, 2.0]), 0.0, width=0.01)
+    soft = estim.soft.max(np.array([-1.0, 2.0]), 0.0, width=0.01)
     assert np.allclose(soft, [0.0, 2.0], atol=0.01)
 
 

@@ -1,4 +1,4 @@
-"""estim.smooth (smooth replacements for switches) and the non-smoothness diagnostic.
+"""estim.soft (smooth replacements for switches) and the non-smoothness diagnostic.
 
 The helpers are checked against their closed forms, their deviation bounds, their
 algorithmic derivatives against central differences (first and second order, at the
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import estim
-from estim import smooth
+from estim import soft
 from estim._smoothness import (
     NonSmoothOperation,
     _scan,
@@ -40,26 +40,26 @@ def _logistic(z):
 
 
 # every helper as a function of one argument, with its exact non-smooth counterpart
-# and its reference closed form (numpy, independent of estim.smooth)
+# and its reference closed form (numpy, independent of estim.soft)
 CASES = {
-    "relu": (lambda x, w: smooth.relu(x, w), lambda x, w: np.maximum(x, 0),
+    "relu": (lambda x, w: soft.relu(x, w), lambda x, w: np.maximum(x, 0),
              lambda x, w: w * _softplus(x / w)),
-    "max": (lambda x, w: smooth.max(x, 0.3 * w, w), lambda x, w: np.maximum(x, 0.3 * w),
+    "max": (lambda x, w: soft.max(x, 0.3 * w, w), lambda x, w: np.maximum(x, 0.3 * w),
             None),
-    "min": (lambda x, w: smooth.min(x, -0.3 * w, w), lambda x, w: np.minimum(x, -0.3 * w),
+    "min": (lambda x, w: soft.min(x, -0.3 * w, w), lambda x, w: np.minimum(x, -0.3 * w),
             None),
-    "abs": (lambda x, w: smooth.abs(x, w), lambda x, w: np.abs(x),
+    "abs": (lambda x, w: soft.abs(x, w), lambda x, w: np.abs(x),
             lambda x, w: np.sqrt(x**2 + w**2) - w),
-    "step": (lambda x, w: smooth.step(x, w), lambda x, w: (x > 0).astype(float),
+    "step": (lambda x, w: soft.step(x, w), lambda x, w: (x > 0).astype(float),
              lambda x, w: _logistic(x / w)),
-    "clip": (lambda x, w: smooth.clip(x, -2 * w, 3 * w, w),
+    "clip": (lambda x, w: soft.clip(x, -2 * w, 3 * w, w),
              lambda x, w: np.clip(x, -2 * w, 3 * w), None),
 }
 
 # each helper called with a given width (for the argument checks)
-CALLS = [lambda w: smooth.relu(1.0, w), lambda w: smooth.max(1.0, 0.0, w),
-         lambda w: smooth.min(1.0, 0.0, w), lambda w: smooth.abs(1.0, w),
-         lambda w: smooth.step(1.0, w), lambda w: smooth.clip(1.0, 0.0, 2.0, w)]
+CALLS = [lambda w: soft.relu(1.0, w), lambda w: soft.max(1.0, 0.0, w),
+         lambda w: soft.min(1.0, 0.0, w), lambda w: soft.abs(1.0, w),
+         lambda w: soft.step(1.0, w), lambda w: soft.clip(1.0, 0.0, 2.0, w)]
 
 
 def _grid(w, n=4001, span=40.0):
@@ -94,43 +94,43 @@ def test_max_min_clip_identities(w):
     rng = np.random.default_rng(0)
     a, b = rng.normal(scale=5 * w, size=(2, 500))
     sp = w * _softplus((a - b) / w)
-    np.testing.assert_allclose(smooth.max(a, b, w), b + sp, rtol=1e-13, atol=1e-13 * w)
-    np.testing.assert_allclose(smooth.max(a, b, w), smooth.max(b, a, w), rtol=1e-13,
+    np.testing.assert_allclose(soft.max(a, b, w), b + sp, rtol=1e-13, atol=1e-13 * w)
+    np.testing.assert_allclose(soft.max(a, b, w), soft.max(b, a, w), rtol=1e-13,
                                atol=1e-13 * w)
-    np.testing.assert_allclose(smooth.min(a, b, w), -smooth.max(-a, -b, w), rtol=1e-13,
+    np.testing.assert_allclose(soft.min(a, b, w), -soft.max(-a, -b, w), rtol=1e-13,
                                atol=1e-13 * w)
     lo, up = -w, 2 * w
     ref = lo + w * _softplus((a - lo) / w) - w * _softplus((a - up) / w)
-    np.testing.assert_allclose(smooth.clip(a, lo, up, w), ref, rtol=1e-13, atol=1e-13 * w)
+    np.testing.assert_allclose(soft.clip(a, lo, up, w), ref, rtol=1e-13, atol=1e-13 * w)
 
 
 @pytest.mark.parametrize("w", WIDTHS)
 def test_deviation_bounds(w):
     x = _grid(w)
     tol = 1e-12 * w
-    gap = smooth.relu(x, w) - np.maximum(x, 0)
+    gap = soft.relu(x, w) - np.maximum(x, 0)
     assert np.all(gap >= 0) and np.all(gap <= w * LOG2 + tol)
-    assert np.all(smooth.relu(x[x > -700 * w], w) > 0)      # positive until it underflows
-    assert smooth.relu(0.0, w) == pytest.approx(w * LOG2, rel=1e-15)
+    assert np.all(soft.relu(x[x > -700 * w], w) > 0)      # positive until it underflows
+    assert soft.relu(0.0, w) == pytest.approx(w * LOG2, rel=1e-15)
     far = np.abs(x) > 5 * w     # exponentially close (up to the rounding of x + gap)
     assert np.all(gap[far] <= w * np.exp(-np.abs(x[far]) / w) + 1e-15 * np.abs(x[far]))
     rounding = 1e-15 * np.abs(x)        # b + (a - b) is a only up to rounding
-    gap = smooth.max(x, 0.3 * w, w) - np.maximum(x, 0.3 * w)
+    gap = soft.max(x, 0.3 * w, w) - np.maximum(x, 0.3 * w)
     assert np.all(gap >= -rounding) and np.all(gap <= w * LOG2 + tol)
-    gap = np.minimum(x, -0.3 * w) - smooth.min(x, -0.3 * w, w)
+    gap = np.minimum(x, -0.3 * w) - soft.min(x, -0.3 * w, w)
     assert np.all(gap >= -rounding) and np.all(gap <= w * LOG2 + tol)
-    gap = np.abs(x) - smooth.abs(x, w)
+    gap = np.abs(x) - soft.abs(x, w)
     assert np.all(gap >= 0) and np.all(gap < w)
-    assert smooth.abs(0.0, w) == 0.0 and np.all(smooth.abs(x, w) >= 0)
-    s = smooth.step(x, w)
-    assert np.all((s >= 0) & (s <= 1)) and smooth.step(0.0, w) == 0.5
+    assert soft.abs(0.0, w) == 0.0 and np.all(soft.abs(x, w) >= 0)
+    s = soft.step(x, w)
+    assert np.all((s >= 0) & (s <= 1)) and soft.step(0.0, w) == 0.5
     far = np.abs(x) > w
     assert np.all(np.abs(s - (x > 0))[far] <= np.exp(-np.abs(x[far]) / w) + 3e-16)
-    c = smooth.clip(x, -2 * w, 3 * w, w)
+    c = soft.clip(x, -2 * w, 3 * w, w)
     assert np.all(np.abs(c - np.clip(x, -2 * w, 3 * w)) <= w * LOG2 + tol)
     rounding = 1e-15 * np.max(np.abs(x))     # l + (x - l) - (x - u) = u up to rounding
     assert np.all((c >= -2 * w - rounding) & (c <= 3 * w + rounding))
-    assert np.all(np.diff(smooth.clip(np.sort(x), -2 * w, 3 * w, w)) >= -rounding)
+    assert np.all(np.diff(soft.clip(np.sort(x), -2 * w, 3 * w, w)) >= -rounding)
 
 
 # ----------------------------------------------------------------- derivatives
@@ -169,11 +169,11 @@ def test_exact_derivatives_at_the_corner():
     stable form max(x, 0) + w log1p(exp(-|x|/w)) gives relu'' = 0 there instead."""
     w = 0.2
     x = ca.SX.sym("x")
-    for expr, d1, d2 in [(smooth.relu(x, w), 0.5, 1 / (4 * w)),
-                         (smooth.abs(x, w), 0.0, 1 / w),
-                         (smooth.step(x, w), 1 / (4 * w), 0.0),
-                         (smooth.max(x, 0, w), 0.5, 1 / (4 * w)),
-                         (smooth.min(x, 0, w), 0.5, -1 / (4 * w))]:
+    for expr, d1, d2 in [(soft.relu(x, w), 0.5, 1 / (4 * w)),
+                         (soft.abs(x, w), 0.0, 1 / w),
+                         (soft.step(x, w), 1 / (4 * w), 0.0),
+                         (soft.max(x, 0, w), 0.5, 1 / (4 * w)),
+                         (soft.min(x, 0, w), 0.5, -1 / (4 * w))]:
         g = ca.jacobian(expr, x)
         f = ca.Function("f", [x], [g, ca.jacobian(g, x)])
         got = [float(v) for v in f(0.0)]
@@ -204,10 +204,10 @@ def test_far_tails_are_finite(name, w):
 
 
 def test_relu_tails_exact():
-    assert smooth.relu(-50.0, 1.0) == pytest.approx(np.exp(-50.0), rel=1e-12)
-    assert smooth.relu(-1e6, 1.0) == 0.0
-    assert smooth.relu(1e6, 1.0) == 1e6
-    assert smooth.relu(40.0, 1.0) == pytest.approx(40.0 + np.exp(-40.0), rel=1e-15)
+    assert soft.relu(-50.0, 1.0) == pytest.approx(np.exp(-50.0), rel=1e-12)
+    assert soft.relu(-1e6, 1.0) == 0.0
+    assert soft.relu(1e6, 1.0) == 1e6
+    assert soft.relu(40.0, 1.0) == pytest.approx(40.0 + np.exp(-40.0), rel=1e-15)
 
 
 def test_types_follow_the_argument():
@@ -221,12 +221,12 @@ def test_types_follow_the_argument():
         assert f(np.zeros((2, 3)), w).shape == (2, 3), name
         assert f([0.0, 1.0], w).shape == (2,), name
     # CasADi and numpy arguments together: a CasADi expression
-    out = smooth.max(sx, np.array([0.0, 1.0, 2.0]), w)
+    out = soft.max(sx, np.array([0.0, 1.0, 2.0]), w)
     assert isinstance(out, ca.SX) and out.shape == (3, 1)
     got = ca.Function("f", [sx], [out])([0.5, 0.5, 0.5]).full().ravel()
-    np.testing.assert_allclose(got, smooth.max(0.5, [0.0, 1.0, 2.0], w), rtol=1e-15)
+    np.testing.assert_allclose(got, soft.max(0.5, [0.0, 1.0, 2.0], w), rtol=1e-15)
     # broadcasting as numpy does
-    assert smooth.clip(np.zeros((4, 1)), np.zeros(3) - 1, 1.0, w).shape == (4, 3)
+    assert soft.clip(np.zeros((4, 1)), np.zeros(3) - 1, 1.0, w).shape == (4, 3)
 
 
 def test_sx_and_mx_give_the_numpy_numbers():
@@ -257,24 +257,24 @@ def test_width_must_be_a_number(width):
 
 def test_bad_arguments_are_named():
     with pytest.raises(TypeError, match="x must be numeric"):
-        smooth.relu("a", 0.1)
+        soft.relu("a", 0.1)
     with pytest.raises(TypeError, match="b must be numeric"):
-        smooth.max(1.0, None, 0.1)
+        soft.max(1.0, None, 0.1)
     with pytest.raises(ValueError, match="lower must be less than upper"):
-        smooth.clip(0.0, 1.0, 1.0, 0.1)
+        soft.clip(0.0, 1.0, 1.0, 0.1)
     with pytest.raises(ValueError, match="lower must be less than upper"):
-        smooth.clip(0.0, [0.0, 2.0], [1.0, 1.0], 0.1)
+        soft.clip(0.0, [0.0, 2.0], [1.0, 1.0], 0.1)
     with pytest.raises(ValueError, match="upper must be finite"):
-        smooth.clip(0.0, 0.0, np.inf, 0.1)
+        soft.clip(0.0, 0.0, np.inf, 0.1)
     with pytest.raises(ValueError, match="lower must be finite"):
-        smooth.clip(ca.SX.sym("x"), -np.inf, 1.0, 0.1)
+        soft.clip(ca.SX.sym("x"), -np.inf, 1.0, 0.1)
     # symbolic bounds are not checked (a parameter may be a bound)
     p = ca.SX.sym("p")
-    assert isinstance(smooth.clip(ca.SX.sym("x"), p, p + 1, 0.1), ca.SX)
+    assert isinstance(soft.clip(ca.SX.sym("x"), p, p + 1, 0.1), ca.SX)
 
 
 def test_docstring_examples():
-    result = doctest.testmod(smooth, optionflags=doctest.NORMALIZE_WHITESPACE)
+    result = doctest.testmod(soft, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 5 and result.failed == 0
 
 
@@ -293,11 +293,11 @@ def _tank(switch: str, width: float = 0.02, integrator: str = "rk4") -> estim.Mo
         h1, h2 = x[0], x[1]
         loss = {
             "if_else": lambda: ca.if_else(h1 > p["h_crit"], p["k_v"], 0),
-            "step": lambda: p["k_v"] * smooth.step(h1 - p["h_crit"], width),
+            "step": lambda: p["k_v"] * soft.step(h1 - p["h_crit"], width),
             "fmax": lambda: 2.0 * ca.fmax(h1 - p["h_crit"], 0),
-            "relu": lambda: 2.0 * smooth.relu(h1 - p["h_crit"], width),
+            "relu": lambda: 2.0 * soft.relu(h1 - p["h_crit"], width),
             "fmin": lambda: 0.3 * ca.fmin(h1, p["h_crit"]),
-            "min": lambda: 0.3 * smooth.min(h1, p["h_crit"], width),
+            "min": lambda: 0.3 * soft.min(h1, p["h_crit"], width),
             "input": lambda: ca.if_else(u[0] > 0.6, p["k_v"], 0) * h1,
         }[switch]()
         q12 = 0.5 * ca.sqrt(h1)
@@ -330,8 +330,8 @@ def test_switch_on_a_state_is_reported(switch, op, kind):
     assert str(found[0]).startswith(f"{op} in the dynamics ")
     text = advice(found)
     assert f"{op} in the dynamics" in text and "h1" in text
-    helper = {"fmin": "estim.smooth.min(a, b, width)", "fmax": "estim.smooth.max(a, b, width)",
-              "if_else": "estim.smooth.step(s, width)"}[switch]
+    helper = {"fmin": "estim.soft.min(a, b, width)", "fmax": "estim.soft.max(a, b, width)",
+              "if_else": "estim.soft.step(s, width)"}[switch]
     assert helper in text
     # augmented: the estimated threshold is a state now
     aug = nonsmooth_operations(_tank(switch).augment("h_crit"))
@@ -539,7 +539,7 @@ def test_fit_with_a_threshold_inside_if_else():
         if switch == "if_else":
             # at construction: the switch; after the fit: the parameter that never moved
             assert len(texts) == 2 and texts[0].startswith("FullInformation on if_else:")
-            assert "estim.smooth.step(s, width)" in texts[0]
+            assert "estim.soft.step(s, width)" in texts[0]
             assert texts[1].startswith("FullInformation.fit on if_else:") and "h_crit" in texts[1]
             assert res.status == ("inexact: h_crit has a zero derivative over the record "
                                   "and kept the initial value")
@@ -577,17 +577,17 @@ def test_smooth_sqrt_has_a_bounded_slope_and_error():
     """sqrt(x, w): within 0.53 sqrt(w) of sqrt(max(x, 0)), below it for x >= w, its
     derivative finite (at most 0.35 / sqrt(w)) where the exact one is infinite; the same
     numbers on CasADi symbols as on numpy arrays."""
-    from estim import smooth
+    from estim import soft
 
     for w in (1e-2, 1e-4):
         x = np.linspace(-1.0, 10.0, 200_001)
         exact = np.sqrt(np.maximum(x, 0.0))
-        approx = smooth.sqrt(x, w)
+        approx = soft.sqrt(x, w)
         assert np.abs(approx - exact).max() < 0.533 * np.sqrt(w)
         assert (approx[x >= w] <= exact[x >= w]).all()
         assert np.gradient(approx, x).max() < 0.35 / np.sqrt(w)
         h = ca.SX.sym("h")
-        f = ca.Function("f", [h], [smooth.sqrt(h, w), ca.jacobian(smooth.sqrt(h, w), h)])
+        f = ca.Function("f", [h], [soft.sqrt(h, w), ca.jacobian(soft.sqrt(h, w), h)])
         value, slope = (float(v) for v in f(0.0))
-        assert value == pytest.approx(float(smooth.sqrt(0.0, w)), rel=1e-14)
+        assert value == pytest.approx(float(soft.sqrt(0.0, w)), rel=1e-14)
         assert np.isfinite(slope) and slope < 0.35 / np.sqrt(w)
