@@ -108,6 +108,16 @@ class Log:
         self._series: dict[str, list] = {}
         self._arrays: dict[str, np.ndarray] = {}
 
+    @classmethod
+    def from_estimates(cls, result, truth: Log | ArrayLike | None = None, *,
+                       name: str = "") -> Log:
+        """A log of a result of a whole record (``filter``, ``smooth``, ``fit``: any
+        :class:`~estim.estimators.filtering.Estimates`), for what takes logs: ``t``,
+        ``x_hat``, ``P`` and ``status`` where the result has them, the truth ``x`` from
+        ``truth`` (a log of the same record, or the true states ``(T, nx)``), and
+        ``name`` as :attr:`estimator`."""
+        return _from_estimates(cls, result, truth, name)
+
     # ----------------------------------------------------------- recording
     def __call__(self, key: str, value: ArrayLike) -> None:
         """Append ``value`` to the series ``key``."""
@@ -308,3 +318,47 @@ class Log:
         on = f" on {self.model_name}" if self.model_name else ""
         problems = self.problems()
         return f"<Log{who}{on}: T={len(self)}; {fields}{'; ' + problems if problems else ''}>"
+
+
+def _from_estimates(cls, result, truth, name: str) -> Log:
+    """:meth:`Log.from_estimates`."""
+    from estim.estimators.filtering import Estimates
+
+    if isinstance(result, Log):
+        return result
+    if not isinstance(result, Estimates):
+        raise TypeError(f"result must be an estim.Log or a result of a whole record "
+                        f"(FilterResult, SmoothResult, ParticleFilterResult, "
+                        f"ParticleSmoothResult, FitResult), got {type(result).__name__}")
+    T = len(result.x)
+    src = truth if isinstance(truth, Log) else None
+    log = cls(state_names=list(result.state_names) or None, estimator=name,
+              model_name=src.model_name if src is not None else "",
+              time_unit=src.time_unit if src is not None else "",
+              output_names=src.output_names if src is not None else None,
+              output_state=src.output_state if src is not None else None)
+    log.manifold = result.manifold
+    log.set("t", result.times())
+    if truth is not None:
+        x = src.x if src is not None else np.asarray(truth, dtype=float)
+        if src is not None and "x" not in src:
+            raise ValueError(f"truth is a Log without the true state 'x' (it has "
+                             f"{src.keys()})")
+        if x.ndim == 1:
+            x = x[:, None]
+        if x.shape != result.x.shape:
+            raise ValueError(f"truth has shape {x.shape} but the estimates have "
+                             f"{result.x.shape}")
+        log.set("x", x)
+        if src is not None and "y" in src and len(src.y) == T:
+            log.set("y", src.y)
+    log.set("x_hat", result.x)
+    P = getattr(result, "P", None)
+    if P is not None:
+        log.set("P", P)
+    status = getattr(result, "status", None)
+    if isinstance(status, tuple) and len(status) == T:
+        log.set("status", np.array(status))
+        log.set("success", np.array([not s.startswith("failed") for s in status]))
+    return log
+

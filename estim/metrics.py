@@ -8,10 +8,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from estim._validate import as_bool, as_float, as_int
+from estim.estimators.filtering import Estimates
 
 if TYPE_CHECKING:  # annotations only: a log is told by what it holds (see _is_log)
-    from estim.estimators.window.fie import FitResult
     from estim.log import Log
+
+#: what the metrics read, for messages
+ACCEPTED = ("an estim.Log, a result of a whole record (FilterResult, SmoothResult, "
+            "ParticleFilterResult, ParticleSmoothResult, FitResult) with truth=, or an "
+            "array of estimates (T, nx) with truth=")
 
 
 class RMSE(float):
@@ -94,29 +99,29 @@ class _Series:
                 self.manifold.tangent_names
             x = estimate.x if truth is None and "x" in estimate else truth
         else:
-            # a FitResult, or a SmoothResult of EKF.smooth / UKF.smooth
-            if hasattr(estimate, "x") and (hasattr(estimate, "cost")
-                                           or hasattr(estimate, "x_filtered")):
-                x_hat = estimate.x
-                self.P = getattr(estimate, "P", None)
+            # a result of a whole record (the Estimates protocol), or bare estimates
+            self.nis, self.t, self.manifold = None, None, None
+            names = truth_log.state_names if truth_log is not None else []
+            if isinstance(estimate, Estimates):
+                x_hat, self.P = estimate.x, getattr(estimate, "P", None)
+                self.t, self.manifold = estimate.t, estimate.manifold
+                names = list(estimate.state_names) or names
+                if self.manifold is not None:
+                    names = self.manifold.tangent_names
             elif isinstance(estimate, (list, tuple, np.ndarray)):
                 x_hat, self.P = estimate, None
             else:
-                raise TypeError(f"estimate must be an estim.Log, a FitResult or an array "
-                                f"of estimates (T, nx), got {type(estimate).__name__}")
+                raise TypeError(f"estimate must be {ACCEPTED}, got {type(estimate).__name__}")
             self.x_hat = _as_states(x_hat, "estimate")
-            self.nis, self.t, self.manifold = None, None, None
-            names = truth_log.state_names if truth_log is not None else []
             if "nis" in needs:
                 raise ValueError("nis needs a Log: the innovations are recorded by "
                                  "simulate/replay")
             if "P" in needs and self.P is None:
-                raise ValueError("nees needs covariances: a Log with 'P', or a fit's or a "
-                                 "smoother's result with 'P' (an array carries none, nor "
-                                 "a fit that failed)")
+                raise ValueError("nees needs covariances: a Log with 'P', or a result with "
+                                 "'P' (an array carries none, nor a fit that failed)")
             if truth is None and "x" in needs:
-                raise ValueError("truth is required with a FitResult or an array: the true "
-                                 "states (T, nx), or a Log that has them")
+                raise ValueError(f"truth is required with a {type(estimate).__name__}: the "
+                                 f"true states (T, nx), or a Log that has them")
             x = truth
         if x is not None and "x" in needs:
             x = _as_states(x, "truth")
@@ -192,15 +197,17 @@ def _select(estimate, burn_in: int, states: Sequence[str] | None,
     return data, idx
 
 
-def errors(estimate: Log | FitResult | np.ndarray, burn_in: int = 0, *,
+def errors(estimate: Log | Estimates | np.ndarray, burn_in: int = 0, *,
            truth: np.ndarray | Log | None = None) -> np.ndarray:
     """Estimation error :math:`\\hat x_k - x_k`, shape ``(T - burn_in, nx)``.
 
     Parameters
     ----------
-    estimate : Log, FitResult or (T, nx) array
+    estimate : Log, result or (T, nx) array
         The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
-        ``truth`` is given), a :class:`~estim.FitResult` or an array.
+        ``truth`` is given), a result of a whole record (any
+        :class:`~estim.estimators.filtering.Estimates`: ``filter``, ``smooth``, ``fit``)
+        or an array.
     burn_in : int
         Samples to skip at the start.
     truth : (T, nx) array or Log, optional
@@ -210,7 +217,7 @@ def errors(estimate: Log | FitResult | np.ndarray, burn_in: int = 0, *,
     return data.errors(burn_in)
 
 
-def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
+def rmse(estimate: Log | Estimates | np.ndarray, burn_in: int = 0,
          states: Sequence[str] | None = None, *,
          truth: np.ndarray | Log | None = None) -> RMSE:
     """RMSE of the estimate against the truth, overall and per state.
@@ -221,9 +228,11 @@ def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
 
     Parameters
     ----------
-    estimate : Log, FitResult or (T, nx) array
+    estimate : Log, result or (T, nx) array
         The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
-        ``truth`` is given), a :class:`~estim.FitResult` or an array.
+        ``truth`` is given), a result of a whole record (any
+        :class:`~estim.estimators.filtering.Estimates`: ``filter``, ``smooth``, ``fit``)
+        or an array.
     burn_in : int
         Samples to skip at the start.
     states : list of str, optional
@@ -237,7 +246,7 @@ def rmse(estimate: Log | FitResult | np.ndarray, burn_in: int = 0,
     return RMSE(float(np.sqrt(np.mean(err**2))), per)
 
 
-def nees(estimate: Log | FitResult, burn_in: int = 0, *,
+def nees(estimate: Log | Estimates, burn_in: int = 0, *,
          truth: np.ndarray | Log | None = None) -> np.ndarray:
     r"""Normalised estimation error squared per sample, :math:`e_k^\top P_k^{-1} e_k`, (T',).
 
@@ -246,7 +255,7 @@ def nees(estimate: Log | FitResult, burn_in: int = 0, *,
 
     Parameters
     ----------
-    estimate : Log, FitResult or SmoothResult
+    estimate : Log or result
         Estimates with covariances ``P`` (T, nx, nx) (a Log with ``P``, a
         ``FullInformation.fit`` result, or the result of ``EKF.smooth`` /
         ``UKF.smooth``), and the truth unless ``truth`` is given.
@@ -371,16 +380,18 @@ def chi2_bounds(dof: int, n: int, confidence: float = 0.95) -> tuple[float, floa
     return float(lo), float(hi)
 
 
-def convergence_time(estimate: Log | FitResult | np.ndarray, tol: float,
+def convergence_time(estimate: Log | Estimates | np.ndarray, tol: float,
                      states: Sequence[str] | None = None, relative: bool = False, *,
                      truth: np.ndarray | Log | None = None) -> float:
     """First time after which every selected error stays within ``tol`` (inf if never).
 
     Parameters
     ----------
-    estimate : Log, FitResult or (T, nx) array
+    estimate : Log, result or (T, nx) array
         The estimates: a :class:`~estim.Log` (with its truth ``x`` unless
-        ``truth`` is given), a :class:`~estim.FitResult` or an array.
+        ``truth`` is given), a result of a whole record (any
+        :class:`~estim.estimators.filtering.Estimates`: ``filter``, ``smooth``, ``fit``)
+        or an array.
     tol : float
         Error bound.
     states : list of str, optional

@@ -1,4 +1,11 @@
-"""Plots of logs (matplotlib is an optional extra: ``pip install estim[plot]``)."""
+"""Plots of logs and of results of whole records (matplotlib is an optional extra:
+``pip install estim[plot]``).
+
+Every function that draws estimates takes :class:`~estim.Log` objects and the results of
+``filter``, ``smooth`` and ``fit`` (any :class:`~estim.estimators.filtering.Estimates`)
+alike, the latter with the truth given as ``truth=`` (a log of the same record or the
+true states) where the figure shows it.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +19,49 @@ from estim._figures import (  # noqa: F401 - plot_log is a name of this module
     _time_label,
     plot_log,
 )
-from estim.metrics import startup_samples
+from estim.estimators.filtering import Estimates
+from estim.log import Log
+from estim.metrics import rmse, startup_samples
+
+#: what the figures of estimates take, for messages
+_ACCEPTED = ("an estim.Log, a result of a whole record (FilterResult, SmoothResult, "
+             "ParticleFilterResult, ParticleSmoothResult, FitResult) or a dict of them "
+             "by label")
+
+
+def _as_logs(logs, truth, what: str, need_truth: bool) -> tuple[dict[str, Log], Log | None]:
+    """The runs as logs by label, and the log whose ``x`` is the truth (None if none).
+
+    ``truth`` (a Log or ``(T, nx)`` array) is given to every result; without it, the
+    truth of the first log that has one."""
+    if isinstance(logs, (Log, Estimates)):
+        name = (logs.estimator if isinstance(logs, Log) else "") or \
+            ("estimate" if isinstance(logs, Log) else type(logs).__name__)
+        logs = {name: logs}
+    if not isinstance(logs, dict) or not logs:
+        raise TypeError(f"{what} takes {_ACCEPTED}, got "
+                        f"{type(logs).__name__ if not isinstance(logs, dict) else 'an empty dict'}")
+    source = truth if isinstance(truth, Log) else next(
+        (v for v in logs.values() if isinstance(v, Log) and "x" in v), None)
+    given = truth if truth is not None else source
+    out: dict[str, Log] = {}
+    for key, value in logs.items():
+        if isinstance(value, Log):
+            if need_truth and "x" not in value:
+                raise ValueError(f"{what}: the log {key!r} has no truth 'x' (it has "
+                                 f"{value.keys()})")
+            out[str(key)] = value
+        elif isinstance(value, Estimates):
+            if need_truth and given is None:
+                raise ValueError(f"{what} needs the truth of {key!r} "
+                                 f"({type(value).__name__}): pass truth= a Log of the "
+                                 f"same record or the true states (T, nx)")
+            out[str(key)] = Log.from_estimates(value, given, name=str(key))
+        else:
+            raise TypeError(f"{what} takes {_ACCEPTED}; {key!r} is a "
+                            f"{type(value).__name__}")
+    truth_log = next((v for v in out.values() if "x" in v), None)
+    return out, truth_log
 
 
 def plot_comparison(result, path=None, seed_index: int = 0):
@@ -89,16 +138,22 @@ def plot_comparison(result, path=None, seed_index: int = 0):
     return _finish(fig, path)
 
 
-def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float | None = None,
-                   title: str | None = None, marker_time: float | None = None):
-    """Truth (from the first log) and every log's estimate, one axis per state.
+def plot_estimates(logs, path=None, *, truth=None, labels=None, styles=None,
+                   symlog: float | None = None, title: str | None = None,
+                   marker_time: float | None = None):
+    """Truth and every run's estimate, one axis per state.
 
     Parameters
     ----------
-    logs : dict of name -> Log
-        Runs on the same truth (same scenario and seed).
+    logs : Log, result, or dict of name -> Log or result
+        Runs on the same record (same scenario and seed): logs of
+        :func:`~estim.simulate` / :func:`~estim.replay` and results of ``filter``,
+        ``smooth`` and ``fit``.
     path : str or Path, optional
         Write the figure there.
+    truth : Log or (T, nx) array, optional
+        The true states (default: those of the first log that has them; none drawn
+        when no run has them).
     labels, styles : dict, optional
         Legend label and matplotlib keyword arguments per name.
     symlog : float, optional
@@ -114,12 +169,14 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
     """
     plt = _pyplot()
     labels, styles = labels or {}, styles or {}
-    truth = next(iter(logs.values()))
-    names = truth.state_names or [f"x{i + 1}" for i in range(truth.x.shape[1])]
+    logs, truth_log = _as_logs(logs, truth, "plot_estimates", need_truth=False)
+    first = next(iter(logs.values()))
+    names = first.state_names or [f"x{i + 1}" for i in range(first.x_hat.shape[1])]
     fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 2.5 * len(names)),
                              constrained_layout=True, squeeze=False)
     for i, (ax, name) in enumerate(zip(axes[:, 0], names, strict=True)):
-        ax.plot(truth.t, truth.x[:, i], color="black", lw=2, label="truth")
+        if truth_log is not None:
+            ax.plot(truth_log.t, truth_log.x[:, i], color="black", lw=2, label="truth")
         for k, (key, log) in enumerate(logs.items()):
             ax.plot(log.t, log.x_hat[:, i], label=labels.get(key, key),
                     **{**_style(k), **styles.get(key, {})})
@@ -133,11 +190,11 @@ def plot_estimates(logs, path=None, *, labels=None, styles=None, symlog: float |
     axes[0, 0].legend(loc="upper right", ncol=min(4, len(logs) + 1), fontsize="small")
     if title:
         axes[0, 0].set_title(title, fontsize="medium")
-    axes[-1, 0].set_xlabel(_time_label(truth))
+    axes[-1, 0].set_xlabel(_time_label(first))
     return _finish(fig, path)
 
 
-def plot_errors(logs, path=None, sigma: float = 2.0):
+def plot_errors(logs, path=None, sigma: float = 2.0, *, truth=None):
     """Estimation error per state with ``±sigma`` standard-deviation bands where ``P`` exists.
 
     The error axes are scaled to what the errors settle to after the start-up
@@ -151,21 +208,22 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
 
     Parameters
     ----------
-    logs : Log or dict of name -> Log
+    logs : Log, result, or dict of name -> Log or result
+        Runs on the same record: logs, and results of ``filter``, ``smooth`` and
+        ``fit`` (with ``truth``).
     path : str or Path, optional
     sigma : float
         Width of the band in standard deviations (2: about 95 % for a
         consistent Gaussian estimator).
+    truth : Log or (T, nx) array, optional
+        The true states of the results (default: those of the first log that has them).
 
     Returns
     -------
     matplotlib.figure.Figure
     """
     plt = _pyplot()
-    from estim.log import Log
-
-    logs = {getattr(logs, "estimator", "estimate") or "estimate": logs} \
-        if isinstance(logs, Log) else dict(logs)
+    logs, _ = _as_logs(logs, truth, "plot_errors", need_truth=True)
     first = next(iter(logs.values()))
     names = first.state_names or [f"x{i + 1}" for i in range(first.x.shape[1])]
     fig, axes = plt.subplots(len(names), 1, sharex=True, figsize=(7.5, 2.2 * len(names)),
@@ -217,6 +275,98 @@ def plot_errors(logs, path=None, sigma: float = 2.0):
     axes[0, 0].set_title(f"estimation error, ±{sigma:g}σ bands where a covariance exists; "
                          f"axes scaled to the settled errors", fontsize="medium")
     axes[-1, 0].set_xlabel(_time_label(first))
+    return _finish(fig, path)
+
+
+def plot_smoothing(result, path=None, *, truth=None, filtered=None, sigma: float = 2.0,
+                   states=None, title: str | None = None):
+    """The filter against the smoother on one record: per state, the truth, the
+    filtered and the smoothed estimates with their ``±sigma`` bands.
+
+    ``plot_smoothing(ekf.smooth(y), truth=log)`` draws the forward pass of the
+    Rauch-Tung-Striebel smoother (:math:`\\hat x_{k|k}`, the filter) against its result
+    (:math:`\\hat x_{k|T-1}`); the same for ``UKF.smooth`` and ``ParticleFilter.smooth``.
+    The legend gives each one's RMSE where the truth is known.
+
+    Parameters
+    ----------
+    result : SmoothResult, ParticleSmoothResult or another result
+        The smoothed estimates; one of a smoother holds the filter's
+        (``x_filtered``, ``P_filtered``). Any other result (e.g. a
+        :meth:`FullInformation.fit <estim.FullInformation.fit>`) with ``filtered``.
+    path : str or Path, optional
+        Write the figure there.
+    truth : Log or (T, nx) array, optional
+        The true states (a log of the same record: e.g. of :func:`~estim.simulate`).
+    filtered : Log or result, optional
+        The filtered estimates (default: the smoother's own forward pass).
+    sigma : float
+        Width of the bands in standard deviations.
+    states : list of str, optional
+        Which states to draw (default all).
+    title : str, optional
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from estim._validate import as_float
+
+    sigma = as_float(sigma, "sigma", positive=True)
+    if not isinstance(result, Estimates):
+        raise TypeError(f"result must be the result of a smoother (EKF.smooth, UKF.smooth, "
+                        f"ParticleFilter.smooth) or of another whole-record estimate "
+                        f"(FitResult, FilterResult), got {type(result).__name__}")
+    if filtered is None:
+        xf = getattr(result, "x_filtered", None)
+        if xf is None:
+            raise ValueError(f"a {type(result).__name__} holds no filtered estimates: pass "
+                             f"filtered= (e.g. ekf.filter(y) or a Log of replay)")
+        import dataclasses
+
+        # the forward pass, as a result of its own (same times and names)
+        filtered = dataclasses.replace(result, x=xf, P=getattr(result, "P_filtered", None))
+    runs, truth_log = _as_logs({"filter": filtered, "smoother": result}, truth,
+                               "plot_smoothing", need_truth=False)
+    smoothed = runs["smoother"]
+    names = smoothed.state_names or [f"x{i + 1}" for i in range(smoothed.x_hat.shape[1])]
+    if isinstance(states, str):
+        states = [states]
+    chosen = list(names) if states is None else list(states)
+    unknown = [s for s in chosen if s not in names]
+    if unknown:
+        raise ValueError(f"states {unknown} are not in the result; states are {names}")
+    plt = _pyplot()
+    fig, axes = plt.subplots(len(chosen), 1, sharex=True, figsize=(7.5, 2.4 * len(chosen)),
+                             constrained_layout=True, squeeze=False)
+    labels = {}
+    for key, log in runs.items():
+        labels[key] = key
+        if truth_log is not None:
+            try:
+                labels[key] = f"{key} (RMSE {float(rmse(log)):.3g})"
+            except ValueError:  # e.g. a truth of other length: no score
+                pass
+    for ax, name in zip(axes[:, 0], chosen, strict=True):
+        i = names.index(name)
+        if truth_log is not None:
+            ax.plot(truth_log.t, truth_log.x[:, i], color="black", lw=1.8, label="truth")
+        for k, (key, log) in enumerate(runs.items()):
+            style = {"color": f"C{k}", "ls": "--" if key == "filter" else "-",
+                     "lw": 1.2 if key == "filter" else 1.6}
+            ax.plot(log.t, log.x_hat[:, i], label=labels[key], **style)
+            if "P" in log and log.P.shape[1] == log.x_hat.shape[1]:
+                sd = np.sqrt(np.maximum(log.P[:, i, i], 0.0))
+                if np.isfinite(sd).any():
+                    ax.fill_between(log.t, log.x_hat[:, i] - sigma * sd,
+                                    log.x_hat[:, i] + sigma * sd, color=f"C{k}",
+                                    alpha=0.12 if key == "filter" else 0.22, lw=0)
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize="small", ncol=3)
+    axes[0, 0].set_title(title or f"filter and smoother, ±{sigma:g}σ bands",
+                         fontsize="medium")
+    axes[-1, 0].set_xlabel(_time_label(truth_log if truth_log is not None else smoothed))
     return _finish(fig, path)
 
 

@@ -25,7 +25,7 @@ from estim._locate import after_failure
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.filtering import FilterResult
+from estim.estimators.filtering import FilterResult, stamped
 from estim.estimators.kalman.fused_calls import filter_seeds, record_call, scan_record, step_calls
 from estim.estimators.kalman.square_root import (
     P0_data,
@@ -293,8 +293,8 @@ class FusedKalman(Estimator):
             nis[k] = info.nis
             status.append(info.status)
             success = success and info.success
-        return FilterResult(x=X, P=P, innovation=innovation, nis=nis, status=tuple(status),
-                            success=success)
+        return stamped(FilterResult(x=X, P=P, innovation=innovation, nis=nis,
+                                    status=tuple(status), success=success), self.model, t)
 
     def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples

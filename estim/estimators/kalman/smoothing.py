@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.estimators.base import Estimator
+from estim.estimators.filtering import Estimates, stamped
 from estim.solvers.kalman.rts import backward
 
 #: A prediction of a whole record: from the filtered means ``(T-1, nx)``, covariances
@@ -52,7 +53,7 @@ Predictor = Callable[[np.ndarray, np.ndarray, np.ndarray],
 
 
 @dataclass(frozen=True)
-class SmoothResult:
+class SmoothResult(Estimates):
     """A record smoothed by :meth:`EKF.smooth <estim.EKF.smooth>` or
     :meth:`UKF.smooth <estim.UKF.smooth>`.
 
@@ -76,6 +77,9 @@ class SmoothResult:
         The filter's status of every sample (``"ok"``, ``"rejected: ..."``, ...).
     success : bool
         Every step of the filter succeeded.
+    t, state_names, manifold :
+        Sample times, state names and the states' manifold (see
+        :class:`~estim.estimators.filtering.Estimates`).
     """
 
     x: np.ndarray
@@ -146,6 +150,6 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
         (np.empty((0, nx)), np.empty((0, nd, nd)), np.empty((0, nd, nd)))
     M = m.manifold
     Xs, Ps, G = backward(Xf, Pf, xb, Pb, D, clip, None if M.euclidean_states else M)
-    return SmoothResult(x=Xs, P=Ps, x_filtered=Xf, P_filtered=Pf, x_predicted=xb,
-                        P_predicted=Pb, gain=G, status=tuple(status),
-                        success=success)
+    return stamped(SmoothResult(x=Xs, P=Ps, x_filtered=Xf, P_filtered=Pf, x_predicted=xb,
+                                P_predicted=Pb, gain=G, status=tuple(status),
+                                success=success), m, t)

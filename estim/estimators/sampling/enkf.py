@@ -102,7 +102,7 @@ from estim._manifold import NP
 from estim._validate import as_choice, as_float, as_int, as_seed
 from estim.consistency import consistency_status
 from estim.estimators.base import Estimator, StepInfo
-from estim.estimators.filtering import FilterResult
+from estim.estimators.filtering import FilterResult, stamped
 from estim.estimators.sampling.ensembles import (
     deviations,
     draw_about,
@@ -354,7 +354,8 @@ class EnKF(Estimator):
         return moved(m, X, dX), e, nis
 
     # ------------------------------------------------------------ record
-    def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> FilterResult:
+    def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               t: ArrayLike | None = None) -> FilterResult:
         """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
 
         Parameters
@@ -364,6 +365,8 @@ class EnKF(Estimator):
         U : (T-1, nu) or (T, nu) array, optional
             ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
             the input at each sample), as in :meth:`EKF.filter <estim.EKF.filter>`.
+        t : (T,) array, optional
+            Sample times, kept in the result (default :math:`k\\,\\Delta t`).
 
         Returns
         -------
@@ -374,6 +377,7 @@ class EnKF(Estimator):
         """
         X, P, infos = run_record(self, Y, U)
         status = tuple(info.status for info in infos)
-        return FilterResult(x=X, P=P, innovation=np.array([info.innovation for info in infos]),
-                            nis=np.array([info.nis for info in infos]), status=status,
-                            success=not any(s.startswith("failed") for s in status))
+        res = FilterResult(x=X, P=P, innovation=np.array([info.innovation for info in infos]),
+                           nis=np.array([info.nis for info in infos]), status=status,
+                           success=not any(s.startswith("failed") for s in status))
+        return stamped(res, self.model, t, fixed_dt=True)

@@ -48,6 +48,7 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_choice, as_float, as_int, as_seed
 from estim.estimators.base import StepInfo
+from estim.estimators.filtering import Estimates, stamped
 from estim.estimators.sampling.ensembles import (
     deviations,
     draw_about,
@@ -80,7 +81,7 @@ PROPOSALS = ("bootstrap", "ekf", "ukf")
 
 
 @dataclass(frozen=True)
-class ParticleFilterResult:
+class ParticleFilterResult(Estimates):
     """A record filtered by :meth:`ParticleFilter.filter`.
 
     Attributes
@@ -99,6 +100,9 @@ class ParticleFilterResult:
         The status of every sample.
     success : bool
         Every step succeeded.
+    t, state_names, manifold :
+        Sample times, state names and the states' manifold (see
+        :class:`~estim.estimators.filtering.Estimates`).
     """
 
     x: np.ndarray
@@ -435,7 +439,8 @@ class ParticleFilter(CompiledParticles):
         return self._X.T.copy(), np.full(N, 1.0 / N) if self._W is None else self._W.copy()
 
     # ------------------------------------------------------------ record
-    def filter(self, Y: ArrayLike, U: ArrayLike | None = None) -> ParticleFilterResult:
+    def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
+               t: ArrayLike | None = None) -> ParticleFilterResult:
         """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
 
         Parameters
@@ -445,6 +450,8 @@ class ParticleFilter(CompiledParticles):
         U : (T-1, nu) or (T, nu) array, optional
             ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
             the input at each sample), as in :meth:`EKF.filter <estim.EKF.filter>`.
+        t : (T,) array, optional
+            Sample times, kept in the result (default :math:`k\\,\\Delta t`).
 
         Returns
         -------
@@ -458,12 +465,13 @@ class ParticleFilter(CompiledParticles):
             statuses = [info.status for info in infos]
             ess = np.array([info.extra["ess"] for info in infos])
         status = tuple(statuses)
-        return ParticleFilterResult(
+        res = ParticleFilterResult(
             x=X, P=P, ess=ess, log_likelihood=float(inc.sum()), log_likelihood_increments=inc,
             status=status, success=not any(s.startswith("failed") for s in status))
+        return stamped(res, self.model, t, fixed_dt=True)
 
-    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
-               n_paths: int = 100) -> ParticleSmoothResult:
+    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *, n_paths: int = 100,
+               t: ArrayLike | None = None) -> ParticleSmoothResult:
         """Smoothed trajectories of a whole record by forward-filtering
         backward-simulation (:mod:`estim.estimators.sampling.particle_smoothing`).
 
@@ -473,25 +481,23 @@ class ParticleFilter(CompiledParticles):
             The record, as for :meth:`filter` (which runs first, from a :meth:`reset`).
         n_paths : int
             Number of trajectories drawn backwards (cost ``O(T N n_paths)``).
+        t : (T,) array, optional
+            Sample times, kept in the result.
 
         Returns
         -------
         ParticleSmoothResult
             ``paths (n_paths, T, nx)``, their mean ``x (T, nx)`` and covariances
-            ``P (T, nx, nx)``.
+            ``P (T, nx, nx)``, the filter's ``x_filtered``, ``P_filtered``; a singular
+            ``Q`` handled exactly (:mod:`~estim.estimators.sampling.particle_smoothing`).
         """
         n_paths = as_int(n_paths, "n_paths", minimum=1)
-        try:
-            LQ = np.linalg.cholesky(self.Q)
-        except np.linalg.LinAlgError:
-            raise ValueError("smooth needs a positive definite Q (the transition density "
-                             "of the backward draws); this Q is singular") from None
         self._trace = []
         try:
-            self.filter(Y, U)
+            filtered = self.filter(Y, U, t=t)
             trace = self._trace
         finally:
             self._trace = None
         M = self.model.manifold
-        return backward_simulation(self._transit, np.linalg.inv(LQ), trace, self._rng,
-                                   n_paths, None if M.euclidean_states else M)
+        return backward_simulation(self._transit, self.Q, trace, self._rng, n_paths,
+                                   None if M.euclidean_states else M, filtered)

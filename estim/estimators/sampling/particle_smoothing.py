@@ -12,8 +12,24 @@ West 2004): :math:`\tilde x_{T-1}` from the last weights, then for
 
 so that the paths are draws from the particle approximation of the joint
 smoothing distribution :math:`p(x_{0:T-1} \mid y_{0:T-1})`. The cost is
-:math:`O(T\, N\, n_\text{paths})`; the transition density needs a positive
-definite ``Q``.
+:math:`O(T\, N\, n_\text{paths})`.
+
+A singular ``Q`` (process noise on some states only, or along some directions) makes
+the transition density degenerate: with :math:`Q = V_r \Lambda_r V_r^\top`
+(:math:`\Lambda_r > 0`) and :math:`N_0` an orthonormal basis of its null space,
+:math:`x_{t+1} = F(x_t) + w` with :math:`N_0^\top w = 0`, so
+
+.. math::
+    p(x_{t+1} \mid x_t) = \delta\!\left(N_0^\top (x_{t+1} - F(x_t))\right)
+    N\!\left(V_r^\top (x_{t+1} - F(x_t));\, 0,\, \Lambda_r\right),
+
+a density on the noise-driven coordinates times a point mass on the others. The
+backward draw is then exact on it: only the particles whose prediction agrees with
+the successor in the noise-free coordinates (to rounding, :math:`10^{-9}` of the
+values' scale) are candidates, weighted by the density of the noise-driven ones.
+With ``Q = 0`` in some coordinates the candidates are the successor's ancestor and
+its copies, and the smoothed paths follow the filter's genealogy there, as the exact
+particle approximation does.
 
 References
 ----------
@@ -30,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estim._manifold import NP, Manifold
+from estim.estimators.filtering import Estimates
 from estim.solvers.sampling.resampling import resample
 
 __all__ = ["ParticleSmoothResult", "backward_simulation"]
@@ -39,7 +56,7 @@ _BLOCK = 4_000_000
 
 
 @dataclass(frozen=True)
-class ParticleSmoothResult:
+class ParticleSmoothResult(Estimates):
     """A record smoothed by :meth:`ParticleFilter.smooth <estim.ParticleFilter.smooth>`.
 
     Attributes
@@ -51,45 +68,79 @@ class ParticleSmoothResult:
         Their mean, the smoothed estimate of every state.
     P : (T, nx, nx) array
         Their covariance at every sample.
+    x_filtered, P_filtered : arrays
+        The particle filter's weighted means and covariances (its forward pass).
+    t, state_names, manifold :
+        Sample times, state names and the states' manifold (see
+        :class:`~estim.estimators.filtering.Estimates`).
     """
 
     paths: np.ndarray
     x: np.ndarray
     P: np.ndarray
+    x_filtered: np.ndarray | None = None
+    P_filtered: np.ndarray | None = None
 
 
-def backward_simulation(transit: Callable[..., list[np.ndarray]], LQ_inv: np.ndarray,
+class Transition:
+    r"""The factors of a transition density :math:`N(0, Q)`, ``Q`` ``(nd, nd)`` positive
+    semi-definite: ``whiten`` ``(r, nd)`` maps a difference to standard normal
+    coordinates of the noise-driven subspace (the inverse Cholesky factor when ``Q`` is
+    definite, :math:`\Lambda_r^{-1/2} V_r^\top` otherwise) and ``null`` ``(nd - r, nd)``
+    is an orthonormal basis of the noise-free directions (None when ``Q`` is definite).
+    """
+
+    def __init__(self, Q: np.ndarray) -> None:
+        Q = np.asarray(Q, dtype=float)
+        try:
+            self.whiten = np.linalg.inv(np.linalg.cholesky(Q))
+            self.null: np.ndarray | None = None
+            return
+        except np.linalg.LinAlgError:
+            pass
+        lam, V = np.linalg.eigh(0.5 * (Q + Q.T))
+        keep = lam > 1e-12 * max(float(lam[-1]), 0.0)
+        self.whiten = (V[:, keep] / np.sqrt(lam[keep])).T
+        self.null = V[:, ~keep].T
+        self.scale = float(np.sqrt(max(float(lam[-1]), 0.0)))
+
+
+def backward_simulation(transit: Callable[..., list[np.ndarray]], Q: np.ndarray,
                         trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
                         rng: np.random.Generator, n_paths: int,
-                        manifold: Manifold | None = None) -> ParticleSmoothResult:
+                        manifold: Manifold | None = None,
+                        filtered: Estimates | None = None) -> ParticleSmoothResult:
     r"""``n_paths`` backward draws (see the module) from ``trace``: per sample the
     particles ``(nx, N)``, their weights ``(N,)`` and the transition's input into that
-    sample; ``transit(X, w, n=N)`` gives ``[F(X, w)]`` column by column, ``LQ_inv`` is
-    the inverse of the Cholesky factor of ``Q``. On a ``manifold`` the transition
+    sample; ``transit(X, w, n=N)`` gives ``[F(X, w)]`` column by column, ``Q`` is the
+    process noise's covariance (singular: see the module). On a ``manifold`` the transition
     density is that of the tangent vector :math:`\tilde x_{t+1} \ominus F(x^i_t)`, and
-    the smoothed estimates are the paths' Karcher means with their tangent spreads."""
+    the smoothed estimates are the paths' Karcher means with their tangent spreads. The
+    result keeps the ``filtered`` estimates (the forward pass), their times and names."""
     T = len(trace)
     nx, N = trace[-1][0].shape
     paths = np.empty((n_paths, T, nx))
     X, W, _ = trace[-1]
     paths[:, -1] = X[:, resample(W, "multinomial", rng, n=n_paths)].T
-    nd = LQ_inv.shape[0]
-    block = max(1, _BLOCK // (N * (1 if manifold is None else nd)))
+    density = Transition(Q)
+    LQ_inv = density.whiten
+    nd = LQ_inv.shape[1]
+    exact = density.null is None and manifold is None  # whitened predictions, no deltas
+    block = max(1, _BLOCK // (N * (1 if exact else nd)))
     with np.errstate(divide="ignore"):
         for t in range(T - 2, -1, -1):
             X, W, _ = trace[t]
             FX = transit(X, trace[t + 1][2], n=N)[0]  # (nx, N) the predictions
             logW = np.log(W)
-            if manifold is None:  # whitened predictions
+            if exact:  # whitened predictions
                 Z = LQ_inv @ FX
                 logW = logW - 0.5 * (Z * Z).sum(axis=0)
             for lo in range(0, n_paths, block):
                 succ = paths[lo:lo + block, t + 1]  # (m, nx) the successors
-                if manifold is None:  # log W_i - |z_j - Z_i|^2 / 2 up to a constant
+                if exact:  # log W_i - |z_j - Z_i|^2 / 2 up to a constant
                     a = logW[None, :] + (LQ_inv @ succ.T).T @ Z
                 else:
-                    d = manifold.local(FX.T[None, :, :], succ[:, None, :], NP) @ LQ_inv.T
-                    a = logW[None, :] - 0.5 * (d * d).sum(axis=-1)
+                    a = _log_density(density, FX, succ, logW, manifold)
                 a = np.exp(a - a.max(axis=1, keepdims=True))
                 c = np.cumsum(a, axis=1)
                 u = rng.random(len(c))[:, None] * c[:, -1:]
@@ -103,4 +154,32 @@ def backward_simulation(transit: Callable[..., list[np.ndarray]], LQ_inv: np.nda
         x = np.array([m for m, _ in means])
         D = np.stack([d for _, d in means], axis=1)  # (n_paths, T, ndx)
     P = np.einsum("pti,ptj->tij", D, D) / max(n_paths - 1, 1)
-    return ParticleSmoothResult(paths=paths, x=x, P=P)
+    if filtered is None:
+        return ParticleSmoothResult(paths=paths, x=x, P=P)
+    return ParticleSmoothResult(paths=paths, x=x, P=P, x_filtered=filtered.x,
+                                P_filtered=getattr(filtered, "P", None), t=filtered.t,
+                                state_names=filtered.state_names, manifold=filtered.manifold)
+
+
+def _log_density(density: Transition, FX: np.ndarray, succ: np.ndarray, logW: np.ndarray,
+                 manifold: Manifold | None) -> np.ndarray:
+    """``log W_i + log p(succ_j | x_i)`` up to a constant per successor, ``(m, N)``, from
+    the predictions ``FX (nx, N)``: on the manifold's tangent space where there is one,
+    and with the point mass of a singular ``Q`` (candidates only where the noise-free
+    coordinates agree; where rounding left none, the nearest in them)."""
+    if manifold is None:
+        d = succ[:, None, :] - FX.T[None, :, :]
+    else:
+        d = manifold.local(FX.T[None, :, :], succ[:, None, :], NP)
+    z = d @ density.whiten.T
+    a = logW[None, :] - 0.5 * (z * z).sum(axis=-1)
+    if density.null is not None and len(density.null):
+        off = np.abs(d @ density.null.T).max(axis=-1)  # (m, N) distance from the delta
+        scale = np.abs(succ).max(axis=1, keepdims=True) + density.scale + 1e-300
+        a = np.where(off <= 1e-9 * scale, a, -np.inf)
+        lost = ~np.isfinite(a).any(axis=1)
+        if lost.any():
+            nearest = off[lost].argmin(axis=1)
+            a[lost] = -np.inf
+            a[lost, nearest] = 0.0
+    return a
