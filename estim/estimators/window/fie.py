@@ -16,10 +16,16 @@ from estim._fast import FastFunction
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
+from estim.estimators.filtering import Estimates, stamped
 from estim.estimators.manifold_steps import unit_bounds
+from estim.estimators.window.noise import noise_solver, noise_weight, window_problem
 from estim.model import Model
 from estim.solvers.least_squares.nlp import LeastSquaresNLP
-from estim.solvers.least_squares.options import check_solver_options, resolve_solver
+from estim.solvers.least_squares.options import (
+    check_solver_options,
+    jit_options,
+    resolve_solver,
+)
 from estim.solvers.least_squares.robust import as_loss
 from estim.solvers.least_squares.solution import Solution
 from estim.solvers.weights import is_diagonal, weight_factor
@@ -34,8 +40,13 @@ _T = TypeVar("_T")
 _Lazy: TypeAlias = Callable[[], _T] | tuple[_T] | None
 
 
-def _finite_or_none(P: np.ndarray) -> np.ndarray | None:
-    return P if np.isfinite(P).all() else None
+def _finite_or_none(P: np.ndarray | None) -> np.ndarray | None:
+    return P if P is not None and np.isfinite(P).all() else None
+
+
+def _rows(P: np.ndarray | None, pad: int) -> np.ndarray | None:
+    """``P`` after its first ``pad`` slots (None stays None: no covariance)."""
+    return None if P is None else P[pad:]
 
 
 def _residual_map(model: Model, T: int) -> FastFunction:
@@ -71,7 +82,7 @@ def _residual_map(model: Model, T: int) -> FastFunction:
 
 
 @dataclass(frozen=True)
-class FitResult:
+class FitResult(Estimates):
     """Solution of :meth:`FullInformation.fit`.
 
     Attributes
@@ -115,6 +126,9 @@ class FitResult:
         With a robust ``loss``: the final weight of each whitened measurement
         component, in (0, 1] (1: treated as Gaussian; small: an outlier). None for
         least squares.
+    t, state_names, manifold :
+        Sample times, state names and the states' manifold (see
+        :class:`~estim.estimators.filtering.Estimates`).
     _residuals, _covariance, _covariances : callable or None
         Internal: compute ``(w, v)``, ``P_last`` and ``P`` when first read.
     _context : tuple or None
@@ -266,10 +280,10 @@ def _result(model: Model, solver: str, maps: dict[int, FastFunction], nlp: Least
         return w.reshape(T - 1, m.ndx).copy(), v.reshape(T, m.ny).copy()
 
     p_snapshot, complete = nlp._p.copy(), nlp._complete
-    cov = (lambda: _finite_or_none(nlp.gn.covariance(Xfull.ravel(), p_snapshot, complete))) \
+    cov = (lambda: _finite_or_none(nlp.covariance_at(Xfull.ravel(), p_snapshot, complete))) \
         if sol.success else None
     covs = (lambda: _finite_or_none(
-        nlp.gn.covariances(Xfull.ravel(), p_snapshot, complete)[pad:])) \
+        _rows(nlp.covariances_at(Xfull.ravel(), p_snapshot, complete), pad))) \
         if sol.success else None
     return FitResult(x=X, cost=sol.cost, iterations=sol.iterations, status=sol.status,
                      success=sol.success, solve_time=sol.solve_time,
@@ -307,7 +321,11 @@ class FullInformation(Estimator):
     ----------
     model : Model
     Q : float, (nx,) or (nx, nx)
-        Process-noise covariance (positive definite; weights are :math:`Q^{-1}`).
+        Process-noise covariance: positive definite (weights :math:`Q^{-1}`), or
+        singular, with noise on some directions only (the dynamics then hold exactly
+        in the others: a constrained problem, the noise variables sized by the rank of
+        ``Q``, solved by Ipopt or fatrop; see
+        :class:`~estim.solvers.least_squares.nlp.SingularNoiseNLP`).
     R : float, (ny,) or (ny, ny)
         Measurement-noise covariance.
     x0, P0 : optional
@@ -326,6 +344,8 @@ class FullInformation(Estimator):
         A robust measurement cost (``"huber"``, ``"soft_l1"``, ``"cauchy"``) and
         its scale, as for :class:`~estim.MHE`; the fit then reports the final
         weight of every measured value in ``FitResult.measurement_weights``.
+    jit : bool
+        Compiled code, as for :class:`~estim.MHE` (``solver_options={"jit": True}``).
 
     References
     ----------
@@ -343,10 +363,10 @@ class FullInformation(Estimator):
                  P0: ArrayLike | None = None, lower: ArrayLike | None = None,
                  upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
-                 loss: str = "squared", f_scale: float | None = None):
-        solver = resolve_solver(solver, solver_options)
+                 loss: str = "squared", f_scale: float | None = None, jit: bool = False):
+        solver_options, self.jit = jit_options(jit, solver_options)
+        requested, solver = solver, resolve_solver(solver, solver_options)
         self._loss = as_loss(loss, f_scale)
-        solver_options = check_solver_options(solver, solver_options)
         self._prior = x0 is not None and P0 is not None
         self._x0_given = x0 is not None
         if P0 is not None and x0 is None:
@@ -355,9 +375,9 @@ class FullInformation(Estimator):
             x0 = np.zeros(model.nx)
             x0[[g[0] for g in model.manifold.quaternions]] = 1.0
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        if np.linalg.eigvalsh(self.Q)[0] <= 0:
-            raise ValueError("Q must be positive definite for full-information estimation "
-                             "(the weights are Q^-1)")
+        solver, self._rank = noise_solver(self.Q, requested, solver, model=model,
+                                          who="full-information estimation", loss=self._loss)
+        solver_options = check_solver_options(solver, solver_options)
         self.lower, self.upper = self._bounds(lower, upper)
         unit_bounds(model, self.lower, self.upper)
         self.solver = solver
@@ -371,9 +391,8 @@ class FullInformation(Estimator):
         self._warn_if_not_smooth()
 
     def _check_tuning(self, new: dict) -> None:
-        if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:
-            raise ValueError("Q must be positive definite for full-information estimation "
-                             "(the weights are Q^-1)")
+        if "Q" in new:
+            noise_weight(self, new["Q"], self._rank)
         if "P0" in new and not (self._x0_given or "x0" in new):
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
 
@@ -387,7 +406,7 @@ class FullInformation(Estimator):
     set_tuning.__doc__ = Estimator.set_tuning.__doc__
 
     def _tuning_changed(self) -> None:
-        self._WQ = self._weight_factor(self.Q)
+        self._WQ = noise_weight(self, self.Q, self._rank)
         self._WR = weight_factor(self.R)
         P0 = self.P0 if self._x0_given else None  # a prior needs its mean
         self._W0 = None if P0 is None else self._weight_factor(P0)
@@ -396,10 +415,9 @@ class FullInformation(Estimator):
     def _problem(self, N: int, full: bool) -> LeastSquaresNLP:
         """The problem of N slots, built once (``full``: fit's exact-length records)."""
         if (N, full) not in self._nlps:
-            self._nlps[N, full] = LeastSquaresNLP(
+            self._nlps[N, full] = window_problem(
                 self.model, N, self.lower, self.upper, self.solver, self.solver_options,
-                diagonal_Q=self._diagonal["Q"], diagonal_R=self._diagonal["R"], full=full,
-                loss=self._loss)
+                self._rank, self._diagonal, self._loss, full=full)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch
@@ -435,7 +453,7 @@ class FullInformation(Estimator):
         if Q is not None or R is not None:
             new = self._validated_tuning(Q=Q, R=R)
             Qf, Rf = new.get("Q", self.Q), new.get("R", self.R)
-            weights = (self._weight_factor(Qf), weight_factor(Rf), Rf)
+            weights = (noise_weight(self, Qf, self._rank), weight_factor(Rf), Rf)
         Yr, W, Uy = _record(self.model, Y, U, t)
         T, nx = Yr.shape[0], self.model.nx
         if guess is None:
@@ -458,7 +476,8 @@ class FullInformation(Estimator):
             res = replace(res, success=True, status=f"inexact: {', '.join(frozen)} "
                           f"{'has' if len(frozen) == 1 else 'have'} a zero derivative over "
                           f"the record and kept the initial value")
-        return replace(res, _context=(self.model, self._prior, self.lower, self.upper))
+        res = replace(res, _context=(self.model, self._prior, self.lower, self.upper))
+        return stamped(res, self.model, t)
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
                robust: bool = False, weights=None) -> tuple[FitResult, Solution]:

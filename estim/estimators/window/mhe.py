@@ -23,9 +23,13 @@ from estim.estimators.window.mhe_rti import (
     RTI_STARTUP_XTOL,
     RealTimeIteration,
 )
+from estim.estimators.window.noise import noise_solver, noise_weight, window_problem
 from estim.model import Model
-from estim.solvers.least_squares.nlp import LeastSquaresNLP
-from estim.solvers.least_squares.options import check_solver_options, resolve_solver
+from estim.solvers.least_squares.options import (
+    check_solver_options,
+    jit_options,
+    resolve_solver,
+)
 from estim.solvers.least_squares.robust import as_loss
 from estim.solvers.weights import is_diagonal, weight_factor
 
@@ -78,8 +82,10 @@ class MHE(RealTimeIteration):
     horizon : int
         :math:`N`, the number of measurements in a full window (>= 2: one has no transition).
     Q : float, (nx,) or (nx, nx)
-        Process-noise covariance; must be positive definite (weights are
-        :math:`Q^{-1}`; give parameters a small variance).
+        Process-noise covariance: positive definite (weights :math:`Q^{-1}`), or
+        singular, noise on some directions only (the dynamics exact in the others: a
+        constrained window solved by Ipopt or fatrop, see
+        :class:`~estim.solvers.least_squares.nlp.SingularNoiseNLP`).
     R, x0, P0 :
         Measurement covariance, initial guess and its covariance. ``P0`` may
         be omitted with ``arrival_cost="none"``.
@@ -87,28 +93,22 @@ class MHE(RealTimeIteration):
     lower, upper : optional
         State bounds (default: the model's).
     solver : {"auto", "gauss-newton", "ipopt", "sqp", "fatrop"}
-        ``"auto"`` (default): the fastest solver for the problem, which for these
-        least-squares problems with box bounds is ``"gauss-newton"``
-        (:func:`~estim.solvers.least_squares.options.resolve_solver`); the choice is
-        :attr:`solver` and ``info.extra["solver"]``.
-        ``"gauss-newton"``: the structure-exploiting projected Newton/Gauss-Newton
-        solver of :mod:`estim.solvers.least_squares.gauss_newton` (block-tridiagonal solve,
-        bounds by projection; fastest). ``"ipopt"``: interior point with the
-        exact Hessian, the general-purpose path. ``"sqp"``: CasADi's
-        ``sqpmethod`` with the Gauss-Newton Hessian :math:`2J^\top J` and the
-        ``qrqp`` active-set QP solver (fast when warm-started).
-        ``"fatrop"``: the structure-exploiting interior point solver fatrop on
-        the stage-wise formulation.
+        ``"auto"`` (default): the fastest for the problem, ``"gauss-newton"`` for these
+        least-squares problems with box bounds (Ipopt for a singular ``Q``;
+        :func:`~estim.solvers.least_squares.options.resolve_solver`), also in
+        :attr:`solver` and ``info.extra["solver"]``. ``"gauss-newton"``: the
+        structure-exploiting projected Gauss-Newton solver of
+        :mod:`estim.solvers.least_squares.gauss_newton` (block-tridiagonal, bounds by
+        projection; fastest). ``"ipopt"``: interior point, exact Hessian. ``"sqp"``:
+        CasADi's ``sqpmethod``, Gauss-Newton Hessian :math:`2J^\top J`, ``qrqp`` QPs.
+        ``"fatrop"``: the structure-exploiting interior point solver, stage-wise.
     solver_options : dict, optional
-        Passed to the solver (merged over the defaults), e.g.
-        ``{"ipopt.tol": 1e-10}`` or ``{"max_iter": 20}``. For
-        ``"gauss-newton"``: ``max_iter``, ``xtol``, ``ftol`` (relative predicted
-        decrease, default 1e-13), ``newton`` (exact-Hessian
-        steps from the start), ``jit`` (compile to machine code; needs a C
-        compiler) and ``mode`` (``"unrolled"``: one expanded graph,
-        ``"mapped"``: expanded chunks of slots called in a loop, or
-        ``"auto"``: unrolled while the graph stays below about two million
-        instructions: 4200 slots of the Lorenz model, 850 of a seven-state one).
+        Passed to the solver (merged over the defaults), e.g. ``{"ipopt.tol": 1e-10}``.
+        For ``"gauss-newton"``: ``max_iter``, ``xtol``, ``ftol`` (relative predicted
+        decrease, default 1e-13), ``newton`` (exact-Hessian steps from the start),
+        ``jit`` (as ``jit=True``) and ``mode`` (``"unrolled"``: one expanded graph,
+        ``"mapped"``: expanded chunks of slots called in a loop, ``"auto"``: unrolled
+        below about two million instructions: 4200 slots of Lorenz, 850 of 7 states).
     loss : {"squared", "huber", "soft_l1", "cauchy"}
         The measurement cost. ``"squared"``: least squares, as above. The robust
         losses replace :math:`\|y_k - h(x_k)\|^2_{R^{-1}}` by
@@ -124,6 +124,10 @@ class MHE(RealTimeIteration):
     max_lag : int
         How many of the latest steps a late (out-of-sequence) measurement may
         belong to (0: none are kept). See :meth:`insert`.
+    jit : bool
+        Compile the solver's functions to machine code (needs a C compiler; built once
+        per machine and cached), as the filters' ``jit=True``; the same as
+        ``solver_options={"jit": True}``.
     rti : bool
         Real-time iteration: once the window is full, one Gauss-Newton step per
         sample from the shifted previous window instead of a converged solve, split
@@ -169,7 +173,7 @@ class MHE(RealTimeIteration):
                  lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, max_lag: int = 0,
-                 rti: bool = False):
+                 rti: bool = False, jit: bool = False):
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self.rti = as_bool(rti, "rti")
         self._loss = as_loss(loss, f_scale)
@@ -178,19 +182,17 @@ class MHE(RealTimeIteration):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.horizon = as_int(horizon, "horizon", minimum=2, expected="an integer >= 2 "
                               "(a window of one sample holds no transition)")
-        if np.linalg.eigvalsh(self.Q)[0] <= 0:
-            raise ValueError("Q must be positive definite for MHE (the weights are Q^-1); "
-                             "give every state, parameters included, a small variance")
-        solver = resolve_solver(solver, solver_options)
+        solver_options, self.jit = jit_options(jit, solver_options)
+        solver, self._rank = noise_solver(self.Q, solver, resolve_solver(solver, solver_options),
+                                          who="MHE", model=model, loss=self._loss, rti=self.rti)
         solver_options = check_solver_options(solver, solver_options)
         self.arrival_cost = arrival_cost
         self.solver = solver
         self.lower, self.upper = self._bounds(lower, upper)
         unit_bounds(model, self.lower, self.upper)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
-        self._nlp = LeastSquaresNLP(model, self.horizon, self.lower, self.upper, solver,
-                                    solver_options or {}, diagonal_Q=self._diagonal["Q"],
-                                    diagonal_R=self._diagonal["R"], loss=self._loss)
+        self._nlp = window_problem(model, self.horizon, self.lower, self.upper, solver,
+                                   solver_options or {}, self._rank, self._diagonal, self._loss)
         self._cov_step = FastFunction(self._build_cov_step())
         if self.rti:
             self._build_rti(solver, solver_options or {})
@@ -200,8 +202,8 @@ class MHE(RealTimeIteration):
         self._warn_if_not_smooth()
 
     def _check_tuning(self, new: dict) -> None:
-        if "Q" in new and np.linalg.eigvalsh(new["Q"])[0] <= 0:
-            raise ValueError("Q must be positive definite for MHE (the weights are Q^-1)")
+        if "Q" in new:
+            noise_weight(self, new["Q"], self._rank)
 
     def _tuning_changed(self) -> None:
         if self.rti:
@@ -210,7 +212,7 @@ class MHE(RealTimeIteration):
             self._rti_Qinv[:] = (Qinv if M.euclidean_states else
                                  M.padded_matrix(Qinv)).ravel(order="F")
             self._rti_R[:] = self.R.ravel(order="F")
-        self._WQ = self._weight_factor(self.Q)
+        self._WQ = noise_weight(self, self.Q, self._rank)
         self._WR = weight_factor(self.R)
         if self.P0 is not None:  # the fixed arrival cost uses P0 at every step
             self._W0 = self._weight_factor(self.P0)

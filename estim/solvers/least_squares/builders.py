@@ -7,6 +7,8 @@ Gauss-Newton solver, or hands it to a general NLP solver built here once per pro
   cost :math:`\|r(X)\|^2` of :mod:`estim.solvers.least_squares.nlp` (Ipopt with its exact Hessian;
   CasADi's ``sqpmethod`` with the Gauss-Newton Hessian :math:`2 J^\top J`, slightly
   damped);
+- :func:`build_singular`: the constrained form of a singular process noise (see
+  :class:`~estim.solvers.least_squares.nlp.SingularNoiseNLP`), for Ipopt or fatrop;
 - :func:`build_fatrop`: the multiple-shooting form with the process noise as controls
   and the dynamics as gap constraints, whose stage structure fatrop exploits
   (Vanroye et al., "FATROP: A fast constrained optimal control problem solver for
@@ -24,6 +26,7 @@ import casadi as ca
 import numpy as np
 
 from estim.model import Model
+from estim.solvers.least_squares.gauss_newton import full_record_constants
 from estim.solvers.least_squares.options import (
     _FATROP_DEFAULTS,
     _IPOPT_DEFAULTS,
@@ -32,7 +35,8 @@ from estim.solvers.least_squares.options import (
     nlpsol,
 )
 
-__all__ = ["FatropLayout", "build_eliminated", "build_fatrop", "charted", "solve_fatrop"]
+__all__ = ["FatropLayout", "build_eliminated", "build_fatrop", "build_singular", "charted",
+           "solve_fatrop"]
 
 
 @dataclass(frozen=True)
@@ -172,3 +176,49 @@ def solve_fatrop(solver: ca.Function, layout: FatropLayout, X0: np.ndarray, p: n
     lbz, ubz = layout.lbz.copy(), layout.ubz.copy()
     lbz[layout.xsel], ubz[layout.xsel] = lbx, ubx  # (on a manifold: the steps' bounds)
     return solver(x0=z0, p=p, lbx=lbz, ubx=ubz, lbg=layout.lbg, ubg=layout.ubg)
+
+
+def build_singular(model: Model, N: int, solver: str, options: dict, slices: dict, n_p: int,
+           r: int, full: bool) -> tuple[ca.Function, dict]:
+    """The NLP solver of the constrained form (stage variables ``(x_j, w_j)``, the
+    dynamics as equality constraints: fatrop's stage structure) and its layout: the
+    variables' bounds ``lbz``, ``ubz`` and the states' indices ``xsel``. Parameters:
+    those of :class:`LeastSquaresNLP` (``n_p``) and then ``G`` (``nx * r``)."""
+    nx, ny = model.nx, model.ny
+    p = ca.SX.sym("p", n_p + nx * r)
+    part = {k: p[sl] for k, sl in slices.items()}
+    Y = ca.reshape(part["y"], ny, N)
+    U = ca.reshape(part["u"], model.nw, N)
+    Up = ca.reshape(part["up"], model.nu, N)
+    a, omega = (full_record_constants(N) if full else (part["a"], part["omega"]))
+    W0 = ca.reshape(part["w0"], nx, nx)
+    G = ca.reshape(p[n_p:], nx, r)
+    pm = ca.DM(model.p)
+    out = model.manifold.output_difference
+    xs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
+    ws = [ca.SX.sym(f"w{k}", r) for k in range(N - 1)]
+    variables, gaps = [], []
+    cost = 0
+    for k in range(N):
+        variables.append(xs[k])
+        Wy = ca.reshape(part["wy"][k * ny * ny:(k + 1) * ny * ny], ny, ny)
+        cost += a[k] * ca.sumsqr(W0 @ (xs[k] - part["xbar"]))
+        cost += ca.sumsqr(Wy @ out(Y[:, k], model.H(xs[k], Up[:, k], pm)))
+        if k < N - 1:
+            variables.append(ws[k])
+            cost += ca.sumsqr(ws[k])
+            om = omega[k]
+            gaps.append(xs[k + 1] - (om * (model.F(xs[k], U[:, k], pm) + G @ ws[k])
+                                     + (1 - om) * xs[k]))
+    nlp = {"x": ca.vertcat(*variables), "p": p, "f": cost, "g": ca.vertcat(*gaps)}
+    if solver == "fatrop":
+        opts = merge(_FATROP_DEFAULTS, options)
+        opts.setdefault("equality", [True] * (nx * (N - 1)))
+    else:
+        opts = merge({k: v for k, v in _IPOPT_DEFAULTS.items() if "warm_start" not in k},
+                     options)
+    fun = nlpsol(f"mhe_{solver}_singular", solver, nlp, opts, options)
+    stage = nx + r
+    xsel = np.concatenate([np.arange(k * stage, k * stage + nx) for k in range(N)])
+    nz = N * nx + (N - 1) * r
+    return fun, {"lbz": np.full(nz, -np.inf), "ubz": np.full(nz, np.inf), "xsel": xsel}

@@ -19,6 +19,37 @@ The arrival weight acts on :math:`x_{s_0}` (selected by the one-hot
 parameter :math:`a`, one residual block per slot so the Hessian stays
 banded); measurement weights :math:`W_{y,j}` carry zero rows for missing
 outputs. One NLP thus serves every window length, built once.
+
+**A singular process noise** (:class:`SingularNoiseNLP`): noise on some directions only,
+the dynamics exact in the others.
+
+With :math:`Q = G G^\top`, :math:`G = V_r \Lambda_r^{1/2}` (``nx x r``, the eigenvectors
+of the :math:`r` positive eigenvalues), a transition is
+:math:`x_{j+1} = F(x_j, u_j) + G w_j` with :math:`w_j \sim N(0, I_r)`: the noise has
+:math:`r` coordinates, and the state moves exactly by the model in the :math:`n_x - r`
+directions without noise. The weights :math:`Q^{-1}` above do not exist; the problem is instead the
+multiple-shooting NLP
+
+.. math::
+    \min_{x_j, w_j}\; \sum_j a_j \|W_0 (x_j - \bar x)\|^2 + \sum_j \|w_j\|^2
+        + \sum_j \|W_{y,j} (y_j - h(x_j, u^-_j))\|^2
+    \quad \text{s.t.} \quad
+    x_{j+1} = \omega_j \left(F(x_j, u_j) + G w_j\right) + (1 - \omega_j)\, x_j,
+
+the noise variables sized by the noise (:math:`r` per transition), :math:`G` a
+parameter (the tuning is data), the window bookkeeping (:math:`a_j`, :math:`\omega_j`)
+that of the unconstrained form: the unused slots before the first measured one are
+held equal to it. It is solved by Ipopt or fatrop (equality constraints: the
+Gauss-Newton solver of the unconstrained form does not apply). On a feasible point its
+cost is that of the unconstrained form with the pseudo-inverse weights
+:math:`W_Q^\top W_Q = Q^{+}` (what the estimators' consistency test reads).
+
+The Laplace covariances are those of the constrained problem linearised at the optimum:
+a Kalman filter over the window from the arrival covariance
+:math:`(W_0^\top W_0)^{-1}` with :math:`A_j = \partial F/\partial x`,
+:math:`C_j = \partial h/\partial x` at the solution, and the Rauch-Tung-Striebel pass
+back (exact on a linear-Gaussian model; without an arrival term the window alone may not
+determine the states, and there is no covariance).
 """
 
 from __future__ import annotations
@@ -33,7 +64,12 @@ import numpy as np
 from estim._manifold import NP
 from estim.consistency import chi2_limit
 from estim.model import Model
-from estim.solvers.least_squares.builders import build_eliminated, build_fatrop, solve_fatrop
+from estim.solvers.least_squares.builders import (
+    build_eliminated,
+    build_fatrop,
+    build_singular,
+    solve_fatrop,
+)
 from estim.solvers.least_squares.gauss_newton import StructuredGaussNewton, full_record_constants
 from estim.solvers.least_squares.options import (
     SOLVERS,
@@ -41,9 +77,12 @@ from estim.solvers.least_squares.options import (
 from estim.solvers.least_squares.reweighting import Reweighted
 from estim.solvers.least_squares.robust import RobustLoss
 from estim.solvers.least_squares.solution import Solution
-from estim.solvers.weights import measurement_weights
+from estim.solvers.weights import measurement_weights, noise_factor
 
-__all__ = ["LeastSquaresNLP"]
+__all__ = ["SINGULAR_SOLVERS", "LeastSquaresNLP", "SingularNoiseNLP"]
+
+#: the solvers of the constrained form of a singular process noise
+SINGULAR_SOLVERS = ("ipopt", "fatrop")
 
 
 class LeastSquaresNLP(Reweighted):
@@ -314,6 +353,14 @@ class LeastSquaresNLP(Reweighted):
         P = self.gn.covariance(np.asarray(X, float).ravel(), self._p, self._complete)
         return P if np.isfinite(P).all() else None
 
+    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
+        """The last slot's Laplace covariance at ``x`` (flat) for the parameters ``p``."""
+        return self.gn.covariance(x, p, complete)
+
+    def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
+        """Every slot's Laplace covariance at ``x`` (flat) for the parameters ``p``."""
+        return self.gn.covariances(x, p, complete)
+
     def _shifted(self, lam: np.ndarray) -> np.ndarray:
         """Bound multipliers moved one slot earlier (the window moved one sample)."""
         nx = self.model.nx
@@ -321,3 +368,136 @@ class LeastSquaresNLP(Reweighted):
         out[:-nx] = lam[nx:]
         out[-nx:] = lam[-nx:]
         return out
+
+
+class SingularNoiseNLP(LeastSquaresNLP):
+    """The windowed problem of :class:`LeastSquaresNLP` with process noise of rank
+    ``rank < nx`` (see the module): same parameters and :meth:`solve`, solved as the
+    constrained multiple-shooting NLP by ``solver`` (``"ipopt"`` or ``"fatrop"``). The
+    weight ``WQ`` given to :meth:`solve` is the pseudo-inverse factor of ``Q``
+    (:func:`~estim.solvers.weights.noise_factor`), from which ``G`` is recovered."""
+
+    def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
+                 solver: str, options: dict, rank: int, diagonal_R: bool = False,
+                 full: bool = False):
+        if solver not in SINGULAR_SOLVERS:
+            raise ValueError(f"solver {solver!r} does not solve the constrained problem of a "
+                             f"singular Q; use one of {SINGULAR_SOLVERS}")
+        if not model.manifold.euclidean_states:
+            raise ValueError("a singular Q on a model with quaternions or angles is not "
+                             "supported by the windowed estimators: give every direction a "
+                             "variance")
+        # the structured Gauss-Newton problem is kept for its cost (on feasible points
+        # that of this problem) and its parameter layout
+        super().__init__(model, N, lower, upper, "gauss-newton", {}, diagonal_R=diagonal_R,
+                         full=full)
+        self.solver_name = solver
+        self.rank = int(rank)
+        nx, r = model.nx, self.rank
+        self._g = np.zeros(nx * r)
+        self._wq_seen: np.ndarray | None = None
+        self._solver, self._layout = build_singular(model, N, solver, options, self._slices,
+                                            self.np, r, self.full)
+        x = ca.SX.sym("x", nx)
+        w = ca.SX.sym("w", model.nw)
+        up = ca.SX.sym("up", model.nu)
+        pm = ca.DM(model.p)
+        self._jac = (ca.Function("A", [x, w], [ca.jacobian(model.F(x, w, pm), x)]).map(N),
+                     ca.Function("C", [x, up], [ca.jacobian(model.H(x, up, pm), x)]).map(N))
+
+    def parameters(self, Y, U, Uprev, n, xbar, W0, WQ, WR, R) -> np.ndarray:
+        p = super().parameters(Y, U, Uprev, n, xbar, W0, WQ, WR, R)
+        if self._wq_seen is None or not np.array_equal(self._wq_seen, WQ):
+            G = noise_factor(WQ.T @ WQ, inverse=True)
+            if G.shape[1] != self.rank:
+                raise ValueError(f"Q has rank {G.shape[1]}, the problem was built for rank "
+                                 f"{self.rank}")
+            self._g[:] = G.ravel(order="F")
+            self._wq_seen = WQ.copy()
+        return p
+
+    def _solve(self, X0, p, Y, n, arrival: bool, robust: bool, same_window: bool = False
+               ) -> Solution:
+        """One solve of the constrained problem (``robust`` does not apply: the start is
+        any finite trajectory, the dynamics' gaps closed by the solver)."""
+        t0 = time.perf_counter()
+        L = self._layout
+        x0 = np.clip(np.asarray(X0, float).ravel(), self.lbx, self.ubx)
+        start = self.gn.cost(x0, p, self._complete)
+        if not np.isfinite(start):
+            return Solution(np.asarray(X0, float), False,
+                            "non-finite cost at the initial guess", 0, start,
+                            time.perf_counter() - t0)
+        z0 = np.zeros(L["lbz"].size)
+        z0[L["xsel"]] = x0
+        lbz, ubz = L["lbz"].copy(), L["ubz"].copy()
+        lbz[L["xsel"]], ubz[L["xsel"]] = self.lbx, self.ubx
+        written = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(written):
+                sol = self._solver(x0=z0, p=np.concatenate([p, self._g]), lbx=lbz, ubx=ubz,
+                                   lbg=0.0, ubg=0.0)
+            stats = self._solver.stats()
+        except RuntimeError as exc:
+            return Solution(np.asarray(X0, float), False,
+                            f"error: {str(exc).strip().splitlines()[-1]}"[:200], 0, np.nan,
+                            time.perf_counter() - t0, messages=written.getvalue().strip())
+        z = np.asarray(sol["x"]).ravel()
+        X = z[L["xsel"]].reshape(self.N, -1)
+        cost = float(sol["f"])
+        status = str(stats.get("return_status", "unknown"))
+        ok = bool(stats.get("success", False)) or status == "Solved_To_Acceptable_Level"
+        ok = ok and np.isfinite(X).all() and np.isfinite(cost)
+        return Solution(X, ok, "ok" if ok else status, int(stats.get("iter_count", 0)),
+                        cost, time.perf_counter() - t0, ok,
+                        messages=written.getvalue().strip())
+
+    # ------------------------------------------------------------- covariances
+    def covariance(self, X: np.ndarray) -> np.ndarray | None:
+        P = self.covariances_at(np.asarray(X, float).ravel(), self._p, self._complete,
+                                last_only=True)
+        return None if P is None else P[-1]
+
+    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
+        P = self.covariances_at(x, p, complete, last_only=True)
+        return np.full((self.model.nx,) * 2, np.nan) if P is None else P[-1]
+
+    def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool,
+                       last_only: bool = False) -> np.ndarray | None:
+        """The Laplace covariances of the slots (see the module), ``(N, nx, nx)``, NaN
+        before the first measured slot; None without an arrival term (``last_only``:
+        the filter's pass only, the last block exact)."""
+        m, N, s = self.model, self.N, self._slices
+        nx, ny = m.nx, m.ny
+        X = np.asarray(x, float).reshape(N, nx)
+        s0 = int(np.argmax(p[s["a"]]))
+        W0 = p[s["w0"]].reshape(nx, nx, order="F")
+        if not W0.any():
+            return None
+        G = self._g.reshape(nx, self.rank, order="F")
+        Q = G @ G.T
+        # the mapped Jacobians, side by side (rows, N * nx): one block per slot
+        A = np.asarray(self._jac[0](X.T, p[s["u"]].reshape(N, m.nw).T)).reshape(
+            nx, nx, N, order="F").transpose(2, 0, 1)
+        C = np.asarray(self._jac[1](X.T, p[s["up"]].reshape(N, m.nu).T)).reshape(
+            ny, nx, N, order="F").transpose(2, 0, 1)
+        wy = p[s["wy"]].reshape(N, ny, ny).transpose(0, 2, 1)  # each block column-major
+        Pf = np.full((N, nx, nx), np.nan)
+        Pp = np.full((N, nx, nx), np.nan)
+        P = np.linalg.inv(W0.T @ W0)
+        for j in range(s0, N):
+            if j > s0:
+                P = A[j - 1] @ P @ A[j - 1].T + Q
+                Pp[j] = P
+            M = wy[j] @ C[j]  # whitened output Jacobian (zero rows: not measured)
+            PM = P @ M.T
+            P = P - PM @ np.linalg.solve(np.eye(ny) + M @ PM, PM.T)
+            Pf[j] = P = 0.5 * (P + P.T)
+        if last_only:
+            return Pf
+        Ps = Pf.copy()
+        for j in range(N - 2, s0 - 1, -1):
+            gain = np.linalg.lstsq(Pp[j + 1], A[j] @ Pf[j], rcond=None)[0].T
+            Ps[j] = Pf[j] + gain @ (Ps[j + 1] - Pp[j + 1]) @ gain.T
+            Ps[j] = 0.5 * (Ps[j] + Ps[j].T)
+        return Ps

@@ -18,7 +18,8 @@ import casadi as ca
 
 from estim._validate import as_bool, as_choice, as_float, as_int, unknown_keywords_message
 
-__all__ = ["SOLVERS", "SOLVER_CHOICES", "casadi_reason", "check_solver_options", "merge",
+__all__ = ["SOLVERS", "SOLVER_CHOICES", "casadi_reason", "check_solver_options", "jit_options",
+           "merge",
            "nlpsol", "resolve_solver"]
 
 SOLVERS = ("gauss-newton", "ipopt", "sqp", "fatrop")
@@ -90,6 +91,21 @@ def _dry_run(solver: str, options: dict) -> None:
     defaults = _IPOPT_DEFAULTS if solver == "ipopt" else _SQP_DEFAULTS
     ca.nlpsol("options_check", _PLUGINS[solver], {"x": x, "f": x**2},
               merge(defaults, options))
+
+
+def jit_options(jit, options) -> tuple[Any, bool]:
+    """``solver_options`` with compiled code when ``jit=True`` (the estimators' common
+    spelling, the filters' ``jit=True``; ``solver_options={"jit": True}`` stays an alias),
+    and whether the code is compiled. A contradiction between the two is an error."""
+    jit = as_bool(jit, "jit")
+    if not isinstance(options, Mapping):  # None, or refused by check_solver_options
+        return ({"jit": True} if jit and options is None else options), jit
+    if not jit:
+        return options, options.get("jit") is True
+    if "jit" in options and options["jit"] is not True:
+        raise ValueError(f"jit=True contradicts solver_options['jit'] = {options['jit']!r}: "
+                         f"give one of them")
+    return {**options, "jit": True}, True
 
 
 def resolve_solver(solver, options) -> str:
