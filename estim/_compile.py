@@ -33,10 +33,13 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import casadi as ca
 
+from estim import _progress as progress
+from estim._progress import bar as progress_bar
 from estim.exceptions import CompilerUnavailable
 
 #: Flags of every compilation: optimised, position-independent, no fast-math (the
@@ -226,6 +229,27 @@ def _load(lib: Path, record: Path, key: str, name: str) -> ca.Function | None:
         return None
 
 
+def _compile_watched(command: list[str], cwd: str, what: str
+                     ) -> subprocess.CompletedProcess:
+    """Run the compiler (at most 600 s), with a bar saying ``what`` once it has taken
+    more than a second (:mod:`estim._progress`: on a terminal or in Jupyter)."""
+    with subprocess.Popen(command, cwd=cwd, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE, text=True) as proc, \
+            progress_bar(None, what, delay=min(1.0, progress.DELAY), clock=True) as bar:
+        t0 = time.monotonic()
+        bar.update(0)  # (shown at once when there is no delay)
+        while True:
+            try:
+                out, err = proc.communicate(timeout=0.5)
+                break
+            except subprocess.TimeoutExpired:
+                bar.update(0)  # the bar's clock, shown after its delay
+                if time.monotonic() - t0 > 600:
+                    proc.kill()
+                    raise
+    return subprocess.CompletedProcess(command, proc.returncode, out, err)
+
+
 def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path,
            flags: tuple[str, ...] = FLAGS) -> None:
     """Compile ``code`` with ``flags`` into ``lib`` (through a temporary name) and write its
@@ -236,8 +260,9 @@ def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path,
         out = Path(tmp) / lib.name
         try:
             # relative names, so that every build of the same code gives the same bytes
-            run = subprocess.run([cc, *flags, src.name, "-o", out.name, "-lm"], cwd=tmp,
-                                 capture_output=True, text=True, timeout=600, check=False)
+            run = _compile_watched([cc, *flags, src.name, "-o", out.name, "-lm"], tmp,
+                                   f"compiling {lib.stem.rsplit('-', 1)[0]} (once per machine, "
+                                   f"cached in {root})")
         except (OSError, subprocess.SubprocessError) as exc:
             raise CompilerUnavailable(f"running the C compiler {cc} failed: {exc}") from None
         if run.returncode != 0:

@@ -230,7 +230,7 @@ def _cmd_run(args) -> int:
     if len(refused) == len(factories):
         raise refused[0]
     result = compare(sc, factories, seeds=range(args.seeds), keep_logs=bool(args.plot),
-                     n_jobs=args.jobs)
+                     n_jobs=args.jobs, progress=False if args.quiet else None)
     print(result.table())
     broken = [r.name for r in result.rows if r.errors and not r.runs]
     if broken:
@@ -367,6 +367,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                      help="PNG for truth vs estimates of seed 0 ('' for none)")
     run.add_argument("--jobs", type=_int_arg(None, nonzero=True), default=1,
                      help="parallel jobs (joblib; -1: all cores)")
+    run.add_argument("--quiet", "-q", action="store_true",
+                     help="no progress bar (shown on a terminal once the runs take 2 s; "
+                          "ESTIM_PROGRESS=0 silences every bar)")
     tune = sub.add_parser("tune", help="estimate Q and R from a simulated record and compare "
                                        "the EKF tuned with them")
     tune.add_argument("scenario", type=_scenario_arg, help=f"the experiment: {where}")

@@ -27,7 +27,6 @@ from __future__ import annotations
 import importlib.util
 import inspect
 import os
-import sys
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields
@@ -40,6 +39,7 @@ from estim._parallel import dispatch
 from estim._parallel import makespan as _makespan  # compare's names for the scheduling
 from estim._parallel import plan as _plan
 from estim._parallel import startup as _startup
+from estim._progress import bar as progress_bar
 from estim._runs import Factory, Run, Spec, build, run_batch, run_seed, summary
 from estim._validate import as_bool, as_float, as_int, check_keywords, did_you_mean
 from estim.estimators.base import Estimator
@@ -295,8 +295,10 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
     burn_in : int
         Samples skipped by RMSE and NEES.
     progress : bool, optional
-        Show a tqdm progress bar (default: when stderr is a terminal and there
-        are more than 20 runs).
+        Show a tqdm progress bar (its notebook front end in Jupyter). Default: on a
+        terminal or in Jupyter, once the runs have taken 2 s, whatever their number;
+        never when stderr is redirected; ``ESTIM_PROGRESS=0`` in the environment
+        silences every bar of estim (see :mod:`estim._progress`).
     min_parallel_seconds : float, optional
         With ``n_jobs != 1``: the first two runs of every estimator are done in
         this process and timed, giving each estimator's cost (build and first
@@ -342,8 +344,9 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
         batch = not why
     workers = (os.cpu_count() or 1) if n_jobs < 0 else int(n_jobs)
     total = len(estimators) * len(seed_list)
-    show = progress if progress is not None else (total > 20 and sys.stderr.isatty())
-    bar = _bar(total, show)
+    # a bar on a terminal or in Jupyter once the runs take a while (progress=True: at once)
+    bar = progress_bar(total, f"compare on {scenario.name}", "run", show=progress,
+                       delay=0.0 if progress else None)
     per_name: dict[str, list[Run]] = {name: [] for name in estimators}
     # this process: every run with n_jobs=1; else the first two runs of every estimator,
     # timed (build + first run, then a run), to decide whether workers pay
@@ -446,27 +449,6 @@ def compare(scenario: Scenario, estimators: Mapping[str, Spec],
                       parallel=note, batched=batch_note, nees=all_nees, burn_in=burn_in,
                       augmented=list(scenario.model.augmented), nees_level=levels,
                       diverged=diverged, nees_batches=batches)
-
-
-class _NoBar:
-    """No progress bar: what :func:`_bar` gives when none is shown."""
-
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _bar(total: int, show: bool) -> Any:
-    """A tqdm progress bar over ``total`` runs, or :class:`_NoBar` (hidden, or no tqdm)."""
-    if not show:
-        return _NoBar()
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:  # pragma: no cover - optional extra
-        return _NoBar()
-    return tqdm(total=total, unit="run", leave=False)
 
 
 #: What compare takes of a Scenario as keywords: its fields but the model.

@@ -82,6 +82,7 @@ def execute(path: str | os.PathLike, cwd: str | os.PathLike | None = None,
     nb = nbformat.read(str(path), as_version=4)
     env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}  # the inline backend
     env["PYDEVD_DISABLE_FILE_VALIDATION"] = "1"  # no debugger warning on frozen modules
+    env["ESTIM_PROGRESS"] = "0"  # a page or a test records outputs: no progress bars there
     with tempfile.TemporaryDirectory(prefix="estim-kernel-") as spec_dir, \
             tempfile.TemporaryDirectory(prefix="estim-notebook-") as tmp:
         client = NotebookClient(nb, timeout=timeout, kernel_name="python3",

@@ -18,6 +18,7 @@ import casadi as ca
 import numpy as np
 
 from estim._manifold import NP
+from estim._progress import bar as progress_bar
 from estim._validate import as_inputs, as_record
 from estim._vectorised import vectorised
 
@@ -103,8 +104,10 @@ def run_record(est, Y, U) -> tuple[np.ndarray, np.ndarray, list]:
     Y, steps_u = prepared_record(est, Y, U)
     T = Y.shape[0]
     X, P, infos = np.empty((T, m.nx)), np.empty((T, m.ndx, m.ndx)), []
-    for k in range(T):  # (the record is checked: rows go to the step unchecked)
-        X[k] = est._checked_step(Y[k], steps_u[k])
-        infos.append(est.info)
-        P[k] = est.info.P
+    with progress_bar(T, f"{type(est).__name__}.filter", "sample") as bar:
+        for k in range(T):  # (the record is checked: rows go to the step unchecked)
+            X[k] = est._checked_step(Y[k], steps_u[k])
+            infos.append(est.info)
+            P[k] = est.info.P
+            bar.update(1)
     return X, P, infos

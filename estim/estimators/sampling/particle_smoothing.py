@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from estim._manifold import NP, Manifold
+from estim._progress import bar as progress_bar
 from estim.estimators.filtering import Estimates
 from estim.solvers.sampling.resampling import resample
 
@@ -127,8 +128,10 @@ def backward_simulation(transit: Callable[..., list[np.ndarray]], Q: np.ndarray,
     nd = LQ_inv.shape[1]
     exact = density.null is None and manifold is None  # whitened predictions, no deltas
     block = max(1, _BLOCK // (N * (1 if exact else nd)))
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore"), progress_bar(
+            T - 1, f"particle smoother, {n_paths} paths", "sample") as bar:
         for t in range(T - 2, -1, -1):
+            bar.update(1)
             X, W, _ = trace[t]
             FX = transit(X, trace[t + 1][2], n=N)[0]  # (nx, N) the predictions
             logW = np.log(W)

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._fast import FastFunction
+from estim._progress import bar as progress_bar
 from estim._smoothness import advice, nonsmooth_operations, zero_derivative_parameters
 from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
@@ -465,7 +466,9 @@ class FullInformation(Estimator):
                 raise ValueError(f"guess must have shape ({T}, {nx}), got {X0.shape}")
             if not np.isfinite(X0).all():
                 raise ValueError("guess must be finite")
-        res = self._solve(Yr, W, Uy, X0, T, full=True, weights=weights)[0]
+        # a long fit reports its iterations (a bar after 2 s, see estim._progress)
+        with progress_bar(None, f"FullInformation.fit, {T} samples", "it") as bar:
+            res = self._solve(Yr, W, Uy, X0, T, full=True, weights=weights, progress=bar)[0]
         # (the first nu columns of the transitions' inputs: the input at each sample)
         frozen = zero_derivative_parameters(self.model, res.x, W[:, :self.model.nu]) \
             if self.model.augmented and res.success else []
@@ -480,7 +483,8 @@ class FullInformation(Estimator):
         return stamped(res, self.model, t)
 
     def _solve(self, Y, U, Uprev, X0, capacity: int, full: bool = False, prior=None,
-               robust: bool = False, weights=None) -> tuple[FitResult, Solution]:
+               robust: bool = False, weights=None, progress=None
+               ) -> tuple[FitResult, Solution]:
         """Solve on a problem of ``capacity >= T`` slots, the record in the last ``T``.
 
         The unused leading slots are chained to the first state at no cost
@@ -504,7 +508,11 @@ class FullInformation(Estimator):
             nlp.reset()
         xbar, W0 = (self.x0, self._W0) if prior is None else prior
         WQ, WR, R = (self._WQ, self._WR, self.R) if weights is None else weights
-        sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
+        nlp.gn.progress = progress
+        try:
+            sol = nlp.solve(X0, Y, U, Uprev, T, xbar, W0, WQ, WR, R, robust=robust)
+        finally:
+            nlp.gn.progress = None
         return _result(m, self.solver, self._maps, nlp, sol, Y[pad:], U[pad:], Uprev[pad:],
                        pad), sol
 

@@ -54,6 +54,9 @@ class Globalised:
     pairs with separate output buffers).
     """
 
+    #: a progress bar the iterations update (one a step, the cost), set by a caller whose
+    #: solve may be long (``FullInformation.fit``); None: no report
+    progress: Any = None
     N: int
     max_iter: int
     xtol: float
@@ -226,6 +229,9 @@ class Globalised:
             slot = 1 - slot  # the trial's buffer, or a new evaluation there
             f, g, dirs = evaluated if evaluated is not None else \
                 self._evaluate(pair[slot], x, lam)
+            if self.progress is not None:  # a long fit's bar (set by its caller)
+                self.progress.update(1)
+                self.progress.set_postfix_str(f"cost {f:.6g}")
         ok = status == "ok" and bool(np.isfinite(x).all()) and np.isfinite(f)
         return x, ok, status, steps, f, self._elapsed(t0, b0)
 
