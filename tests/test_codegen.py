@@ -289,6 +289,63 @@ int main(void) {{
     assert 0 < ns_per_step < 1e6
 
 
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make on this machine")
+@pytest.mark.parametrize("key", ["ekf_tanks", "cubature_reactor"])
+def test_the_example_program_runs_a_csv_record(exports, key, tmp_path):
+    """``make example`` builds ``<name>_example``, which reads a record as CSV (a header,
+    the outputs, ``nan`` for a missing one, then the input that acted since the previous
+    sample) and writes Python's statuses, estimates and standard deviations."""
+    est, Y, U, cf, directory = exports(key)
+    m = est.model
+    run = subprocess.run(["make", f"CC={compiler()[0]}", "example"], cwd=directory,
+                         capture_output=True, text=True, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    Y = Y.copy()
+    Y[3] = np.nan  # a missing sample
+    given = np.zeros((len(Y), m.nu)) if U is None else \
+        np.vstack([np.zeros((1, m.nu)), U[:-1]])  # the input since the previous sample
+    rows = [",".join(m.output_names + m.input_names)]
+    rows += [",".join(f"{v:.17g}" for v in [*y, *u]) for y, u in zip(Y, given, strict=True)]
+    (tmp_path / "record.csv").write_text("\n".join(rows) + "\n")
+    program = directory / f"{key}_example"
+    subprocess.run([str(program), "record.csv", "estimates.csv"], cwd=tmp_path, check=True)
+    lines = (tmp_path / "estimates.csv").read_text().splitlines()
+    assert lines[0] == ",".join(["status", *m.state_names,
+                                 *(f"sd_{n}" for n in m.state_names)])
+    out = np.loadtxt(tmp_path / "estimates.csv", delimiter=",", skiprows=1, ndmin=2)
+    log = estim.replay(est, Y, U, warn=False)
+    assert out[:, 0].astype(int).tolist() == [_code(s) for s in log.status]
+    assert _close(out[:, 1:1 + m.nx], log.x_hat) <= TOL
+    sd = np.sqrt(np.diagonal(log.P, axis1=1, axis2=2))
+    assert _close(out[:, 1 + m.nx:], sd) <= TOL
+    # a malformed line is named, with what was expected
+    (tmp_path / "bad.csv").write_text(rows[0] + "\n" + rows[1] + "\n1,2,x\n")
+    bad = subprocess.run([str(program), "bad.csv", "out.csv"], cwd=tmp_path,
+                         capture_output=True, text=True, check=False)
+    assert bad.returncode == 1 and "bad.csv:3: expected" in bad.stderr
+
+
+def test_optimizing_for_size_gives_the_same_doubles(tmp_path):
+    """``optimize="size"`` (-Os) writes a smaller library that steps to the same
+    numbers; anything else is refused."""
+    sc = estim.scenarios.batch_reactor(n_steps=60)
+    est = estim.UKF(sc.model, **sc.tuning)
+    Y, U = _scenario_record(sc)
+    runs = {}
+    for optimize in ("speed", "size"):
+        directory = tmp_path / optimize
+        name = f"ukf_{optimize}"
+        paths = codegen.export(est, directory, name=name, optimize=optimize)
+        flags = "-Os" if optimize == "size" else "-O2"
+        assert f"CFLAGS ?= {flags} " in paths["makefile"].read_text()
+        cf = CFilter(est, directory, name)
+        runs[optimize] = cf.run(Y, U)
+    for field in ("x", "P", "status"):
+        assert np.array_equal(runs["speed"][field], runs["size"][field])
+    with pytest.raises(ValueError, match="optimize must be one of"):
+        codegen.export(est, tmp_path / "x", optimize="fast")
+
+
 def test_what_export_refuses(tmp_path):
     sc = estim.scenarios.van_der_pol(n_steps=10)
     with pytest.raises(ValueError, match="rti=True"):

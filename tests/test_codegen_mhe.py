@@ -229,6 +229,34 @@ def test_prepare_then_step_is_step(exports, key):
     assert split["status"].tolist() == [_code(s) for s in status]
 
 
+@pytest.mark.skipif(shutil.which("make") is None, reason="no make on this machine")
+@pytest.mark.parametrize("key", ["oscillator_foh", "attitude"])
+def test_the_example_program_runs_a_csv_record(exports, key, tmp_path):
+    """``make example``: the MHE's program prepares before every measurement and steps,
+    from a CSV record (outputs, then the input: here sampled, hold="foh"; on the attitude
+    model the standard deviations are of the tangent directions), as Python does."""
+    est, Y, U, cm, directory = exports(key)
+    m = est.model
+    run = subprocess.run(["make", f"CC={compiler()[0]}", "example"], cwd=directory,
+                         capture_output=True, text=True, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    rows = [",".join(m.output_names + m.input_names)]
+    rows += [",".join(f"{v:.17g}" for v in [*y, *_input(U, k, m.nu, m.sampled)])
+             for k, y in enumerate(Y)]
+    (tmp_path / "record.csv").write_text("\n".join(rows) + "\n")
+    subprocess.run([str(directory / f"{key}_example"), "record.csv", "estimates.csv"],
+                   cwd=tmp_path, check=True)
+    tangent = m.state_names if m.manifold.euclidean_states else m.manifold.tangent_names
+    header = (tmp_path / "estimates.csv").read_text().splitlines()[0]
+    assert header == ",".join(["status", *m.state_names, *(f"sd_{n}" for n in tangent)])
+    out = np.loadtxt(tmp_path / "estimates.csv", delimiter=",", skiprows=1, ndmin=2)
+    x, P, status = _python(est, Y, U, prepare=True)
+    assert out[:, 0].astype(int).tolist() == [_code(s) for s in status]
+    assert np.abs(out[:, 1:1 + m.nx] - x).max() <= TOL
+    sd = np.sqrt(np.diagonal(P, axis1=1, axis2=2))
+    assert np.abs(out[:, 1 + m.nx:] - sd).max() <= TOL
+
+
 def test_the_reactor_start_up_holds_and_halves(exports, monkeypatch):
     """The reactor's start-up (which the C code reproduces) holds variables at the bound
     x >= 0 and halves steps: more line-search trials than one per iteration."""

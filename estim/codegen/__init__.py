@@ -22,9 +22,10 @@ import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from estim._validate import as_choice
 from estim.codegen import kalman, mhe
 from estim.codegen.files import CFLAGS as CFLAGS
-from estim.codegen.files import check_model
+from estim.codegen.files import OPTIMIZE, cflags, check_model
 
 if TYPE_CHECKING:
     from estim.estimators.kalman.ekf import EKF
@@ -41,7 +42,7 @@ MHE_STATUS = mhe.STATUS
 
 
 def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | None = None,
-           overwrite: bool = False) -> dict[str, Path]:
+           overwrite: bool = False, optimize: str = "speed") -> dict[str, Path]:
     r"""Write C code of an EKF, a UKF or a real-time iteration MHE that steps as
     :meth:`~estim.Estimator.step` does.
 
@@ -70,6 +71,10 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
         contraction into fused multiply-adds).
     ``README.md``
         The API, the memory and the build.
+    ``<name>_example.c``
+        A program that runs the estimator over a recorded CSV file (the outputs, then
+        the inputs, one sample per line; ``nan`` for a missing output) and writes the
+        statuses, estimates and standard deviations as CSV: ``make example``.
 
     NaN in ``y`` marks a missing output, as in Python. For a model with sampled
     inputs (``hold="foh"``) the driver keeps the previous input, as ``step`` does.
@@ -83,7 +88,7 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     the gate and the recovery keep) and ``<name>_covariance`` (:math:`S S^\top`, the
     covariance the step writes); the struct's ``Q``, ``R`` and ``P0`` stay covariances.
 
-    For an :class:`~estim.MHE` with ``rti=True`` the same six files hold the
+    For an :class:`~estim.MHE` with ``rti=True`` the same files hold the
     generated ``<name>_prepare_window``, ``<name>_feedback_window``,
     ``<name>_window_cost``, ``<name>_cov_step`` and ``<name>_transition``, and a
     driver with ``<name>_init``, ``<name>_reset``, ``<name>_prepare(e, u)`` (the
@@ -106,12 +111,17 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
         ``"<filter>_<model name>"`` made an identifier (e.g. ``ekf_batch_reactor``).
     overwrite : bool
         Replace files of the same names in ``directory`` (refused by default).
+    optimize : {"speed", "size"}
+        The Makefile's optimisation: ``-O2`` (the step's speed) or ``-Os`` (the
+        library's size). Neither changes the arithmetic (no fused multiply-adds, no
+        fast math): the results are the same doubles. See the deployment page for
+        the sizes, build times and step times of both.
 
     Returns
     -------
     dict
         The paths written, by kind: ``"functions_c"``, ``"functions_h"``, ``"h"``,
-        ``"c"``, ``"makefile"``, ``"readme"``.
+        ``"c"``, ``"makefile"``, ``"readme"``, ``"example"``.
 
     Raises
     ------
@@ -140,16 +150,18 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
     paths = {"functions_c": directory / f"{name}_functions.c",
              "functions_h": directory / f"{name}_functions.h",
              "h": directory / f"{name}.h", "c": directory / f"{name}.c",
-             "makefile": directory / "Makefile", "readme": directory / "README.md"}
+             "makefile": directory / "Makefile", "readme": directory / "README.md",
+             "example": directory / f"{name}_example.c"}
+    flags = cflags(as_choice(optimize, tuple(OPTIMIZE), "optimize"))
     existing = [p.name for p in paths.values() if p.exists()]
     if existing and not overwrite:
         raise FileExistsError(f"{directory} already holds {', '.join(existing)}: pass "
                               f"overwrite=True to replace them")
     directory.mkdir(parents=True, exist_ok=True)
     if isinstance(estimator, MHE):
-        mhe.write(estimator, directory, name, paths)
+        mhe.write(estimator, directory, name, paths, flags)
     else:
-        kalman.write(estimator, directory, name, paths)
+        kalman.write(estimator, directory, name, paths, flags)
     return paths
 
 

@@ -47,6 +47,16 @@ if TYPE_CHECKING:
 #: interpreter computes in Python, operation for operation.
 CFLAGS = "-O2 -fPIC -fno-fast-math -ffp-contract=off"
 
+#: The optimisation level of each ``optimize`` choice of :func:`estim.codegen.export`: for
+#: the step's speed (the default) or for the library's size (the same results: no flag
+#: that changes the arithmetic)
+OPTIMIZE = {"speed": "-O2", "size": "-Os"}
+
+
+def cflags(optimize: str) -> str:
+    """The Makefile's flags for ``optimize`` (``"speed"`` or ``"size"``)."""
+    return CFLAGS.replace("-O2", OPTIMIZE[optimize])
+
 
 def check_model(m: Model) -> None:
     """Refuse a model whose step CasADi's code generator cannot write as plain C with
@@ -112,7 +122,8 @@ def template(filename: str) -> str:
 
 
 def fill(text: str, name: str, model: Model, description: str, values: Mapping[str, str],
-         dims: Mapping[str, int], switches: Mapping[str, bool] | None = None) -> str:
+         dims: Mapping[str, int], switches: Mapping[str, bool] | None = None,
+         flags: str = CFLAGS) -> str:
     """``text`` with its sections chosen and its placeholders ``@key@`` replaced (see the
     module's docstring).
 
@@ -132,11 +143,13 @@ def fill(text: str, name: str, model: Model, description: str, values: Mapping[s
         Integers by placeholder, replaced last.
     switches : mapping of str to bool, optional
         The switches of the template's sections (none by default).
+    flags : str
+        The Makefile's compiler flags (``@CFLAGS@``).
     """
     text = sections(text, switches or {})
     text = (text.replace("@name@", name).replace("@NAME@", name.upper())
             .replace("@filter@", description).replace("@model@", model.name)
-            .replace("@version@", __version__).replace("@CFLAGS@", CFLAGS)
+            .replace("@version@", __version__).replace("@CFLAGS@", flags)
             .replace("@TAIL@", f"{SUSPECT_TAIL:g}")
             .replace("@states@", ", ".join(model.state_names))
             .replace("@outputs@", ", ".join(model.output_names))
@@ -150,17 +163,34 @@ def fill(text: str, name: str, model: Model, description: str, values: Mapping[s
 
 def write_driver(paths: Mapping[str, Path], kind: str, name: str, model: Model,
                  description: str, values: Mapping[str, str], dims: Mapping[str, int],
-                 switches: Mapping[str, bool] | None = None) -> None:
-    """Write the driver's header and source, the Makefile and the README of ``kind``
-    (``"kalman"`` or ``"mhe"``: the templates ``<kind>.h.in``, ``<kind>.c.in``,
-    ``<kind>.README.md.in`` and the shared ``Makefile.in``, their sections chosen by
-    ``switches``) to ``paths["h"]``, ``paths["c"]``, ``paths["makefile"]`` and
-    ``paths["readme"]``."""
+                 switches: Mapping[str, bool] | None = None, flags: str = CFLAGS) -> None:
+    """Write the driver's header and source, the Makefile, the README and the example
+    program of ``kind`` (``"kalman"`` or ``"mhe"``: the templates ``<kind>.h.in``,
+    ``<kind>.c.in``, ``<kind>.README.md.in`` and the shared ``Makefile.in`` and
+    ``example.c.in``, their sections chosen by ``switches``) to ``paths["h"]``,
+    ``paths["c"]``, ``paths["makefile"]``, ``paths["readme"]`` and ``paths["example"]``;
+    ``flags``: the Makefile's compiler flags."""
     files = {"h": f"{kind}.h.in", "c": f"{kind}.c.in", "makefile": "Makefile.in",
-             "readme": f"{kind}.README.md.in"}
+             "readme": f"{kind}.README.md.in", "example": "example.c.in"}
+    tangent = model.state_names if model.manifold.euclidean_states else \
+        model.manifold.tangent_names
+    values = {**values, **example_text(model, tangent)}
+    switches = {**(switches or {}), "mhe": kind == "mhe"}
     for key, filename in files.items():
         paths[key].write_text(fill(template(filename), name, model, description, values,
-                                   dims, switches))
+                                   dims, switches, flags))
+
+
+def example_text(model: Model, tangent: Sequence[str]) -> dict[str, str]:
+    """The example program's file formats: the record's and the estimates' header lines
+    and what the record's inputs are."""
+    u_note = ")" if not model.nu else \
+        (f"), then the {model.nu} input(s) that acted since the previous sample (with "
+         f"hold=\"foh\": the input at this sample)")
+    return {"record_header": ",".join([*model.output_names, *model.input_names]),
+            "estimate_header": ",".join(["status", *model.state_names,
+                                         *(f"sd_{n}" for n in tangent)]),
+            "u_note": u_note}
 
 
 def c_double(v: float) -> str:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import casadi as ca
 
-from estim.codegen.files import c_array, generate, renamed, work_sizes, write_driver
+from estim.codegen.files import CFLAGS, c_array, generate, renamed, work_sizes, write_driver
 from estim.solvers.kalman.triangular import tria
 
 if TYPE_CHECKING:
@@ -159,13 +159,14 @@ def describe(estimator: EKF | UKF) -> str:
 
 
 def write(estimator: EKF | UKF, directory: Path, name: str,
-          paths: Mapping[str, Path]) -> None:
-    """Write the filter's six files to ``paths`` (see :func:`estim.codegen.export`)."""
+          paths: Mapping[str, Path], flags: str = CFLAGS) -> None:
+    """Write the filter's files to ``paths`` (see :func:`estim.codegen.export`), the
+    Makefile with the compiler ``flags``."""
     funs = functions(estimator, name)
     generate(funs, directory, name)
     write_driver(paths, "kalman", name, estimator.model, describe(estimator),
                  values(estimator), dimensions(estimator, work_sizes(funs)),
-                 {"sqrt": estimator.form == "sqrt"})
+                 {"sqrt": estimator.form == "sqrt"}, flags)
 
 
 def memory(estimator: EKF | UKF) -> int:

@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from estim.codegen.files import (
+    CFLAGS,
     c_array,
     c_double,
     check_model,
@@ -188,14 +189,16 @@ def describe(estimator: MHE) -> str:
             f"{estimator.arrival_cost!r}, rti=True)")
 
 
-def write(estimator: MHE, directory: Path, name: str, paths: Mapping[str, Path]) -> None:
-    """Write the estimator's six files to ``paths`` (see :func:`estim.codegen.export`)."""
+def write(estimator: MHE, directory: Path, name: str, paths: Mapping[str, Path],
+          flags: str = CFLAGS) -> None:
+    """Write the estimator's files to ``paths`` (see :func:`estim.codegen.export`), the
+    Makefile with the compiler ``flags``."""
     funs = functions(estimator, name)
     generate(funs, directory, name)
     fields, _, dims = layout(estimator, work_sizes(funs))
     write_driver(paths, "mhe", name, estimator.model, describe(estimator),
                  values(estimator, fields), dims,
-                 {"manifold": not estimator.model.manifold.euclidean_states})
+                 {"manifold": not estimator.model.manifold.euclidean_states}, flags)
 
 
 def memory(estimator: MHE) -> int:
