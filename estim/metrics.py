@@ -102,6 +102,7 @@ class _Series:
             # a result of a whole record (the Estimates protocol), or bare estimates
             self.nis, self.t, self.manifold = None, None, None
             names = truth_log.state_names if truth_log is not None else []
+            x_hat: object
             if isinstance(estimate, Estimates):
                 x_hat, self.P = estimate.x, getattr(estimate, "P", None)
                 self.t, self.manifold = estimate.t, estimate.manifold

@@ -325,7 +325,8 @@ def plot_smoothing(result, path=None, *, truth=None, filtered=None, sigma: float
         import dataclasses
 
         # the forward pass, as a result of its own (same times and names)
-        filtered = dataclasses.replace(result, x=xf, P=getattr(result, "P_filtered", None))
+        filtered = dataclasses.replace(  # type: ignore[call-arg]  # (a smoother's P)
+            result, x=xf, P=getattr(result, "P_filtered", None))
     runs, truth_log = _as_logs({"filter": filtered, "smoother": result}, truth,
                                "plot_smoothing", need_truth=False)
     smoothed = runs["smoother"]

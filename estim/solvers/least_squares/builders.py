@@ -198,7 +198,7 @@ def build_singular(model: Model, N: int, solver: str, options: dict, slices: dic
     xs = [ca.SX.sym(f"x{k}", nx) for k in range(N)]
     ws = [ca.SX.sym(f"w{k}", r) for k in range(N - 1)]
     variables, gaps = [], []
-    cost = 0
+    cost: ca.SX | int = 0
     for k in range(N):
         variables.append(xs[k])
         Wy = ca.reshape(part["wy"][k * ny * ny:(k + 1) * ny * ny], ny, ny)

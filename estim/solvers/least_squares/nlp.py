@@ -357,8 +357,10 @@ class LeastSquaresNLP(Reweighted):
         """The last slot's Laplace covariance at ``x`` (flat) for the parameters ``p``."""
         return self.gn.covariance(x, p, complete)
 
-    def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
-        """Every slot's Laplace covariance at ``x`` (flat) for the parameters ``p``."""
+    def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool
+                       ) -> np.ndarray | None:
+        """Every slot's Laplace covariance at ``x`` (flat) for the parameters ``p`` (None
+        where there is none)."""
         return self.gn.covariances(x, p, complete)
 
     def _shifted(self, lam: np.ndarray) -> np.ndarray:
