@@ -182,7 +182,8 @@ def build_singular(model: Model, N: int, solver: str, options: dict, slices: dic
            r: int, full: bool) -> tuple[ca.Function, dict]:
     """The NLP solver of the constrained form (stage variables ``(x_j, w_j)``, the
     dynamics as equality constraints: fatrop's stage structure) and its layout: the
-    variables' bounds ``lbz``, ``ubz`` and the states' indices ``xsel``. Parameters:
+    variables' bounds ``lbz``, ``ubz``, the states' indices ``xsel`` and the noises'
+    ``wsel``. Parameters:
     those of :class:`LeastSquaresNLP` (``n_p``) and then ``G`` (``nx * r``)."""
     nx, ny = model.nx, model.ny
     p = ca.SX.sym("p", n_p + nx * r)
@@ -220,5 +221,8 @@ def build_singular(model: Model, N: int, solver: str, options: dict, slices: dic
     fun = nlpsol(f"mhe_{solver}_singular", solver, nlp, opts, options)
     stage = nx + r
     xsel = np.concatenate([np.arange(k * stage, k * stage + nx) for k in range(N)])
+    wsel = np.concatenate([np.arange(k * stage + nx, (k + 1) * stage, dtype=int)
+                           for k in range(N - 1)] + [np.zeros(0, dtype=int)])
     nz = N * nx + (N - 1) * r
-    return fun, {"lbz": np.full(nz, -np.inf), "ubz": np.full(nz, np.inf), "xsel": xsel}
+    return fun, {"lbz": np.full(nz, -np.inf), "ubz": np.full(nz, np.inf), "xsel": xsel,
+                 "wsel": wsel}

@@ -404,6 +404,8 @@ class SingularNoiseNLP(LeastSquaresNLP):
         w = ca.SX.sym("w", model.nw)
         up = ca.SX.sym("up", model.nu)
         pm = ca.DM(model.p)
+        #: the transitions of a window, for the start's noise: F(x_j, u_j), j < N - 1
+        self._transit = ca.Function("F", [x, w], [model.F(x, w, pm)]).map(max(N - 1, 1))
         self._jac = (ca.Function("A", [x, w], [ca.jacobian(model.F(x, w, pm), x)]).map(N),
                      ca.Function("C", [x, up], [ca.jacobian(model.H(x, up, pm), x)]).map(N))
 
@@ -432,6 +434,7 @@ class SingularNoiseNLP(LeastSquaresNLP):
                             time.perf_counter() - t0)
         z0 = np.zeros(L["lbz"].size)
         z0[L["xsel"]] = x0
+        z0[L["wsel"]] = self._start_noise(x0, p).ravel()
         lbz, ubz = L["lbz"].copy(), L["ubz"].copy()
         lbz[L["xsel"]], ubz[L["xsel"]] = self.lbx, self.ubx
         written = io.StringIO()
@@ -453,6 +456,22 @@ class SingularNoiseNLP(LeastSquaresNLP):
         return Solution(X, ok, "ok" if ok else status, int(stats.get("iter_count", 0)),
                         cost, time.perf_counter() - t0, ok,
                         messages=written.getvalue().strip())
+
+    def _start_noise(self, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        r"""The noise of the start ``x0`` (flat), ``(N - 1, r)``: the least-squares
+        :math:`w_j = G^{+} (x_{j+1} - F(x_j, u_j))` on the transitions with data (0 on
+        the unused slots). A feasible start (the previous window shifted, its newest
+        state predicted) stays feasible: starting the noise at zero instead would open
+        every gap the previous solution's noise had closed."""
+        m, N, s = self.model, self.N, self._slices
+        if N == 1:
+            return np.zeros((0, self.rank))
+        X = x0.reshape(N, m.nx)
+        FX = np.asarray(self._transit(X[:-1].T, p[s["u"]].reshape(N, m.nw)[:-1].T)).T
+        G = self._g.reshape(m.nx, self.rank, order="F")
+        W = np.linalg.lstsq(G, (X[1:] - FX).T, rcond=None)[0].T
+        W[p[s["omega"]] == 0.0] = 0.0
+        return np.where(np.isfinite(W), W, 0.0)
 
     # ------------------------------------------------------------- covariances
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
