@@ -64,6 +64,13 @@ def test_every_result_is_scored_as_a_log_is(record, results):
         pytest.approx(float(estim.rmse(log)), rel=1e-12)
 
 
+def test_reprs_say_what_a_result_is(results):
+    assert repr(results["EKF.smooth"]) == "<SmoothResult: T=120; states theta, omega; 120 ok>"
+    assert repr(results["FullInformation.fit"]).startswith(
+        "<FitResult: T=120; states theta, omega; status 'ok'; cost ")
+    assert "log_likelihood" in repr(results["ParticleFilter.filter"])
+
+
 def test_to_pandas_and_from_estimates(record, results):
     pytest.importorskip("pandas")
     m, log = record

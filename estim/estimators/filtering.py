@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class Estimates:
     """Estimates over time, with their covariances, times and state names.
 
@@ -62,6 +62,24 @@ class Estimates:
         n = self.x.shape[1]
         return list(self.state_names) if len(self.state_names) == n else \
             [f"x{i + 1}" for i in range(n)]
+
+    def __repr__(self) -> str:
+        """One line: the kind, its length and states, and what went wrong where anything
+        did (the arrays are the attributes)."""
+        parts = [f"T={len(self.x)}", f"states {', '.join(self.names())}"]
+        status = getattr(self, "status", None)
+        if isinstance(status, tuple):
+            kinds: dict[str, int] = {}
+            for one in status:
+                kinds[one.split(":")[0]] = kinds.get(one.split(":")[0], 0) + 1
+            parts.append(", ".join(f"{n} {k}" for k, n in kinds.items()))
+        elif isinstance(status, str):
+            parts.append(f"status {status!r}")
+        for key in ("cost", "log_likelihood"):
+            value = getattr(self, key, None)
+            if value is not None:
+                parts.append(f"{key} {value:.6g}")
+        return f"<{type(self).__name__}: {'; '.join(parts)}>"
 
     def to_pandas(self) -> pd.DataFrame:
         """One row a sample, indexed by ``t``: ``x_hat:<name>`` for every state and
@@ -103,7 +121,7 @@ def stamped(result, model, t=None, *, fixed_dt: bool = False):
 
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class FilterResult(Estimates):
     """A record filtered by :meth:`EKF.filter <estim.EKF.filter>`,
     :meth:`UKF.filter <estim.UKF.filter>` or :meth:`EnKF.filter <estim.EnKF.filter>`:

@@ -52,7 +52,7 @@ Predictor = Callable[[np.ndarray, np.ndarray, np.ndarray],
                      tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class SmoothResult(Estimates):
     """A record smoothed by :meth:`EKF.smooth <estim.EKF.smooth>` or
     :meth:`UKF.smooth <estim.UKF.smooth>`.

@@ -80,7 +80,7 @@ __all__ = ["ParticleFilter", "ParticleFilterResult"]
 PROPOSALS = ("bootstrap", "ekf", "ukf")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class ParticleFilterResult(Estimates):
     """A record filtered by :meth:`ParticleFilter.filter`.
 

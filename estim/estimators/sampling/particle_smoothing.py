@@ -56,7 +56,7 @@ __all__ = ["ParticleSmoothResult", "backward_simulation"]
 _BLOCK = 4_000_000
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class ParticleSmoothResult(Estimates):
     """A record smoothed by :meth:`ParticleFilter.smooth <estim.ParticleFilter.smooth>`.
 

@@ -82,7 +82,7 @@ def _residual_map(model: Model, T: int) -> FastFunction:
     return FastFunction(fun)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class FitResult(Estimates):
     """Solution of :meth:`FullInformation.fit`.
 
