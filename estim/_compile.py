@@ -261,8 +261,7 @@ def _build(code: str, lib: Path, record: Path, key: str, cc: str, root: Path,
         try:
             # relative names, so that every build of the same code gives the same bytes
             run = _compile_watched([cc, *flags, src.name, "-o", out.name, "-lm"], tmp,
-                                   f"compiling {lib.stem.rsplit('-', 1)[0]} (once per machine, "
-                                   f"cached in {root})")
+                                   f"compiling {lib.stem.rsplit('-', 1)[0]}, once per machine")
         except (OSError, subprocess.SubprocessError) as exc:
             raise CompilerUnavailable(f"running the C compiler {cc} failed: {exc}") from None
         if run.returncode != 0:

@@ -15,6 +15,7 @@ argument (``compare``) overrides both.
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import time
 from typing import Any
@@ -147,8 +148,12 @@ def bar(total: int | None = None, desc: str = "", unit: str = "it",
         return _NoBar()
 
     def make(done: int, t0: float) -> Any:
+        # the terminal's size (80 x 24 where it reports none, e.g. a pseudo-terminal of
+        # size 0, where tqdm would hide the bar)
+        size = shutil.get_terminal_size()
         made = tqdm(total=total, desc=desc, unit=unit, leave=False, initial=done,
-                    dynamic_ncols=True, bar_format="{desc}: {elapsed}" if clock else None)
+                    ncols=size.columns, nrows=size.lines,
+                    bar_format="{desc}: {elapsed}" if clock else None)
         # the clock from the start of the work, on tqdm's own clock
         made.start_t = made.last_print_t = made._time() - (time.monotonic() - t0)
         made.refresh()

@@ -72,7 +72,7 @@ def test_a_first_compilation_says_so(shown, capsys, monkeypatch, tmp_path):
     ekf = estim.EKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, jit=True)
     ekf.step(np.array([0.1]))
     err = capsys.readouterr().err
-    assert "compiling ekf" in err and f"(once per machine, cached in {tmp_path})" in err
+    assert "compiling ekf" in err and "once per machine" in err
     # the second build of the same code is loaded from the cache, without a word
     estim.EKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, jit=True).step(np.array([0.1]))
     assert "compiling" not in capsys.readouterr().err
