@@ -6,9 +6,9 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_bool
+from estim._validate import as_bool, as_int
 from estim.estimators.kalman.fused import FusedKalman
-from estim.estimators.kalman.smoothing import SmoothResult, rts
+from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts
 from estim.estimators.kalman.square_root import check_form, covariances, ekf_step
 from estim.estimators.manifold_steps import (
     check_manifold_options,
@@ -74,6 +74,22 @@ class EKF(FusedKalman):
         semi-definite where the covariance form loses definiteness (nearly exact
         measurements, badly scaled states). The same estimates to rounding otherwise
         (:mod:`estim.estimators.kalman.square_root`, docs/ekf.md).
+    iterations : int
+        Gauss-Newton iterations of the measurement update (default 1: the EKF above).
+        With :math:`K > 1`, the iterated EKF (Bell & Cathey 1993): from
+        :math:`x^{(0)} = \bar x_k`, with :math:`C_i = \partial h/\partial x` at
+        :math:`x^{(i)}`, :math:`S_i = C_i \bar P_k C_i^\top + R`,
+        :math:`K_i = \bar P_k C_i^\top S_i^{-1}`,
+
+        .. math::
+            x^{(i+1)} = \bar x_k + K_i \left(y_k - h(x^{(i)})
+                        - C_i (\bar x_k - x^{(i)})\right),
+
+        :math:`\hat x_k = x^{(K)}`, :math:`P_k` the Joseph form with the last
+        :math:`K_i, C_i`; the innovation, NIS and gate are the prediction's
+        (:math:`i = 0`). The iterations are unrolled in the one compiled step;
+        ``info.iterations`` is :math:`K`. :meth:`smooth` then iterates the smoother
+        too. Covariance form, vector states.
     jit : bool
         Compile the step and the whole-record scans (:meth:`filter`, the batched
         seeds of :func:`~estim.compare`) to machine code through the per-machine
@@ -92,7 +108,9 @@ class EKF(FusedKalman):
     References
     ----------
     D. Simon, *Optimal State Estimation*, Wiley 2006, ch. 13;
-    R. S. Bucy, P. D. Joseph, *Filtering for Stochastic Processes*, 1968.
+    R. S. Bucy, P. D. Joseph, *Filtering for Stochastic Processes*, 1968;
+    B. M. Bell, F. W. Cathey, "The iterated Kalman filter update as a Gauss-Newton
+    method", IEEE TAC 38(2), 1993.
     """
 
     name = "ekf"
@@ -102,9 +120,15 @@ class EKF(FusedKalman):
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
                  upper: ArrayLike | None = None, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False):
+                 form: str = "covariance", jit: bool = False, iterations: int = 1):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
+        self.iterations = as_int(iterations, "iterations", minimum=1)
+        self._update_iterations = self.iterations if self.iterations > 1 else 0
+        if self.iterations > 1 and (self._sqrt or not model.manifold.trivial):
+            raise ValueError(f"iterations={self.iterations}: the iterated EKF is built in the "
+                             f"covariance form on vector states; use form='covariance' "
+                             f"(and a model without quaternions or angles), or iterations=1")
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
@@ -128,13 +152,19 @@ class EKF(FusedKalman):
             xb, Pb = x, P
         D = ca.diag(mask)
         uy = m.measurement_input(u)  # the input at this measurement
-        C = D @ m.H_x(xb, uy, p)
-        e = ca.if_else(mask, y - m.H(xb, uy, p), 0)
         Rm = D @ R @ D + ca.diag(1 - mask)
-        S = C @ Pb @ C.T + Rm
-        S = 0.5 * (S + S.T)
-        K = ca.solve(S, C @ Pb).T
-        xh = xb + K @ e
+        e = ca.if_else(mask, y - m.H(xb, uy, p), 0)  # the innovation (and the NIS's)
+        xi = xb
+        for i in range(self.iterations):  # Gauss-Newton on the update (one: the EKF)
+            C = D @ m.H_x(xi, uy, p)
+            Si = C @ Pb @ C.T + Rm
+            Si = 0.5 * (Si + Si.T)
+            K = ca.solve(Si, C @ Pb).T
+            ei = e if i == 0 else ca.if_else(mask, y - m.H(xi, uy, p) - C @ (xb - xi), 0)
+            xi = xb + K @ ei
+            if i == 0:
+                S = Si  # the prediction's, for the NIS
+        xh = xi
         if self.clip:
             xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
         IKC = ca.DM.eye(nx) - K @ C
@@ -149,7 +179,7 @@ class EKF(FusedKalman):
                                     ok_mean, mask, s_prior)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
-               t: ArrayLike | None = None) -> SmoothResult:
+               t: ArrayLike | None = None, iterations: int | None = None) -> SmoothResult:
         r"""Extended Rauch-Tung-Striebel smoother over a whole record.
 
         The filter runs forward over the record with :meth:`filter` (one compiled
@@ -179,6 +209,16 @@ class EKF(FusedKalman):
             for a model with inputs (``U=0``: zero inputs, on purpose).
         t : (T,) array, optional
             Sample times, for a model built with ``variable_dt=True``.
+        iterations : int, optional
+            Passes of the iterated extended smoother (default: the filter's
+            ``iterations``; 1: the extended smoother above). Each further pass is the
+            Kalman filter and RTS smoother of the model linearised about the previous
+            smoothed trajectory, a Gauss-Newton step on the record's MAP problem
+            (:func:`~estim.estimators.kalman.smoothing.iterated`): converged, it is
+            :meth:`FullInformation.fit <estim.FullInformation.fit>`'s optimum. It stops
+            early when converged; ``result.iterations`` and ``result.converged`` say how
+            it ended. Not with ``clip`` or ``gate`` (the passes are unconstrained and use
+            every measurement), nor on quaternion or angle states.
 
         Returns
         -------
@@ -203,9 +243,16 @@ class EKF(FusedKalman):
             Pb = A @ D + Q
             return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
 
+        passes = self.iterations if iterations is None else \
+            as_int(iterations, "iterations", minimum=1)
+        if passes > 1 and (self.clip or self.gate is not None or not m.manifold.trivial):
+            raise ValueError(f"iterations={passes}: the iterated smoother's passes are "
+                             f"unconstrained, use every measurement and vector states: not "
+                             f"with clip=True, a gate, or quaternion or angle states")
         clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
             else None
-        return rts(self, Y, U, t, predict, clip)
+        first = rts(self, Y, U, t, predict, clip)
+        return first if passes == 1 else iterated(self, first, Y, U, t, passes)
 
     @property
     def x(self) -> np.ndarray:

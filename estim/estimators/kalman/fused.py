@@ -64,6 +64,8 @@ class FusedKalman(Estimator):
     form, _sqrt = "covariance", False
     #: Whether the steps and the whole-record scans run compiled (``jit=True``).
     jit = False
+    #: ``info.iterations`` of a step: the Gauss-Newton iterations of an iterated update
+    _update_iterations = 0
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -153,7 +155,8 @@ class FusedKalman(Estimator):
         else:
             np.copyto(self._s, s_new)
         info = StepInfo._fast(P=reported(self._P_view, self._sqrt), innovation=e.copy(),
-                              nis=flags[0] if flags[4] else float("nan"))  # no output
+                              nis=flags[0] if flags[4] else float("nan"),  # no output
+                              iterations=self._update_iterations)
         if suspect:
             info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
                                                         bool(flags[7]))

@@ -35,15 +35,16 @@ S. Särkkä, *Bayesian Filtering and Smoothing*, Cambridge University Press, 201
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_inputs, as_intervals, as_record
 from estim.estimators.base import Estimator
 from estim.estimators.filtering import Estimates, stamped
-from estim.solvers.kalman.rts import backward
+from estim.solvers.kalman.rts import backward, transitions
 
 #: A prediction of a whole record: from the filtered means ``(T-1, nx)``, covariances
 #: ``(T-1, nx, nx)`` and transitions' inputs ``(T-1, nw)``, the predicted means and
@@ -77,6 +78,11 @@ class SmoothResult(Estimates):
         The filter's status of every sample (``"ok"``, ``"rejected: ..."``, ...).
     success : bool
         Every step of the filter succeeded.
+    iterations : int
+        Passes of the iterated smoother (1: the extended or unscented smoother).
+    converged : bool
+        The iterated smoother's last pass moved no mean (beyond rounding); True for one
+        pass.
     t, state_names, manifold :
         Sample times, state names and the states' manifold (see
         :class:`~estim.estimators.filtering.Estimates`).
@@ -91,6 +97,8 @@ class SmoothResult(Estimates):
     gain: np.ndarray
     status: tuple[str, ...]
     success: bool
+    iterations: int = 1
+    converged: bool = True
 
 
 def record(model, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | None
@@ -153,3 +161,73 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
     return stamped(SmoothResult(x=Xs, P=Ps, x_filtered=Xf, P_filtered=Pf, x_predicted=xb,
                                 P_predicted=Pb, gain=G, status=tuple(status),
                                 success=success), m, t)
+
+
+def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLike | None,
+             t: ArrayLike | None, iterations: int, tol: float = 1e-12) -> SmoothResult:
+    r"""The iterated extended Rauch-Tung-Striebel smoother (Bell 1994): from the
+    extended smoother's result ``first``, up to ``iterations - 1`` more passes, each the
+    Kalman filter and RTS smoother of the model linearised about the previous smoothed
+    trajectory :math:`\bar x_{0:T-1}`:
+
+    .. math::
+        x_{k+1} \approx F(\bar x_k) + A_k (x_k - \bar x_k), \qquad
+        y_k \approx h(\bar x_k) + C_k (x_k - \bar x_k),
+
+    with :math:`A_k = \partial F/\partial x`, :math:`C_k = \partial h/\partial x` at
+    :math:`\bar x_k`, the prior :math:`(x_0, P_0)` on the first sample. Each pass is a
+    Gauss-Newton step on the whole record's MAP problem, so the fixed point is
+    :meth:`FullInformation.fit <estim.FullInformation.fit>`'s optimum (with the same
+    prior), the covariances its Laplace covariances. Stops early when no mean moved by
+    more than ``tol`` relative to its size; ``iterations`` and ``converged`` say how it
+    ended.
+
+    References
+    ----------
+    B. M. Bell, "The iterated Kalman smoother as a Gauss-Newton method", SIAM J.
+    Optim. 4(3), 1994; S. Särkkä, L. Svensson, *Bayesian Filtering and Smoothing*, 2nd
+    ed., 2023, sec. 13.1.
+    """
+    m = estimator.model
+    Y, steps, W = record(m, Y, U, t)
+    T, nx = Y.shape[0], m.nx
+    Uy = np.array([u for u, _ in steps]).reshape(T, m.nu)
+    mask = np.isfinite(Y)
+    Q, R = estimator.Q, estimator.R
+    Xs, Ps, done, converged = first.x, first.P, 1, iterations == 1
+    pm = ca.DM(m.p)
+    out = (m.H.map(T), m.H_x.map(T))
+    for _ in range(iterations - 1):
+        FX = transitions(m, Xs[:-1], W) if T > 1 else np.empty((0, nx))
+        A = transitions(m, Xs[:-1], W, jacobian=True) if T > 1 else np.empty((0, nx, nx))
+        HX = np.asarray(out[0](Xs.T, Uy.T, pm)).T
+        C = np.asarray(out[1](Xs.T, Uy.T, pm)).reshape(m.ny, T, nx).transpose(1, 0, 2)
+        Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
+        xb, Pb, D = np.empty((T - 1, nx)), np.empty((T - 1, nx, nx)), np.empty((T - 1, nx, nx))
+        x, P = np.asarray(estimator.x0, float), np.asarray(estimator.P0, float)
+        for k in range(T):
+            if k:
+                x = FX[k - 1] + A[k - 1] @ (Xf[k - 1] - Xs[k - 1])
+                D[k - 1] = Pf[k - 1] @ A[k - 1].T
+                P = A[k - 1] @ D[k - 1] + Q
+                xb[k - 1], Pb[k - 1] = x, 0.5 * (P + P.T)
+            rows = mask[k]
+            if rows.any():
+                Ck, Rk = C[k][rows], R[np.ix_(rows, rows)]
+                v = Y[k, rows] - HX[k, rows] - Ck @ (x - Xs[k])
+                S = Ck @ P @ Ck.T + Rk
+                K = np.linalg.solve(0.5 * (S + S.T), Ck @ P).T
+                x = x + K @ v
+                IKC = np.eye(nx) - K @ Ck
+                P = IKC @ P @ IKC.T + K @ Rk @ K.T
+            Xf[k], Pf[k] = x, 0.5 * (P + P.T)
+        new, Ps, _ = backward(Xf, Pf, xb, Pb, D)
+        done += 1
+        moved = np.abs(new - Xs).max()
+        Xs = new
+        if not np.isfinite(Xs).all():
+            break
+        if moved <= tol * max(1.0, np.abs(Xs).max()):
+            converged = True
+            break
+    return replace(first, x=Xs, P=Ps, iterations=done, converged=bool(converged))

@@ -1,0 +1,132 @@
+"""The iterated EKF (``EKF(iterations=K)``) against a plain numpy implementation of the
+textbook's algorithm and the exact Kalman filter, and the iterated extended smoother
+against full-information estimation, the MAP problem it solves by Gauss-Newton."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from linear_gaussian import P0, X0, Q, R, kalman, linear_model, record
+
+import estim
+from estim._compile import compiler
+
+PEND = estim.models.sine_pendulum()
+QP = np.diag([1e-4, 0.06])
+TUNING = {"Q": QP, "R": 0.01, "x0": [1.2, 0.0], "P0": 0.09}
+
+
+@pytest.fixture(scope="module")
+def pendulum_record():
+    return estim.simulate(PEND, None, x0=[1.5, 0.0], n_steps=300, Q=QP, R=0.01, seed=1)
+
+
+def iekf_reference(Y: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """Särkkä & Svensson (2023), algorithm 7.x (the iterated EKF), in numpy, the prior on
+    the first sample as estim puts it."""
+    m = PEND
+    x, P = np.array([1.2, 0.0]), 0.09 * np.eye(2)
+    xs, Ps = [], []
+    for k, y in enumerate(Y):
+        if k:
+            A = np.asarray(m.F_x(x, [], m.p))
+            x = np.asarray(m.F(x, [], m.p)).ravel()
+            P = A @ P @ A.T + QP
+        xb, Pb, xi = x, P, x
+        for _ in range(K):
+            H = np.asarray(m.H_x(xi, [], m.p))
+            h = np.asarray(m.H(xi, [], m.p)).ravel()
+            S = H @ Pb @ H.T + 0.01
+            G = Pb @ H.T @ np.linalg.inv(S)
+            xi = xb + G @ (y - h - H @ (xb - xi))
+        x, P = xi, Pb - G @ S @ G.T
+        xs.append(x)
+        Ps.append(P)
+    return np.array(xs), np.array(Ps)
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_the_iterated_ekf_is_the_textbook_algorithm(pendulum_record, jit):
+    if jit and compiler() is None:
+        pytest.skip("no C compiler")
+    Y = pendulum_record.y
+    for K in (2, 5):
+        ekf = estim.EKF(PEND, **TUNING, iterations=K, jit=jit)
+        log = estim.replay(ekf, Y)
+        x, P = iekf_reference(Y, K)
+        np.testing.assert_allclose(log.x_hat, x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(log.P, P, rtol=0, atol=1e-12)
+        assert ekf.info.iterations == K
+        # the whole-record call is the step loop
+        np.testing.assert_array_equal(ekf.filter(Y).x, log.x_hat)
+    # one iteration is the EKF, to the bit
+    plain = estim.replay(estim.EKF(PEND, **TUNING), Y)
+    once = estim.replay(estim.EKF(PEND, **TUNING, iterations=1), Y)
+    np.testing.assert_array_equal(once.x_hat, plain.x_hat)
+    assert estim.EKF(PEND, **TUNING).info.iterations == 0
+
+
+def test_on_a_linear_model_iterating_changes_nothing():
+    Y = record(30, seed=3)
+    x_kf, P_kf, _ = kalman(Y)
+    log = estim.replay(estim.EKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, iterations=4), Y)
+    np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-12)
+
+
+def test_the_iterated_smoother_is_full_information(pendulum_record):
+    """Each pass of the iterated extended RTS smoother is a Gauss-Newton step on the
+    record's MAP problem: converged, its means and covariances are full information's
+    (Gauss-Newton and Ipopt, tight tolerances) to 1e-10."""
+    Y = pendulum_record.y
+    ekf = estim.EKF(PEND, **TUNING)
+    first = ekf.smooth(Y)
+    res = ekf.smooth(Y, iterations=100)
+    assert res.converged and 2 < res.iterations < 100
+    assert first.iterations == 1 and first.converged
+    for solver, options in (("gauss-newton", {"xtol": 1e-15, "ftol": 1e-25, "max_iter": 500}),
+                            ("ipopt", {"ipopt.tol": 1e-14})):
+        fit = estim.FullInformation(PEND, **TUNING, solver=solver,
+                                    solver_options=options).fit(Y, guess=first.x)
+        assert fit.success
+        np.testing.assert_allclose(res.x, fit.x, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(res.P, fit.P, rtol=0, atol=1e-10)
+    # better than the extended smoother on this record, and a handful of passes get there
+    truth = pendulum_record
+    assert float(estim.rmse(res, truth=truth)) < float(estim.rmse(first, truth=truth))
+    two = ekf.smooth(Y, iterations=2)
+    assert two.iterations == 2 and not two.converged
+
+
+def test_what_does_not_apply_is_refused():
+    with pytest.raises(ValueError, match="iterations must be"):
+        estim.EKF(PEND, **TUNING, iterations=0)
+    with pytest.raises(ValueError, match="covariance form"):
+        estim.EKF(PEND, **TUNING, iterations=3, form="sqrt")
+    with pytest.raises(ValueError, match="not with clip=True, a gate"):
+        estim.EKF(PEND, **TUNING, gate=1e-6).smooth(np.zeros((5, 1)), iterations=3)
+    with pytest.raises(ValueError, match="iterations must be"):
+        estim.EKF(PEND, **TUNING).smooth(np.zeros((5, 1)), iterations=0)
+
+
+@pytest.mark.skipif(compiler() is None, reason="no C compiler")
+def test_the_exported_iterated_ekf_steps_as_python(pendulum_record, tmp_path):
+    """The iterations are unrolled in the step's Function, so the C export carries them."""
+    from test_codegen import CFilter, _close
+
+    from estim import codegen
+
+    ekf = estim.EKF(PEND, **TUNING, iterations=3)
+    codegen.export(ekf, tmp_path, name="iekf")
+    out = CFilter(ekf, tmp_path, "iekf").run(pendulum_record.y, None)
+    log = estim.replay(ekf, pendulum_record.y)
+    assert _close(out["x"], log.x_hat) <= 1e-12 and _close(out["P"], log.P) <= 1e-12
+
+
+def test_the_command_line_takes_iterations(capsys):
+    from estim import cli
+
+    assert cli.main(["run", "sine_pendulum", "--steps", "60", "--seeds", "2", "--plot", "",
+                     "-e", "ekf", "-e", "iekf=ekf:iterations=3"]) in (0, None)
+    table = capsys.readouterr().out
+    assert "iekf" in table
