@@ -127,6 +127,24 @@ def sine_pendulum(n_steps: int = 300) -> Scenario:
                                 "about one seed in eight")
 
 
+def book_pendulum(n_steps: int = 500) -> Scenario:
+    """The pendulum of Särkkä & Svensson, *Bayesian Filtering and Smoothing* (2nd ed.,
+    2023, examples 5.1 and 7.x): :func:`estim.models.sine_pendulum` with Euler steps of
+    0.01 s, :math:`y = \\sin\\theta + r`, ``R = 0.1``, the process noise of a continuous
+    white acceleration of spectral density 0.01,
+    ``Q = 0.01 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``, released from ``(1.5, 0)``; the
+    estimators start from the book's prior ``(0, 0)``, ``P0 = I`` (on the first sample; the
+    book's is one step before it, see docs/gaussian_filters.md). The case of the book's
+    tables of Gaussian filters and smoothers."""
+    dt = 0.01
+    Q = 0.01 * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    return Scenario("book_pendulum", models.sine_pendulum(dt=dt, integrator="euler"),
+                    x0=[1.5, 0.0], n_steps=n_steps, Q=Q, R=0.1,
+                    tuning={"Q": Q, "R": 0.1, "x0": [0.0, 0.0], "P0": np.eye(2)},
+                    description="the textbook's pendulum (Särkkä & Svensson 2023): the "
+                                "Gaussian filters' test case")
+
+
 _FUSION_REMARKS = {
     "MHE": "with a zero prior (arrival_cost='none') a window of 25 samples holds 0.25 s: "
            "five barometer samples and at most one GNSS fix, too little to pin the climb "
@@ -263,6 +281,7 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
     "reactor_feed": reactor_feed,
     "pendulum": pendulum,
     "sine_pendulum": sine_pendulum,
+    "book_pendulum": book_pendulum,
     "sensor_fusion": sensor_fusion,
     "runaway": runaway,
     "satellite": satellite,

@@ -2,12 +2,15 @@ r"""Unscented Kalman filter, fused into one compiled call per step."""
 
 from __future__ import annotations
 
+import warnings
+
 import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._manifold import NP
-from estim._validate import as_bool, as_float
+from estim._validate import as_bool, as_float, as_int
+from estim.estimators.base import EstimationWarning
 from estim.estimators.kalman.fused import FusedKalman
 from estim.estimators.kalman.smoothing import SmoothResult, rts
 from estim.estimators.kalman.square_root import check_form, covariance, ukf_step
@@ -17,7 +20,10 @@ from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.rts import transitions
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
-POINTS = ("merwe", "julier", "cubature")
+POINTS = ("merwe", "julier", "cubature", "gauss-hermite")
+
+#: Gauss-Hermite rules with more points than this are warned about (p^n grows fast)
+MANY_POINTS = 10_000
 
 
 class UKF(FusedKalman):
@@ -63,9 +69,15 @@ class UKF(FusedKalman):
     model : Model
     Q, R, x0, P0 :
         As for every estimator.
-    points : {"merwe", "julier", "cubature"}
-        Sigma-point set: Van der Merwe's scaled points (default), Julier's, or
-        the :math:`2n_x` equally weighted points of the cubature Kalman filter.
+    points : {"merwe", "julier", "cubature", "gauss-hermite"}
+        Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
+        :math:`2n_x` equally weighted points of the cubature Kalman filter, or the
+        Gauss-Hermite rule of ``order`` :math:`p` (:func:`gauss_hermite`: :math:`p^{n_x}`
+        points :math:`x + L\xi_i`, :math:`L L^\top = P`; the Gauss-Hermite Kalman
+        filter; covariance form, vector states).
+    order : int
+        The Gauss-Hermite rule's order (points per dimension; default 3). Above
+        10 000 points in all a warning gives the count.
     alpha, beta, kappa : float
         Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
         distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
@@ -107,7 +119,7 @@ class UKF(FusedKalman):
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False):
+                 form: str = "covariance", jit: bool = False, order: int = 3):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)
@@ -120,12 +132,10 @@ class UKF(FusedKalman):
         self.clip = as_bool(clip, "clip")
         self.lower, self.upper = model.lower, model.upper
         check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
-        nx = model.ndx  # the sigma points spread in the tangent space
-        if points != "cubature" and nx + self.kappa <= 0:
-            raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
-                             f"got {self.kappa!r}")
-        self._scale, self._Wm, self._Wc = sigma_weights(points, nx, self.alpha, self.beta,
-                                                        self.kappa)
+        self.order = as_int(order, "order", minimum=1)
+        #: the spread, the weights, and the unit points (nx, N) of a rule given by its
+        #: points or None (merwe, julier, cubature: the rows of the factor of c P)
+        self._scale, self._Wm, self._Wc, self._unit = _rule(self, model)
         self.jit = as_bool(jit, "jit")
         self._compile()
 
@@ -133,6 +143,8 @@ class UKF(FusedKalman):
         """The sigma points of ``(x, P)`` (columns) and whether ``P`` has a Cholesky
         factor (positive definite)."""
         L, definite = _cholesky(self._scale * P)
+        if self._unit is not None:  # a rule given by its unit points: x + L xi
+            return [x + L @ ca.DM(xi) for xi in self._unit.T], definite
         n = x.numel()
         offsets = [L[:, k] for k in range(n)]  # the rows of the upper factor L^T
         centre = [] if self.points == "cubature" else [x]
@@ -204,6 +216,8 @@ class UKF(FusedKalman):
         :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
         x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
         L = np.linalg.cholesky(self._scale * P)
+        if self._unit is not None:  # x + L xi for every unit point
+            return x[..., None, :] + np.swapaxes(L @ self._unit, -1, -2)
         off = np.swapaxes(L, -1, -2)  # rows of U = L^T
         xs = x[..., None, :]
         centre = [] if self.points == "cubature" else [xs]
@@ -326,6 +340,47 @@ def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
     if points == "merwe":
         Wc[0] += 1 - alpha ** 2 + beta
     return c, Wm, Wc
+
+
+def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The spread, weights and unit points of ``ukf``'s sigma points (its ``points``,
+    ``order``, ``alpha``, ``beta``, ``kappa``) in the tangent space of ``model``, with the
+    checks of each rule."""
+    nx, points = model.ndx, ukf.points
+    if points == "gauss-hermite":
+        if ukf._sqrt or not model.manifold.trivial:
+            raise ValueError("points='gauss-hermite' is built in the covariance form on "
+                             "vector states; use form='covariance' (and a model without "
+                             "quaternions or angles)")
+        unit, W = gauss_hermite(nx, ukf.order)
+        if W.size > MANY_POINTS:
+            warnings.warn(f"points='gauss-hermite' of order {ukf.order} on {nx} states is "
+                          f"{ukf.order}^{nx} = {W.size} sigma points, each through F and h "
+                          f"at every step", EstimationWarning, stacklevel=3)
+        return 1.0, W, W.copy(), unit
+    if points != "cubature" and nx + ukf.kappa <= 0:
+        raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
+                         f"got {ukf.kappa!r}")
+    return (*sigma_weights(points, nx, ukf.alpha, ukf.beta, ukf.kappa), None)
+
+
+def gauss_hermite(n: int, order: int) -> tuple[np.ndarray, np.ndarray]:
+    r"""The Gauss-Hermite rule of ``order`` :math:`p` for :math:`N(0, I_n)`: the unit
+    points ``(n, p^n)``, the Cartesian product of the :math:`p` roots of the
+    probabilists' Hermite polynomial :math:`He_p`, and their weights ``(p^n,)``, the
+    products of the one-dimensional weights (normalised to sum to 1). Exact for
+    polynomials of degree :math:`2p - 1` in each coordinate (Särkkä & Svensson 2023,
+    sec. 8.3; the points of a mean :math:`m` and covariance :math:`P = L L^\top` are
+    :math:`m + L \xi_i`)."""
+    from itertools import product
+
+    from numpy.polynomial.hermite_e import hermegauss
+
+    nodes, weights = hermegauss(order)
+    weights = weights / weights.sum()
+    unit = np.array(list(product(nodes, repeat=n))).T.reshape(n, -1)
+    W = np.array([np.prod(c) for c in product(weights, repeat=n)])
+    return unit, W
 
 
 def _cholesky(A) -> tuple[ca.SX, ca.SX]:

@@ -1,0 +1,56 @@
+"""The Gaussian filters and smoothers of Särkkä & Svensson, *Bayesian Filtering and
+Smoothing* (2nd ed., 2023) on the book's pendulum record (``examples/data/book_pendulum.npz``,
+from the book's companion repository) with the book's settings, beside the RMSEs the
+companion notebooks print.
+
+The settings (``python/example_notebooks/pendulum_*.ipynb``): Euler steps of 0.01 s,
+``R = 0.1``, ``Q = 0.01 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``, the prior ``(0, 0)``,
+``P0 = I`` one step before the first measurement (a NaN row prepended), the unscented
+filter's ``alpha = 1``, ``beta = 0``, ``kappa = 3 - n``, Gauss-Hermite of order 5, 10
+iterations of the iterated filter and smoother. The RMSE of the angle.
+
+Run from the repository root::
+
+    python benchmarks/book_pendulum.py
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import estim
+
+ROOT = Path(__file__).resolve().parent.parent
+BOOK = {"EKF": 0.16830859061153763, "ERTS": 0.057446202494837,
+        "IEKF": 0.16547516472119136, "IERTS": 0.03463604419042699,
+        "UKF": 0.09524392125923083, "URTS": 0.036617555415464256,
+        "CKF": 0.1141966031380275, "CRTS": 0.04064624229594188,
+        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009}
+
+
+def main() -> None:
+    data = np.load(ROOT / "examples" / "data" / "book_pendulum.npz")
+    sc = estim.scenarios.book_pendulum()
+    m, tuning = sc.model, sc.tuning
+    Y = np.vstack([[np.nan], data["Y"][:, None]])  # the prior one step before y_0
+
+    def rmse(x: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((x[1:, 0] - data["X"][:, 0]) ** 2)))
+
+    filters = {"E": estim.EKF(m, **tuning), "IE": estim.EKF(m, **tuning, iterations=10),
+               "U": estim.UKF(m, **tuning, alpha=1.0, beta=0.0, kappa=1.0),
+               "C": estim.UKF(m, **tuning, points="cubature"),
+               "GH": estim.UKF(m, **tuning, points="gauss-hermite", order=5)}
+    print("| method | book | estim | difference |")
+    print("|---|---|---|---|")
+    for kind, est in filters.items():
+        for name, value in ((f"{kind}KF", rmse(est.filter(Y).x)),
+                            (f"{kind}RTS", rmse(est.smooth(Y).x))):
+            print(f"| {name} | {BOOK[name]:.6f} | {value:.6f} | "
+                  f"{abs(value - BOOK[name]):.1e} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,78 @@
+"""The Gaussian filters and smoothers of Särkkä & Svensson, *Bayesian Filtering and
+Smoothing* (2nd ed., 2023), on the book's pendulum record with the book's settings: every
+RMSE its companion notebooks print (EEA-sensors/Bayesian-Filtering-and-Smoothing,
+``python/example_notebooks/pendulum_*.ipynb``), to 1e-12.
+
+The book's model: Euler steps of the pendulum (``dt = 0.01``, ``g = 9.81``), ``y =
+sin(theta) + r``, ``R = 0.1``, ``Q = 0.01 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``, the prior
+``m0 = 0``, ``P0 = I`` one step before the first measurement (a NaN row prepended: the
+first step of estim's filters is then the prior, unmeasured; the estimates after it are
+the book's); the RMSE of the angle. The unscented filter with the book's ``alpha = 1``,
+``beta = 0``, ``kappa = 3 - n``; the Gauss-Hermite rule of order 5; the iterated filter
+and smoother with 10 iterations."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import estim
+
+DATA = np.load(Path(__file__).parent.parent / "examples" / "data" / "book_pendulum.npz")
+DT, G = 0.01, 9.81
+
+#: the notebooks' printed RMSEs
+BOOK = {"EKF": 0.16830859061153763, "ERTS": 0.057446202494837,
+        "IEKF": 0.16547516472119136, "IERTS": 0.03463604419042699,
+        "UKF": 0.09524392125923083, "URTS": 0.036617555415464256,
+        "CKF": 0.1141966031380275, "CRTS": 0.04064624229594188,
+        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009}
+
+
+def book_model() -> estim.Model:
+    return estim.Model(states=["theta", "omega"], outputs=["y"], dt=DT, integrator="euler",
+                       ode=lambda x, u, p: ca.vertcat(x[1], -G * ca.sin(x[0])),
+                       output=lambda x, u, p: ca.sin(x[0]), name="book_pendulum")
+
+
+TUNING = {"Q": 0.01 * np.array([[DT**3 / 3, DT**2 / 2], [DT**2 / 2, DT]]), "R": 0.1,
+          "x0": [0.0, 0.0], "P0": np.eye(2)}
+FILTERS = {"E": lambda m: estim.EKF(m, **TUNING),
+           "IE": lambda m: estim.EKF(m, **TUNING, iterations=10),
+           "U": lambda m: estim.UKF(m, **TUNING, alpha=1.0, beta=0.0, kappa=1.0),
+           "C": lambda m: estim.UKF(m, **TUNING, points="cubature"),
+           "GH": lambda m: estim.UKF(m, **TUNING, points="gauss-hermite", order=5)}
+
+
+def angle_rmse(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((x[1:, 0] - DATA["X"][:, 0]) ** 2)))
+
+
+@pytest.mark.parametrize("kind", list(FILTERS))
+def test_the_books_figures(kind):
+    Y = np.vstack([[np.nan], DATA["Y"][:, None]])  # the prior one step before y_0
+    est = FILTERS[kind](book_model())
+    filtered = angle_rmse(est.filter(Y).x)
+    smoothed = angle_rmse(est.smooth(Y).x)
+    assert abs(filtered - BOOK[f"{kind}KF"]) < 1e-12, (filtered, BOOK[f"{kind}KF"])
+    assert abs(smoothed - BOOK[f"{kind}RTS"]) < 1e-12, (smoothed, BOOK[f"{kind}RTS"])
+    # the step loop is the whole-record call
+    if kind in ("E", "GH"):
+        log = estim.replay(FILTERS[kind](book_model()), Y)
+        assert abs(angle_rmse(log.x_hat) - BOOK[f"{kind}KF"]) < 1e-12
+
+
+def test_the_iterated_smoother_converges_to_the_map():
+    """The book's 10 passes are within 3e-12 of the converged smoother, full
+    information's optimum (the MAP over the record and the state before it)."""
+    Y = np.vstack([[np.nan], DATA["Y"][:, None]])
+    m = book_model()
+    converged = estim.EKF(m, **TUNING).smooth(Y, iterations=200)
+    assert converged.converged
+    assert abs(angle_rmse(converged.x) - BOOK["IERTS"]) < 1e-11
+    fit = estim.FullInformation(m, **TUNING, solver="gauss-newton", solver_options={
+        "xtol": 1e-15, "ftol": 1e-25, "max_iter": 500}).fit(Y, guess=converged.x)
+    np.testing.assert_allclose(converged.x, fit.x, rtol=0, atol=1e-10)

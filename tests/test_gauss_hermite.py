@@ -1,0 +1,63 @@
+"""The Gauss-Hermite rule of the UKF: exact moments, the points it draws, what it
+refuses and what it warns about."""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+from linear_gaussian import P0, X0, Q, R, kalman, linear_model, record
+
+import estim
+from estim.estimators.kalman.ukf import gauss_hermite
+
+
+@pytest.mark.parametrize("n,order", [(1, 1), (1, 4), (2, 3), (3, 5)])
+def test_the_rule_integrates_polynomials_exactly(n, order):
+    """E[prod x_i^a_i] under N(0, I) for every exponent up to 2p - 1 per coordinate:
+    the product of the one-dimensional Gaussian moments (0 for odd, (a - 1)!! for even)."""
+    unit, W = gauss_hermite(n, order)
+    assert unit.shape == (n, order ** n) and W.shape == (order ** n,)
+    assert W.sum() == pytest.approx(1.0, abs=1e-14) and (W > 0).all()
+
+    def moment(a: int) -> float:
+        return 0.0 if a % 2 else float(np.prod(np.arange(a - 1, 0, -2))) if a else 1.0
+
+    for exps in itertools.product(range(2 * order), repeat=n):
+        terms = W * np.prod(unit ** np.array(exps)[:, None], axis=0)
+        exact = float(np.prod([moment(a) for a in exps]))
+        # to rounding of the sum: relative to its largest term
+        assert abs(float(terms.sum()) - exact) <= 1e-13 * max(1.0, np.abs(terms).sum()), exps
+
+
+def test_on_a_linear_model_it_is_the_kalman_filter():
+    Y = record(25, seed=4)
+    x_kf, P_kf, _ = kalman(Y)
+    ukf = estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, points="gauss-hermite", order=3)
+    log = estim.replay(ukf, Y)
+    np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-12)
+    pts = ukf.sigma_points(X0, P0)
+    assert pts.shape == (9, 2)
+    np.testing.assert_allclose(ukf._Wm @ pts, X0, atol=1e-15)
+
+
+def test_what_is_refused_and_warned():
+    m = linear_model()
+    kw = {"Q": Q, "R": R, "x0": X0, "P0": P0}
+    with pytest.raises(ValueError, match="order must be"):
+        estim.UKF(m, **kw, points="gauss-hermite", order=0)
+    with pytest.raises(ValueError, match="points must be one of"):
+        estim.UKF(m, **kw, points="hermite")
+    with pytest.raises(ValueError, match="covariance form on vector states"):
+        estim.UKF(m, **kw, points="gauss-hermite", form="sqrt")
+    seven = estim.Model(states=7, outputs=1, dynamics=lambda x, u, p: x,
+                        output=lambda x, u, p: x[0])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(Exception):  # noqa: B017 - the warning is the point, not the build
+            estim.UKF(seven, Q=1.0, R=1.0, x0=np.zeros(7), P0=1.0, points="gauss-hermite",
+                      order=5, jit="no")
+    assert any("5^7 = 78125 sigma points" in str(w.message) for w in caught)
