@@ -61,3 +61,24 @@ def test_what_is_refused_and_warned():
             estim.UKF(seven, Q=1.0, R=1.0, x0=np.zeros(7), P0=1.0, points="gauss-hermite",
                       order=5, jit="no")
     assert any("5^7 = 78125 sigma points" in str(w.message) for w in caught)
+
+
+def test_jit_and_the_c_export_carry_the_rule(tmp_path):
+    from estim._compile import compiler
+
+    if compiler() is None:
+        pytest.skip("no C compiler")
+    from test_codegen import CFilter, _close
+
+    from estim import codegen
+
+    sc = estim.scenarios.book_pendulum(n_steps=80)
+    log = estim.simulate(sc, None, seed=0)
+    ghkf = estim.UKF(sc.model, **sc.tuning, points="gauss-hermite", order=4)
+    ref = estim.replay(ghkf, log.y)
+    compiled = estim.replay(estim.UKF(sc.model, **sc.tuning, points="gauss-hermite", order=4,
+                                      jit=True), log.y)
+    np.testing.assert_array_equal(compiled.x_hat, ref.x_hat)
+    codegen.export(ghkf, tmp_path, name="ghkf")
+    out = CFilter(ghkf, tmp_path, "ghkf").run(log.y, None)
+    assert _close(out["x"], ref.x_hat) <= 1e-12 and _close(out["P"], ref.P) <= 1e-12
