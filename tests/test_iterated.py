@@ -130,3 +130,18 @@ def test_the_command_line_takes_iterations(capsys):
                      "-e", "ekf", "-e", "iekf=ekf:iterations=3"]) in (0, None)
     table = capsys.readouterr().out
     assert "iekf" in table
+
+
+def test_a_one_sample_mhe_is_the_converged_iterated_ekf(pendulum_record):
+    """MHE(horizon=1) with the filtering arrival cost solves each update's MAP problem,
+    which the iterated EKF's Gauss-Newton iterations converge to: to 1e-10 with Ipopt's
+    tight tolerance, and its covariance too; 1e-6 with the default Gauss-Newton stop."""
+    Y = pendulum_record.y
+    iekf = estim.replay(estim.EKF(PEND, **TUNING, iterations=60), Y)
+    tight = estim.replay(estim.MHE(PEND, horizon=1, **TUNING, solver="ipopt",
+                                   solver_options={"ipopt.tol": 1e-14}), Y)
+    np.testing.assert_allclose(tight.x_hat, iekf.x_hat, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(tight.P, iekf.P, rtol=0, atol=1e-10)
+    default = estim.replay(estim.MHE(PEND, horizon=1, **TUNING), Y)
+    np.testing.assert_allclose(default.x_hat, iekf.x_hat, rtol=0, atol=1e-6)
+    assert set(default.status) == {"ok"}

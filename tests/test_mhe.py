@@ -212,8 +212,10 @@ def test_all_failures_keep_the_loop_running():
 
 def test_bad_input():
     sc = estim.scenarios.van_der_pol()
-    with pytest.raises(ValueError, match="horizon must be an integer >= 2"):
+    with pytest.raises(ValueError, match="horizon must be"):
         estim.MHE(sc.model, horizon=0, **sc.tuning)
+    with pytest.raises(ValueError, match="rti=True needs horizon >= 2"):
+        estim.MHE(sc.model, horizon=1, rti=True, **sc.tuning)
     with pytest.raises(ValueError, match=r"\['mode'\] apply to solver='gauss-newton' only"):
         estim.MHE(sc.model, horizon=5, solver="ipopt", solver_options={"mode": "mapped"},
                   **sc.tuning)

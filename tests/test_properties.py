@@ -480,14 +480,16 @@ def test_replay_of_a_simulated_record_is_its_estimate(data, T, seed):
 @settings(max_examples=5, phases=NO_SHRINK, **SETTINGS)
 @given(case=simulated_cases(T_min=2, T_max=10),
        arrival_cost=st.sampled_from(["none", "fixed", "filtering", "smoothing"]))
-def test_mhe_with_a_horizon_of_one_is_refused(case, arrival_cost):
-    """MHE(horizon=1) was accepted and raised IndexError at its second step: a window of
-    one sample holds no transition, so it is refused, naming horizon."""
+def test_mhe_with_a_horizon_of_one_runs(case, arrival_cost):
+    """MHE(horizon=1) once raised IndexError at its second step. A one-sample window is
+    the converged measurement update (its arrival mean the prediction, whatever the
+    arrival cost): every arrival cost runs over the record, to finite estimates."""
     name, tuning, Y, U = case
     m = model(name)
     Q = as_matrix(tuning["Q"], m.nx) + 1e-4 * np.eye(m.nx)
-    with pytest.raises(ValueError, match="horizon must be an integer >= 2"):
-        estim.MHE(m, horizon=1, arrival_cost=arrival_cost, **{**tuning, "Q": Q})
+    log = estim.replay(estim.MHE(m, horizon=1, arrival_cost=arrival_cost,
+                                 **{**tuning, "Q": Q}), Y, U, warn=False)
+    assert len(log) == len(Y) and np.isfinite(log.x_hat).all()
 
 
 # -------------------------------------------------------------- 5. missing outputs (NaN)

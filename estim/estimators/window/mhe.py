@@ -80,7 +80,9 @@ class MHE(RealTimeIteration):
     ----------
     model : Model
     horizon : int
-        :math:`N`, the number of measurements in a full window (>= 2: one has no transition).
+        :math:`N`, the number of measurements in a full window (>= 1; with one, the
+        window is the measurement update alone: with the filtering arrival cost, the
+        iterated EKF run to convergence).
     Q : float, (nx,) or (nx, nx)
         Process-noise covariance: positive definite (weights :math:`Q^{-1}`), or
         singular, noise on some directions only (the dynamics exact in the others: a
@@ -180,8 +182,7 @@ class MHE(RealTimeIteration):
         self.max_lag = as_int(max_lag, "max_lag", minimum=0)
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
-        self.horizon = as_int(horizon, "horizon", minimum=2, expected="an integer >= 2 "
-                              "(a window of one sample holds no transition)")
+        self.horizon = as_int(horizon, "horizon", minimum=1)
         solver_options, self.jit = jit_options(jit, solver_options)
         solver, self._rank = noise_solver(self.Q, solver, resolve_solver(solver, solver_options),
                                           who="MHE", model=model, loss=self._loss, rti=self.rti)

@@ -105,6 +105,10 @@ class RealTimeIteration(MovingWindow):
         if solver != "gauss-newton":
             raise ValueError(f"rti=True takes one Gauss-Newton step per sample: give "
                              f"solver='gauss-newton' (or 'auto'), got {solver!r}")
+        if self.horizon < 2:
+            raise ValueError("rti=True needs horizon >= 2 (its preparation linearises the "
+                             "window's transitions; one sample has none): horizon=1 is the "
+                             "converged measurement update, without rti")
         if self._loss is not None:
             raise ValueError("rti=True needs loss='squared' (a robust loss reweights "
                              "between iterations)")

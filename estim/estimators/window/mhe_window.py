@@ -117,8 +117,10 @@ class MovingWindow(Estimator):
             Pn = Pn.reshape(self.model.ndx, self.model.ndx, order="F")
             # a non-finite linearisation: the covariance grows as for a random walk
             self._Pbar = Pn.copy() if np.isfinite(Pn).all() else Pbar + self.Q
-        xbar = self._X[1].copy()  # previous window's estimate of the new first time
-        if self.arrival_cost == "filtering":
+        # the previous window's estimate of the new first time (a one-sample window has
+        # none: its arrival mean is the prediction, whatever the arrival cost)
+        xbar = self._X[1].copy() if self.horizon > 1 else self._X[0].copy()
+        if self.arrival_cost == "filtering" or self.horizon == 1:
             pred = self._F(x_est, u_old, self.model.p)[0]
             xbar = pred.copy() if np.isfinite(pred).all() else xbar
         if self.arrival_cost != "none":

@@ -173,7 +173,7 @@ class Globalised:
             size = np.abs(move).max()
             # contraction rate of unbounded iterations (with bounds, a tiny step can
             # precede a change of the active set and a large one)
-            rho = size / last_full if last_full < np.inf and not bounded else np.inf
+            rho = size / last_full if 0 < last_full < np.inf and not bounded else np.inf
             rest = min(size, rho * size / (1.0 - rho) if rho < 1.0 else np.inf)
             if rest <= xtol * (1.0 + xmax):
                 xmax = np.abs(x).max()
