@@ -109,6 +109,25 @@ def test_ml_nile_fixed_and_scalar_structures(nile):
 
 
 # ------------------------------------------------------- the filters whose likelihood it is
+@pytest.mark.parametrize("points", ["cubature", "gauss-hermite", "julier"])
+def test_every_sigma_point_rule_has_its_likelihood(points):
+    """log_likelihood(estimator="ukf", points=...) is the UKF of those points: the
+    recursion's whitened innovations give the filter's NIS at every sample."""
+    sc = estim.scenarios.book_pendulum(n_steps=80)
+    log = estim.simulate(sc, None, seed=2)
+    kw = {"kappa": 1.0} if points == "julier" else {"order": 4}
+    rep = estim.replay(estim.UKF(sc.model, **sc.tuning, points=points, **kw), log.y)
+    rec = _Record(sc.model, log.y, None, sc.tuning["x0"], sc.tuning["P0"], 0)
+    rule = (points, kw.get("order", 3), 0.1, 2.0, kw.get("kappa", 0.0))
+    _, eps = _core(sc.model, "ukf", rec.T, rule)(
+        np.ravel(sc.tuning["Q"]), np.ravel(sc.tuning["R"]), sc.model.p, *rec.data())
+    np.testing.assert_allclose(np.sum(np.asarray(eps).T ** 2, axis=1), rep.nis, rtol=1e-8)
+    assert np.isfinite(log_likelihood(sc.model, log.y, estimator="ukf", points=points, **kw,
+                                      **sc.tuning))
+    with pytest.raises(ValueError, match="points must be one of"):
+        log_likelihood(sc.model, log.y, estimator="ukf", points="sobol", **sc.tuning)
+
+
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 def test_ml_graph_is_the_filter(kind):
     """The compiled recursion has the innovations of estim.EKF / estim.UKF (its whitened
@@ -122,7 +141,7 @@ def test_ml_graph_is_the_filter(kind):
                                                      P0=[1.0, 2.0])
     rep = estim.replay(est, Y)
     rec = _Record(sc.model, Y, None, [0.5, 0.0], np.diag([1.0, 2.0]), 0)
-    nll, eps = _core(sc.model, kind, rec.T, (0.1, 2.0, 0.0))(
+    nll, eps = _core(sc.model, kind, rec.T, ("merwe", 3, 0.1, 2.0, 0.0))(
         Q.ravel(), R.ravel(), sc.model.p, *rec.data())
     eps = np.asarray(eps).T
     nis = np.sum(eps**2, axis=1)
@@ -145,7 +164,7 @@ def test_ml_graph_takes_the_inputs_as_replay(linear, kind):
                                                      x0=np.zeros(4), P0=linear.P0)
     rep = estim.replay(est, Y, U)
     rec = _Record(linear.model, Y, U, np.zeros(4), linear.P0, 0)
-    _, eps = _core(linear.model, kind, T, (0.1, 2.0, 0.0))(
+    _, eps = _core(linear.model, kind, T, ("merwe", 3, 0.1, 2.0, 0.0))(
         linear.Q.ravel(), linear.R.ravel(), linear.model.p, *rec.data())
     np.testing.assert_allclose(np.sum(np.asarray(eps) ** 2, axis=0), rep.nis, rtol=1e-7)
 
@@ -165,7 +184,7 @@ def test_ml_graph_with_sampled_inputs(kind):
                                                      P0=1.0)
     rep = estim.replay(est, Y, U)
     rec = _Record(model, Y, U, [0, 0], np.eye(2), 0)
-    _, eps = _core(model, kind, T, (0.1, 2.0, 0.0))(
+    _, eps = _core(model, kind, T, ("merwe", 3, 0.1, 2.0, 0.0))(
         (0.01 * np.eye(2)).ravel(), [0.09], model.p, *rec.data())
     np.testing.assert_allclose(np.sum(np.asarray(eps) ** 2, axis=0), rep.nis, rtol=1e-8)
 

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike
 
 from estim._scan import blocked_scan
 from estim._validate import as_covariance, as_inputs, as_int, as_record, as_vector
+from estim.estimators.kalman.ukf import sigma_rule
 from estim.model import Model
 
 #: A CasADi symbolic expression (SX or MX: MX when the model integrates with CVODES).
@@ -65,7 +66,7 @@ def _forward(L: list[list[Sym]], b: Sym) -> list[Sym]:
     return z
 
 
-def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple[float, float, float]
+def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
                  ) -> ca.Function:
     r"""One step of the filter with the covariances and parameters as symbols:
     ``(s, w, y, mask, q, r, p) -> (s_new, term, whitened)``.
@@ -97,16 +98,18 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple[float, float
         K = ca.solve(S, C @ Pb).T
         IKC = sym.eye(nx) - K @ C
         Ph = IKC @ Pb @ IKC.T + K @ (D @ R @ D) @ K.T
-    else:  # Van der Merwe's scaled sigma points, as filterpy's UnscentedKalmanFilter
-        alpha, beta, kappa = ukf
-        lam = alpha**2 * (nx + kappa) - nx
-        c = nx + lam
-        wm = [lam / c] + [0.5 / c] * (2 * nx)
-        wc = [lam / c + 1 - alpha**2 + beta] + [0.5 / c] * (2 * nx)
+    else:  # the UKF's sigma points (estim.UKF's rules: merwe, julier, cubature, Gauss-Hermite)
+        points, order, alpha, beta, kappa = ukf
+        c, Wm, Wc, unit = sigma_rule(points, nx, order, alpha, beta, kappa)
+        wm, wc = [float(w) for w in Wm], [float(w) for w in Wc]
 
         def sigma_points(x: Sym, P: Sym) -> list[Sym]:
             G = _lower(_cholesky(c * P), sym)
-            return [x] + [x + G[:, i] for i in range(nx)] + [x - G[:, i] for i in range(nx)]
+            if unit is not None:
+                return [x + G @ ca.DM(xi) for xi in unit.T]
+            centre = [] if points == "cubature" else [x]
+            return centre + [x + G[:, i] for i in range(nx)] + \
+                [x - G[:, i] for i in range(nx)]
 
         if predict:
             chi = [model.F(ci, w, p) for ci in sigma_points(x, P)]
@@ -143,7 +146,7 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple[float, float
 _CORES: weakref.WeakKeyDictionary[Model, dict[tuple, Any]] = weakref.WeakKeyDictionary()
 
 
-def _core(model: Model, kind: str, T: int, ukf: tuple[float, float, float]) -> ca.Function:
+def _core(model: Model, kind: str, T: int, ukf: tuple) -> ca.Function:
     r"""The whole-record recursion ``(q, r, p, x0, P0, Y, M, W, wt) -> (nll, whitened)``:
     the first step an update, then the predict-update step scanned over ``T - 1``
     samples (``mapaccum``); ``nll`` :math:`= \sum_k wt_k \, term_k`."""

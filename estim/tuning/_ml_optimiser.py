@@ -39,7 +39,7 @@ _GRADIENT_METHODS = ("L-BFGS-B", "BFGS", "CG", "TNC", "SLSQP")
 class _Objective:
     """``-log L(theta)`` with its exact gradient and its Hessian for one record."""
 
-    def __init__(self, model: Model, kind: str, T: int, ukf: tuple[float, float, float],
+    def __init__(self, model: Model, kind: str, T: int, ukf: tuple,
                  par: _Parametrisation, data: list[np.ndarray], hessian: str):
         key = ("objective", kind, T, ukf if kind == "ukf" else None, par.key)
         cache = _CORES.setdefault(model, {})

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_choice, as_covariance, as_float, as_int, as_seed
+from estim.estimators.kalman.ukf import POINTS
 from estim.model import Model
 from estim.tuning._ml_graph import DIFFUSE_VARIANCE, _core, _Record
 from estim.tuning._ml_optimiser import _check_method, _Objective, _optimise
@@ -54,7 +55,8 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
                    Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
                    P0: ArrayLike | None = None, params: Mapping[str, float] | None = None,
                    estimator: str = "ekf", burn: int | None = None, alpha: float = 0.1,
-                   beta: float = 2.0, kappa: float = 0.0) -> float:
+                   beta: float = 2.0, kappa: float = 0.0, points: str = "merwe",
+                   order: int = 3) -> float:
     r"""The prediction-error log-likelihood of a record under the EKF or UKF.
 
     .. math::
@@ -85,8 +87,9 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         Number :math:`b` of first samples whose terms are left out (the filter still
         uses them). Default 0, or ``nx`` with the diffuse prior (statsmodels'
         ``loglikelihood_burn``).
-    alpha, beta, kappa : float
-        The UKF's sigma-point parameters (as :class:`~estim.UKF`).
+    alpha, beta, kappa, points, order :
+        The UKF's sigma points (as :class:`~estim.UKF`: ``points`` one of ``"merwe"``,
+        ``"julier"``, ``"cubature"``, ``"gauss-hermite"`` of ``order``).
 
     Returns
     -------
@@ -99,7 +102,7 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     Trans. Inf. Theory 11(1), 1965; J. Durbin, S. J. Koopman, *Time Series Analysis by
     State Space Methods*, 2nd ed., Oxford 2012, sec. 7.2.
     """
-    model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa)
+    model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa, points, order)
     rec = _Record(model, Y, U, x0, P0, burn)
     Qm = as_covariance(Q, model.nx, "Q", definite=False)
     Rm = as_covariance(R, model.ny, "R", definite=True)
@@ -111,15 +114,17 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     return -nll if np.isfinite(nll) else -np.inf
 
 
-def _check_common(model: object, estimator: str, alpha: float, beta: float, kappa: float
-                  ) -> tuple[Model, str, tuple[float, float, float]]:
-    """The model, the filter's kind and the UKF's ``(alpha, beta, kappa)``, checked."""
+def _check_common(model: object, estimator: str, alpha: float, beta: float, kappa: float,
+                  points: str = "merwe", order: int = 3) -> tuple[Model, str, tuple]:
+    """The model, the filter's kind and the UKF's ``(points, order, alpha, beta, kappa)``,
+    checked."""
     if not isinstance(model, Model):
         raise TypeError(f"model must be an estim.Model, got {type(model).__name__}")
     kind = as_choice(estimator, ESTIMATORS, "estimator")
-    ukf = (as_float(alpha, "alpha", positive=True), as_float(beta, "beta"),
+    ukf = (as_choice(points, POINTS, "points"), as_int(order, "order", minimum=1),
+           as_float(alpha, "alpha", positive=True), as_float(beta, "beta"),
            as_float(kappa, "kappa"))
-    if kind == "ukf" and model.nx + ukf[2] <= 0:
+    if kind == "ukf" and ukf[0] in ("merwe", "julier") and model.nx + ukf[4] <= 0:
         raise ValueError(f"kappa must make nx + kappa positive for the UKF's sigma points "
                          f"(nx = {model.nx}), got {kappa!r}")
     return model, kind, ukf
@@ -134,8 +139,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                        seed: int | None = 0, spread: float = 1.0, burn: int | None = None,
                        method: str = "BFGS", hessian: str = "differences", tol: float = 1e-8,
                        max_iter: int = 200,
-                       alpha: float = 0.1, beta: float = 2.0, kappa: float = 0.0
-                       ) -> TuningResult:
+                       alpha: float = 0.1, beta: float = 2.0, kappa: float = 0.0,
+                       points: str = "merwe", order: int = 3) -> TuningResult:
     r"""Noise covariances (and model parameters) that maximise the likelihood of a record.
 
     Minimises the prediction-error negative log-likelihood of the EKF (or UKF)
@@ -256,7 +261,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     variance-covariance matrices", Statistics and Computing 6, 1996.
     """
     t_start = time.perf_counter()
-    model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa)
+    model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa, points, order)
     rec = _Record(model, Y, U, x0, P0, burn)
     structures = _structures(structure)
     starts = as_int(starts, "starts", minimum=1)

@@ -343,25 +343,37 @@ def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
 
 
 def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
-    """The spread, weights and unit points of ``ukf``'s sigma points (its ``points``,
-    ``order``, ``alpha``, ``beta``, ``kappa``) in the tangent space of ``model``, with the
-    checks of each rule."""
-    nx, points = model.ndx, ukf.points
+    """:func:`sigma_rule` of ``ukf``'s options in the tangent space of ``model``."""
+    if ukf.points == "gauss-hermite" and (ukf._sqrt or not model.manifold.trivial):
+        raise ValueError("points='gauss-hermite' is built in the covariance form on "
+                         "vector states; use form='covariance' (and a model without "
+                         "quaternions or angles)")
+    return sigma_rule(ukf.points, model.ndx, ukf.order, ukf.alpha, ukf.beta, ukf.kappa,
+                      stacklevel=4)
+
+
+def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 0.1, beta: float = 2.0,
+               kappa: float = 0.0, stacklevel: int = 2
+               ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
+    """The sigma-point rule ``points`` for ``n`` dimensions: the spread :math:`c`, the mean
+    and covariance weights, and the unit points ``(n, N)`` of a rule given by its points
+    (Gauss-Hermite: the points of :math:`(x, P)` are :math:`x + L\\xi_i`, :math:`L L^\\top
+    = P`), or None (merwe, julier, cubature: :func:`sigma_weights`), with each rule's
+    checks; an :class:`~estim.EstimationWarning` with the count above
+    :data:`MANY_POINTS` points."""
+    if points not in POINTS:
+        raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
+                         f"got {points!r}")
     if points == "gauss-hermite":
-        if ukf._sqrt or not model.manifold.trivial:
-            raise ValueError("points='gauss-hermite' is built in the covariance form on "
-                             "vector states; use form='covariance' (and a model without "
-                             "quaternions or angles)")
-        unit, W = gauss_hermite(nx, ukf.order)
+        unit, W = gauss_hermite(n, order)
         if W.size > MANY_POINTS:
-            warnings.warn(f"points='gauss-hermite' of order {ukf.order} on {nx} states is "
-                          f"{ukf.order}^{nx} = {W.size} sigma points, each through F and h "
-                          f"at every step", EstimationWarning, stacklevel=3)
+            warnings.warn(f"points='gauss-hermite' of order {order} on {n} states is "
+                          f"{order}^{n} = {W.size} sigma points, each through F and h "
+                          f"at every step", EstimationWarning, stacklevel=stacklevel)
         return 1.0, W, W.copy(), unit
-    if points != "cubature" and nx + ukf.kappa <= 0:
-        raise ValueError(f"kappa must make nx + kappa positive (nx = {nx}), "
-                         f"got {ukf.kappa!r}")
-    return (*sigma_weights(points, nx, ukf.alpha, ukf.beta, ukf.kappa), None)
+    if points != "cubature" and n + kappa <= 0:
+        raise ValueError(f"kappa must make nx + kappa positive (nx = {n}), got {kappa!r}")
+    return (*sigma_weights(points, n, alpha, beta, kappa), None)
 
 
 def gauss_hermite(n: int, order: int) -> tuple[np.ndarray, np.ndarray]:
