@@ -7,7 +7,9 @@ The settings (``python/example_notebooks/pendulum_*.ipynb``): Euler steps of 0.0
 ``R = 0.1``, ``Q = 0.01 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``, the prior ``(0, 0)``,
 ``P0 = I`` one step before the first measurement (a NaN row prepended), the unscented
 filter's ``alpha = 1``, ``beta = 0``, ``kappa = 3 - n``, Gauss-Hermite of order 5, 10
-iterations of the iterated filter and smoother. The RMSE of the angle.
+iterations of the iterated filter and smoother; the posterior-linearisation filter and
+smoother (IPLF, IPLS: rows IPLKF and IPLRTS) with Gauss-Hermite of order 3 and 10
+iterations. The RMSE of the angle.
 
 Run from the repository root::
 
@@ -27,7 +29,8 @@ BOOK = {"EKF": 0.16830859061153763, "ERTS": 0.057446202494837,
         "IEKF": 0.16547516472119136, "IERTS": 0.03463604419042699,
         "UKF": 0.09524392125923083, "URTS": 0.036617555415464256,
         "CKF": 0.1141966031380275, "CRTS": 0.04064624229594188,
-        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009}
+        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009,
+        "IPLKF": 0.14055766458714145, "IPLRTS": 0.034733224044175594}
 
 
 def main() -> None:
@@ -42,7 +45,9 @@ def main() -> None:
     filters = {"E": estim.EKF(m, **tuning), "IE": estim.EKF(m, **tuning, iterations=10),
                "U": estim.UKF(m, **tuning, alpha=1.0, beta=0.0, kappa=1.0),
                "C": estim.UKF(m, **tuning, points="cubature"),
-               "GH": estim.UKF(m, **tuning, points="gauss-hermite", order=5)}
+               "GH": estim.UKF(m, **tuning, points="gauss-hermite", order=5),
+               "IPL": estim.UKF(m, **tuning, points="gauss-hermite", order=3,
+                                iterations=10)}
     print("| method | book | estim | difference |")
     print("|---|---|---|---|")
     for kind, est in filters.items():

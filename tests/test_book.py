@@ -9,7 +9,8 @@ sin(theta) + r``, ``R = 0.1``, ``Q = 0.01 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``, th
 first step of estim's filters is then the prior, unmeasured; the estimates after it are
 the book's); the RMSE of the angle. The unscented filter with the book's ``alpha = 1``,
 ``beta = 0``, ``kappa = 3 - n``; the Gauss-Hermite rule of order 5; the iterated filter
-and smoother with 10 iterations."""
+and smoother with 10 iterations; the posterior-linearisation filter and smoother with
+Gauss-Hermite of order 3 and 10 iterations."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ BOOK = {"EKF": 0.16830859061153763, "ERTS": 0.057446202494837,
         "IEKF": 0.16547516472119136, "IERTS": 0.03463604419042699,
         "UKF": 0.09524392125923083, "URTS": 0.036617555415464256,
         "CKF": 0.1141966031380275, "CRTS": 0.04064624229594188,
-        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009}
+        "GHKF": 0.0998062421916222, "GHRTS": 0.03710181978632009,
+        "IPLF": 0.14055766458714145, "IPLS": 0.034733224044175594}
 
 
 def book_model() -> estim.Model:
@@ -76,3 +78,15 @@ def test_the_iterated_smoother_converges_to_the_map():
     fit = estim.FullInformation(m, **TUNING, solver="gauss-newton", solver_options={
         "xtol": 1e-15, "ftol": 1e-25, "max_iter": 500}).fit(Y, guess=converged.x)
     np.testing.assert_allclose(converged.x, fit.x, rtol=0, atol=1e-10)
+
+
+def test_the_books_posterior_linearisation():
+    """The IPLF and IPLS of the book's notebook ``pendulum_iplf``: Gauss-Hermite of order
+    3, 10 iterations of the update and 10 passes of the smoother from the filter's
+    estimates."""
+    Y = np.vstack([[np.nan], DATA["Y"][:, None]])
+    iplf = estim.UKF(book_model(), **TUNING, points="gauss-hermite", order=3, iterations=10)
+    assert abs(angle_rmse(iplf.filter(Y).x) - BOOK["IPLF"]) < 1e-12
+    ipls = iplf.smooth(Y)
+    assert ipls.iterations == 10
+    assert abs(angle_rmse(ipls.x) - BOOK["IPLS"]) < 1e-12

@@ -145,3 +145,51 @@ def test_a_one_sample_mhe_is_the_converged_iterated_ekf(pendulum_record):
     default = estim.replay(estim.MHE(PEND, horizon=1, **TUNING), Y)
     np.testing.assert_allclose(default.x_hat, iekf.x_hat, rtol=0, atol=1e-6)
     assert set(default.status) == {"ok"}
+
+
+# ---------------------------------------------------- iterated posterior linearisation
+@pytest.mark.parametrize("jit", [False, True])
+def test_posterior_linearisation_on_a_linear_model_is_the_kalman_smoother(jit):
+    """Statistical linear regression of a linear map is the map itself, with no added
+    noise: the IPLF is the Kalman filter and the IPLS the RTS smoother (filterpy)."""
+    if jit and compiler() is None:
+        pytest.skip("no C compiler")
+    from filterpy.kalman import rts_smoother
+    from linear_gaussian import A
+
+    Y = record(30, seed=5)
+    x_kf, P_kf, _ = kalman(Y)
+    xs, Ps, _, _ = rts_smoother(x_kf, P_kf, [A] * len(Y), [Q] * len(Y))
+    for points in ("cubature", "gauss-hermite"):
+        ukf = estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, points=points,
+                        iterations=4, jit=jit)
+        log = estim.replay(ukf, Y)
+        np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-11)
+        np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-11)
+        res = ukf.smooth(Y)
+        np.testing.assert_allclose(res.x, xs, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(res.P, Ps, rtol=0, atol=1e-10)
+        assert res.converged and ukf.info.iterations == 4
+
+
+def test_posterior_linearisation_once_is_the_ukf(pendulum_record):
+    Y = pendulum_record.y
+    plain = estim.replay(estim.UKF(PEND, **TUNING), Y)
+    once = estim.replay(estim.UKF(PEND, **TUNING, iterations=1), Y)
+    np.testing.assert_array_equal(once.x_hat, plain.x_hat)
+    with pytest.raises(ValueError, match="covariance form on vector states"):
+        estim.UKF(PEND, **TUNING, iterations=3, form="sqrt")
+
+
+@pytest.mark.skipif(compiler() is None, reason="no C compiler")
+def test_the_exported_iplf_steps_as_python(pendulum_record, tmp_path):
+    from test_codegen import CFilter, _close
+
+    from estim import codegen
+
+    iplf = estim.UKF(PEND, **TUNING, points="gauss-hermite", order=3, iterations=3)
+    codegen.export(iplf, tmp_path, name="iplf")
+    out = CFilter(iplf, tmp_path, "iplf").run(pendulum_record.y, None)
+    log = estim.replay(iplf, pendulum_record.y)
+    assert _close(out["x"], log.x_hat) <= 1e-12 and _close(out["P"], log.P) <= 1e-12
+

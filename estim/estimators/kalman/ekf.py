@@ -8,7 +8,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_int
 from estim.estimators.kalman.fused import FusedKalman
-from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts
+from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts, smoothing_passes
 from estim.estimators.kalman.square_root import check_form, covariances, ekf_step
 from estim.estimators.manifold_steps import (
     check_manifold_options,
@@ -243,12 +243,7 @@ class EKF(FusedKalman):
             Pb = A @ D + Q
             return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
 
-        passes = self.iterations if iterations is None else \
-            as_int(iterations, "iterations", minimum=1)
-        if passes > 1 and (self.clip or self.gate is not None or not m.manifold.trivial):
-            raise ValueError(f"iterations={passes}: the iterated smoother's passes are "
-                             f"unconstrained, use every measurement and vector states: not "
-                             f"with clip=True, a gate, or quaternion or angle states")
+        passes = smoothing_passes(self, iterations)
         clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
             else None
         first = rts(self, Y, U, t, predict, clip)

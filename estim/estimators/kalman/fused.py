@@ -283,7 +283,8 @@ class FusedKalman(Estimator):
             if m.sampled:
                 self._u_last = U[n - 1].copy()
             self._info = StepInfo._fast(P=P[n - 1].copy(), innovation=innovation[n - 1].copy(),
-                                        nis=float(nis[n - 1]), status=status[-1])
+                                        nis=float(nis[n - 1]), status=status[-1],
+                                        iterations=self._update_iterations)
         success = True
         for k in range(n, T):  # from a failed update on: the step loop
             dt = None if dts is None or k == 0 else float(dts[k - 1])

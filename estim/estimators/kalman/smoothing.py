@@ -41,7 +41,7 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_inputs, as_intervals, as_record
+from estim._validate import as_inputs, as_int, as_intervals, as_record
 from estim.estimators.base import Estimator
 from estim.estimators.filtering import Estimates, stamped
 from estim.solvers.kalman.rts import backward, transitions
@@ -163,6 +163,20 @@ def rts(estimator: Estimator, Y: ArrayLike, U: ArrayLike | None, t: ArrayLike | 
                                 success=success), m, t)
 
 
+def smoothing_passes(estimator, iterations: int | None) -> int:
+    """The passes of an iterated smoother: ``iterations`` (default the filter's), checked;
+    more than one needs unconstrained passes over every measurement on vector states."""
+    passes = estimator.iterations if iterations is None else \
+        as_int(iterations, "iterations", minimum=1)
+    if passes > 1 and (estimator.clip or estimator.gate is not None or estimator._sqrt
+                       or not estimator.model.manifold.trivial):
+        raise ValueError(f"iterations={passes}: the iterated smoother's passes are "
+                         f"unconstrained, use every measurement and vector states: not "
+                         f"with clip=True, a gate, the square-root form or quaternion or "
+                         f"angle states")
+    return passes
+
+
 def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLike | None,
              t: ArrayLike | None, iterations: int, tol: float = 1e-12) -> SmoothResult:
     r"""The iterated extended Rauch-Tung-Striebel smoother (Bell 1994): from the
@@ -220,6 +234,85 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
                 x = x + K @ v
                 IKC = np.eye(nx) - K @ Ck
                 P = IKC @ P @ IKC.T + K @ Rk @ K.T
+            Xf[k], Pf[k] = x, 0.5 * (P + P.T)
+        new, Ps, _ = backward(Xf, Pf, xb, Pb, D)
+        done += 1
+        moved = np.abs(new - Xs).max()
+        Xs = new
+        if not np.isfinite(Xs).all():
+            break
+        if moved <= tol * max(1.0, np.abs(Xs).max()):
+            converged = True
+            break
+    return replace(first, x=Xs, P=Ps, iterations=done, converged=bool(converged))
+
+
+def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLike | None,
+                         t: ArrayLike | None, iterations: int, tol: float = 1e-12
+                         ) -> SmoothResult:
+    r"""The iterated posterior linearisation smoother (IPLS; García-Fernández, Svensson
+    & Särkkä 2017) of a sigma-point filter: from the filter's estimates
+    (``first.x_filtered``, ``first.P_filtered``), up to ``iterations`` passes, each the
+    Kalman filter and RTS smoother of the model linearised by statistical linear
+    regression on the sigma points of the current posteriors :math:`N(\bar x_k, \bar P_k)`:
+
+    .. math::
+        f(x_k) \approx A_k x_k + a_k + \lambda_k, \quad \lambda_k \sim N(0, \Lambda_k),
+        \qquad h(x_k) \approx H_k x_k + b_k + \omega_k, \quad \omega_k \sim N(0, \Omega_k),
+
+    with :math:`A_k = \Psi_k^\top \bar P_k^{-1}`, :math:`a_k = \bar f_k - A_k \bar x_k`,
+    :math:`\Lambda_k = \Phi_k - A_k \bar P_k A_k^\top` from the sigma-point mean
+    :math:`\bar f_k`, cross-covariance :math:`\Psi_k` and covariance :math:`\Phi_k` of
+    :math:`f` (the same for :math:`h`), then the posteriors are the smoothed ones. Stops
+    early when no mean moved by more than ``tol`` relative to its size."""
+    m = estimator.model
+    Y, steps, W = record(m, Y, U, t)
+    T, nx, ny = Y.shape[0], m.nx, m.ny
+    Uy = np.array([u for u, _ in steps]).reshape(T, m.nu)
+    mask = np.isfinite(Y)
+    Q, R = estimator.Q, estimator.R
+    Wm, Wc = estimator._Wm, estimator._Wc
+    ns = len(Wm)
+    Xs, Ps = first.x_filtered, first.P_filtered
+    H_map = m.H.map(T * ns)
+    pm = ca.DM(m.p)
+    done, converged = 0, False
+
+    def regression(sig, X, P, out):
+        """``(A, a, Lambda)`` of the outputs ``out (n, ns, d)`` at the points ``sig``."""
+        mean = np.einsum("j,kjd->kd", Wm, out)
+        dO, dX = out - mean[:, None], sig - X[:, None]
+        Phi = np.einsum("j,kja,kjb->kab", Wc, dO, dO)
+        Psi = np.einsum("j,kja,kjb->kab", Wc, dX, dO)
+        A = np.linalg.solve(P, Psi).transpose(0, 2, 1)
+        return A, mean - np.einsum("kab,kb->ka", A, X), \
+            Phi - A @ P @ A.transpose(0, 2, 1)
+
+    for _ in range(iterations):
+        sig = estimator.sigma_points(Xs, Ps)  # (T, ns, nx)
+        Z = np.asarray(H_map(sig.reshape(T * ns, nx).T, np.repeat(Uy, ns, axis=0).T,
+                             pm)).T.reshape(T, ns, ny)
+        Hk, bk, Om = regression(sig, Xs, Ps, Z)
+        if T > 1:
+            Fs = transitions(m, sig[:-1].reshape((T - 1) * ns, nx), np.repeat(W, ns, axis=0)
+                             ).reshape(T - 1, ns, nx)
+            Ak, ak, Lam = regression(sig[:-1], Xs[:-1], Ps[:-1], Fs)
+        Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
+        xb, Pb, D = np.empty((T - 1, nx)), np.empty((T - 1, nx, nx)), np.empty((T - 1, nx, nx))
+        x, P = np.asarray(estimator.x0, float), np.asarray(estimator.P0, float)
+        for k in range(T):
+            if k:
+                x = Ak[k - 1] @ Xf[k - 1] + ak[k - 1]
+                D[k - 1] = Pf[k - 1] @ Ak[k - 1].T
+                P = Ak[k - 1] @ D[k - 1] + Lam[k - 1] + Q
+                xb[k - 1], Pb[k - 1] = x, 0.5 * (P + P.T)
+            rows = mask[k]
+            if rows.any():
+                C, Rk = Hk[k][rows], (R + Om[k])[np.ix_(rows, rows)]
+                S = C @ P @ C.T + Rk
+                K = np.linalg.solve(0.5 * (S + S.T), C @ P).T
+                x = x + K @ (Y[k, rows] - C @ x - bk[k, rows])
+                P = P - K @ S @ K.T
             Xf[k], Pf[k] = x, 0.5 * (P + P.T)
         new, Ps, _ = backward(Xf, Pf, xb, Pb, D)
         done += 1

@@ -12,7 +12,12 @@ from estim._manifold import NP
 from estim._validate import as_bool, as_float, as_int
 from estim.estimators.base import EstimationWarning
 from estim.estimators.kalman.fused import FusedKalman
-from estim.estimators.kalman.smoothing import SmoothResult, rts
+from estim.estimators.kalman.smoothing import (
+    SmoothResult,
+    posterior_linearised,
+    rts,
+    smoothing_passes,
+)
 from estim.estimators.kalman.square_root import check_form, covariance, ukf_step
 from estim.estimators.manifold_steps import check_manifold_options, usque_step
 from estim.model import Model
@@ -78,6 +83,13 @@ class UKF(FusedKalman):
     order : int
         The Gauss-Hermite rule's order (points per dimension; default 3). Above
         10 000 points in all a warning gives the count.
+    iterations : int
+        Iterations of the measurement update (default 1: the UKF). With :math:`K > 1`
+        the iterated posterior linearisation filter (IPLF): the update is redone
+        :math:`K - 1` times with :math:`h` linearised by statistical linear regression on
+        the sigma points of the last posterior (:func:`_relinearised`), unrolled in the
+        one compiled step; ``info.iterations`` is :math:`K`; :meth:`smooth` iterates
+        too (the IPLS). Covariance form, vector states.
     alpha, beta, kappa : float
         Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
         distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
@@ -119,7 +131,8 @@ class UKF(FusedKalman):
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False, order: int = 3):
+                 form: str = "covariance", jit: bool = False, order: int = 3,
+                 iterations: int = 1):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)
@@ -133,6 +146,12 @@ class UKF(FusedKalman):
         self.lower, self.upper = model.lower, model.upper
         check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
         self.order = as_int(order, "order", minimum=1)
+        self.iterations = as_int(iterations, "iterations", minimum=1)
+        if self.iterations > 1 and (self._sqrt or not model.manifold.trivial):
+            raise ValueError(f"iterations={self.iterations}: the iterated posterior "
+                             f"linearisation is built in the covariance form on vector "
+                             f"states; use form='covariance', or iterations=1")
+        self._update_iterations = self.iterations if self.iterations > 1 else 0
         #: the spread, the weights, and the unit points (nx, N) of a rule given by its
         #: points or None (merwe, julier, cubature: the rows of the factor of c P)
         self._scale, self._Wm, self._Wc, self._unit = _rule(self, model)
@@ -194,10 +213,14 @@ class UKF(FusedKalman):
         e = ca.if_else(mask, y - zp, 0)
         K = ca.solve(S, Pxz.T).T
         xh = xb + K @ e
-        if self.clip:
-            xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
         Ph = Pb - K @ S @ K.T
         Ph = 0.5 * (Ph + Ph.T)
+        if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
+            xh, Ph, posterior = _relinearised(self, xb, Pb, xh, Ph, y, mask,
+                                              D @ R @ D + ca.diag(1 - mask), uy, p)
+            ok_prior = ca.logic_and(ok_prior, posterior)
+        if self.clip:
+            xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
         nis = ca.dot(e, ca.solve(S, e))
         s_new = ca.vertcat(xh, ca.vec(Ph))
         s_prior = ca.vertcat(xb, ca.vec(Pb))
@@ -228,8 +251,12 @@ class UKF(FusedKalman):
         return np.concatenate(centre + [xs + off, xs - off], axis=-2)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
-               t: ArrayLike | None = None) -> SmoothResult:
-        r"""Unscented Rauch-Tung-Striebel smoother over a whole record (Särkkä 2008).
+               t: ArrayLike | None = None, iterations: int | None = None) -> SmoothResult:
+        r"""Unscented Rauch-Tung-Striebel smoother over a whole record (Särkkä 2008); with
+        ``iterations`` above 1 (default: the filter's), the iterated posterior
+        linearisation smoother from the filter's estimates
+        (:func:`~estim.estimators.kalman.smoothing.posterior_linearised`; ``result.iterations``
+        and ``result.converged`` say how it ended; not with ``clip`` or a gate).
 
         The filter runs forward over the record with :meth:`filter` (one compiled
         call, equal to :meth:`step` at every sample after a :meth:`reset`; inputs,
@@ -278,27 +305,10 @@ class UKF(FusedKalman):
         ----------
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
-        m, Q = self.model, self.Q
-        M = m.manifold
-
-        def predict(X, P, W):
-            n, ns, nx = len(X), len(self._Wm), m.nx
-            sig = self.sigma_points(X, P)  # (n, ns, nx)
-            Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
-                             ).reshape(n, ns, nx)
-            if M.euclidean_states:
-                xb = np.einsum("i,kij->kj", self._Wm, Fs)
-                dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
-            else:  # tangent deviations: the mean about F(x), as the filter's prediction
-                ref = transitions(m, X, W)[:, None, :]
-                xb = M.retract(ref[:, 0], np.einsum("i,kij->kj", self._Wm,
-                                                    M.local(ref, Fs, NP)), NP)
-                dF, dX = M.local(xb[:, None, :], Fs, NP), M.local(X[:, None, :], sig, NP)
-            Pb = np.einsum("i,kia,kib->kab", self._Wc, dF, dF) + Q
-            D = np.einsum("i,kia,kib->kab", self._Wc, dX, dF)
-            return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
-
-        return rts(self, Y, U, t, predict, self.model.clip if self.clip else None)
+        passes = smoothing_passes(self, iterations)
+        first = rts(self, Y, U, t, _unscented_prediction(self),
+                    self.model.clip if self.clip else None)
+        return first if passes == 1 else posterior_linearised(self, first, Y, U, t, passes)
 
     @property
     def x(self) -> np.ndarray:
@@ -340,6 +350,70 @@ def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
     if points == "merwe":
         Wc[0] += 1 - alpha ** 2 + beta
     return c, Wm, Wc
+
+
+def _unscented_prediction(ukf: UKF):
+    """The unscented smoother's prediction of every transition at once (see
+    :meth:`UKF.smooth`): ``(X, P, W) -> (x_bar, P_bar, D)``."""
+    m, Q = ukf.model, ukf.Q
+    M = m.manifold
+
+    def predict(X, P, W):
+        n, ns, nx = len(X), len(ukf._Wm), m.nx
+        sig = ukf.sigma_points(X, P)  # (n, ns, nx)
+        Fs = transitions(m, sig.reshape(n * ns, nx), np.repeat(W, ns, axis=0)
+                         ).reshape(n, ns, nx)
+        if M.euclidean_states:
+            xb = np.einsum("i,kij->kj", ukf._Wm, Fs)
+            dF, dX = Fs - xb[:, None, :], sig - X[:, None, :]
+        else:  # tangent deviations: the mean about F(x), as the filter's prediction
+            ref = transitions(m, X, W)[:, None, :]
+            xb = M.retract(ref[:, 0], np.einsum("i,kij->kj", ukf._Wm,
+                                                M.local(ref, Fs, NP)), NP)
+            dF, dX = M.local(xb[:, None, :], Fs, NP), M.local(X[:, None, :], sig, NP)
+        Pb = np.einsum("i,kia,kib->kab", ukf._Wc, dF, dF) + Q
+        D = np.einsum("i,kia,kib->kab", ukf._Wc, dX, dF)
+        return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+
+    return predict
+
+
+def _relinearised(ukf: UKF, xb, Pb, x1, P1, y, mask, Rm, uy, p) -> tuple:
+    r"""Iterations 2 to :math:`K` of the iterated posterior linearisation filter
+    (García-Fernández, Svensson, Morelande & Särkkä 2015) from the UKF's update
+    ``(x1, P1)``: the statistical linear regression of :math:`h` on the sigma points of
+    the current posterior :math:`N(x_i, P_i)`,
+
+    .. math::
+        ar z = \sum_j W^m_j h(\mathcal X_j), \quad
+        \Psi = \sum_j W^c_j (\mathcal X_j - x_i)(h(\mathcal X_j) - ar z)^	op, \quad
+        \Phi = \sum_j W^c_j (h(\mathcal X_j) - ar z)(\cdot)^	op, \
+        H = \Psi^	op P_i^{-1}, \quad b = ar z - H x_i, \quad
+        \Omega = \Phi - H P_i H^	op,
+
+    then the Kalman update of the prediction :math:`(ar x, ar P)` by
+    :math:`y = H x + b + v`, :math:`v \sim N(0, R + \Omega)`. Returns the last posterior
+    and whether every :math:`P_i` had its sigma points (positive definite)."""
+    m, Wm, Wc = ukf.model, ukf._Wm, ukf._Wc
+    xi, Pi, definite = x1, P1, ca.SX(1)
+    for _ in range(ukf.iterations - 1):
+        sig, ok = ukf._sigma_points(xi, Pi)
+        definite = ca.logic_and(definite, ok)
+        Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
+        zb = sum((float(w) * z for w, z in zip(Wm, Z, strict=True)), ca.SX.zeros(m.ny))
+        Psi = sum((float(w) * (v - xi) @ (z - zb).T for w, v, z in zip(Wc, sig, Z,
+                                                                       strict=True)),
+                  ca.SX.zeros(m.nx, m.ny))
+        Phi = sum((float(w) * (z - zb) @ (z - zb).T for w, z in zip(Wc, Z, strict=True)),
+                  ca.SX.zeros(m.ny, m.ny))
+        H = ca.solve(Pi, Psi).T
+        S = H @ Pb @ H.T + Phi - H @ Pi @ H.T + Rm
+        S = 0.5 * (S + S.T)
+        K = ca.solve(S, H @ Pb).T
+        xi = xb + K @ ca.if_else(mask, y - H @ xb - (zb - H @ xi), 0)
+        Pi = Pb - K @ S @ K.T
+        Pi = 0.5 * (Pi + Pi.T)
+    return xi, Pi, definite
 
 
 def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
