@@ -206,45 +206,21 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
     Y, steps, W = record(m, Y, U, t)
     T, nx = Y.shape[0], m.nx
     Uy = np.array([u for u, _ in steps]).reshape(T, m.nu)
-    mask = np.isfinite(Y)
-    Q, R = estimator.Q, estimator.R
-    Xs, Ps, done, converged = first.x, first.P, 1, iterations == 1
     pm = ca.DM(m.p)
     out = (m.H.map(T), m.H_x.map(T))
-    for _ in range(iterations - 1):
+    Qs = np.broadcast_to(estimator.Q, (max(T - 1, 0), nx, nx))
+    Rs = np.broadcast_to(estimator.R, (T, m.ny, m.ny))
+
+    def linearise(Xs, Ps):  # the Jacobians and the affine terms at the trajectory
         FX = transitions(m, Xs[:-1], W) if T > 1 else np.empty((0, nx))
         A = transitions(m, Xs[:-1], W, jacobian=True) if T > 1 else np.empty((0, nx, nx))
         HX = np.asarray(out[0](Xs.T, Uy.T, pm)).T
         C = np.asarray(out[1](Xs.T, Uy.T, pm)).reshape(m.ny, T, nx).transpose(1, 0, 2)
-        Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
-        xb, Pb, D = np.empty((T - 1, nx)), np.empty((T - 1, nx, nx)), np.empty((T - 1, nx, nx))
-        x, P = np.asarray(estimator.x0, float), np.asarray(estimator.P0, float)
-        for k in range(T):
-            if k:
-                x = FX[k - 1] + A[k - 1] @ (Xf[k - 1] - Xs[k - 1])
-                D[k - 1] = Pf[k - 1] @ A[k - 1].T
-                P = A[k - 1] @ D[k - 1] + Q
-                xb[k - 1], Pb[k - 1] = x, 0.5 * (P + P.T)
-            rows = mask[k]
-            if rows.any():
-                Ck, Rk = C[k][rows], R[np.ix_(rows, rows)]
-                v = Y[k, rows] - HX[k, rows] - Ck @ (x - Xs[k])
-                S = Ck @ P @ Ck.T + Rk
-                K = np.linalg.solve(0.5 * (S + S.T), Ck @ P).T
-                x = x + K @ v
-                IKC = np.eye(nx) - K @ Ck
-                P = IKC @ P @ IKC.T + K @ Rk @ K.T
-            Xf[k], Pf[k] = x, 0.5 * (P + P.T)
-        new, Ps, _ = backward(Xf, Pf, xb, Pb, D)
-        done += 1
-        moved = np.abs(new - Xs).max()
-        Xs = new
-        if not np.isfinite(Xs).all():
-            break
-        if moved <= tol * max(1.0, np.abs(Xs).max()):
-            converged = True
-            break
-    return replace(first, x=Xs, P=Ps, iterations=done, converged=bool(converged))
+        return (A, FX - np.einsum("kab,kb->ka", A, Xs[:-1]), Qs,
+                C, HX - np.einsum("kab,kb->ka", C, Xs), Rs)
+
+    return _passes(estimator, first, Y, first.x, first.P, iterations - 1, tol, linearise,
+                   start=1)
 
 
 def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLike | None,
@@ -269,14 +245,10 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     Y, steps, W = record(m, Y, U, t)
     T, nx, ny = Y.shape[0], m.nx, m.ny
     Uy = np.array([u for u, _ in steps]).reshape(T, m.nu)
-    mask = np.isfinite(Y)
-    Q, R = estimator.Q, estimator.R
     Wm, Wc = estimator._Wm, estimator._Wc
     ns = len(Wm)
-    Xs, Ps = first.x_filtered, first.P_filtered
     H_map = m.H.map(T * ns)
     pm = ca.DM(m.p)
-    done, converged = 0, False
 
     def regression(sig, X, P, out):
         """``(A, a, Lambda)`` of the outputs ``out (n, ns, d)`` at the points ``sig``."""
@@ -288,31 +260,52 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
         return A, mean - np.einsum("kab,kb->ka", A, X), \
             Phi - A @ P @ A.transpose(0, 2, 1)
 
-    for _ in range(iterations):
+    def linearise(Xs, Ps):  # by regression on the posteriors' sigma points
         sig = estimator.sigma_points(Xs, Ps)  # (T, ns, nx)
         Z = np.asarray(H_map(sig.reshape(T * ns, nx).T, np.repeat(Uy, ns, axis=0).T,
                              pm)).T.reshape(T, ns, ny)
-        Hk, bk, Om = regression(sig, Xs, Ps, Z)
+        H, b, Om = regression(sig, Xs, Ps, Z)
+        A, a, Lam = np.empty((0, nx, nx)), np.empty((0, nx)), np.empty((0, nx, nx))
         if T > 1:
             Fs = transitions(m, sig[:-1].reshape((T - 1) * ns, nx), np.repeat(W, ns, axis=0)
                              ).reshape(T - 1, ns, nx)
-            Ak, ak, Lam = regression(sig[:-1], Xs[:-1], Ps[:-1], Fs)
+            A, a, Lam = regression(sig[:-1], Xs[:-1], Ps[:-1], Fs)
+        return A, a, Lam + estimator.Q, H, b, Om + estimator.R
+
+    return _passes(estimator, first, Y, first.x_filtered, first.P_filtered, iterations, tol,
+                   linearise)
+
+
+def _passes(estimator, first: SmoothResult, Y: np.ndarray, Xs: np.ndarray, Ps: np.ndarray,
+            passes: int, tol: float, linearise: Callable, start: int = 0) -> SmoothResult:
+    r"""Up to ``passes`` passes from the posteriors ``(Xs, Ps)``: each the Kalman filter
+    (from the estimator's prior, on the first sample) and RTS smoother of the affine model
+    ``linearise(Xs, Ps)`` gives, :math:`x_{k+1} = A_k x_k + a_k + N(0, Q_k)`,
+    :math:`y_k = H_k x_k + b_k + N(0, R_k)`, whose smoothed posteriors are the next
+    pass's; ``first`` with the last, the passes done (``start`` counted before) and
+    whether no mean moved beyond ``tol`` relative to its size."""
+    T, nx = len(Xs), Xs.shape[1]
+    mask = np.isfinite(Y)
+    done, converged = start, passes == 0
+    for _ in range(passes):
+        A, a, Qk, H, b, Rk = linearise(Xs, Ps)
         Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
         xb, Pb, D = np.empty((T - 1, nx)), np.empty((T - 1, nx, nx)), np.empty((T - 1, nx, nx))
         x, P = np.asarray(estimator.x0, float), np.asarray(estimator.P0, float)
         for k in range(T):
             if k:
-                x = Ak[k - 1] @ Xf[k - 1] + ak[k - 1]
-                D[k - 1] = Pf[k - 1] @ Ak[k - 1].T
-                P = Ak[k - 1] @ D[k - 1] + Lam[k - 1] + Q
+                x = A[k - 1] @ Xf[k - 1] + a[k - 1]
+                D[k - 1] = Pf[k - 1] @ A[k - 1].T
+                P = A[k - 1] @ D[k - 1] + Qk[k - 1]
                 xb[k - 1], Pb[k - 1] = x, 0.5 * (P + P.T)
             rows = mask[k]
-            if rows.any():
-                C, Rk = Hk[k][rows], (R + Om[k])[np.ix_(rows, rows)]
-                S = C @ P @ C.T + Rk
+            if rows.any():  # the update by the measured rows (Joseph form)
+                C, Rm = H[k][rows], Rk[k][np.ix_(rows, rows)]
+                S = C @ P @ C.T + Rm
                 K = np.linalg.solve(0.5 * (S + S.T), C @ P).T
-                x = x + K @ (Y[k, rows] - C @ x - bk[k, rows])
-                P = P - K @ S @ K.T
+                x = x + K @ (Y[k, rows] - C @ x - b[k, rows])
+                IKC = np.eye(nx) - K @ C
+                P = IKC @ P @ IKC.T + K @ Rm @ K.T
             Xf[k], Pf[k] = x, 0.5 * (P + P.T)
         new, Ps, _ = backward(Xf, Pf, xb, Pb, D)
         done += 1
