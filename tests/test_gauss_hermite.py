@@ -82,3 +82,37 @@ def test_jit_and_the_c_export_carry_the_rule(tmp_path):
     codegen.export(ghkf, tmp_path, name="ghkf")
     out = CFilter(ghkf, tmp_path, "ghkf").run(log.y, None)
     assert _close(out["x"], ref.x_hat) <= 1e-12 and _close(out["P"], ref.P) <= 1e-12
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_the_fifth_degree_rule_integrates_every_quintic(n):
+    """points="cubature5": 2n^2 + 1 points, exact for every monomial of total degree up
+    to 5 (and not for every one of degree 6), negative axis weights beyond 4 states."""
+    from estim.estimators.kalman.ukf import cubature5
+
+    unit, W = cubature5(n)
+    assert unit.shape == (n, 2 * n * n + 1) and W.sum() == pytest.approx(1.0, abs=1e-14)
+
+    def moment(a: int) -> float:
+        return 0.0 if a % 2 else float(np.prod(np.arange(a - 1, 0, -2))) if a else 1.0
+
+    for exps in itertools.product(range(6), repeat=n):
+        if sum(exps) > 5:
+            continue
+        terms = W * np.prod(unit ** np.array(exps)[:, None], axis=0)
+        exact = float(np.prod([moment(a) for a in exps]))
+        assert abs(float(terms.sum()) - exact) <= 1e-12 * max(1.0, np.abs(terms).sum()), exps
+    sixth = float(np.sum(W * unit[0] ** 6))
+    assert n == 1 or abs(sixth - 15.0) > 1e-6  # degree 6 is beyond the rule
+    assert (W < 0).any() == (n > 4)
+
+
+def test_the_fifth_degree_filter_on_a_linear_model_is_the_kalman_filter():
+    Y = record(25, seed=6)
+    x_kf, P_kf, _ = kalman(Y)
+    log = estim.replay(estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0,
+                                 points="cubature5"), Y)
+    np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="'cubature5' is built in the covariance form"):
+        estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, points="cubature5", form="sqrt")

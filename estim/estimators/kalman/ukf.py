@@ -25,7 +25,7 @@ from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.rts import transitions
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
-POINTS = ("merwe", "julier", "cubature", "gauss-hermite")
+POINTS = ("merwe", "julier", "cubature", "cubature5", "gauss-hermite")
 
 #: Gauss-Hermite rules with more points than this are warned about (p^n grows fast)
 MANY_POINTS = 10_000
@@ -74,9 +74,10 @@ class UKF(FusedKalman):
     model : Model
     Q, R, x0, P0 :
         As for every estimator.
-    points : {"merwe", "julier", "cubature", "gauss-hermite"}
+    points : {"merwe", "julier", "cubature", "cubature5", "gauss-hermite"}
         Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
-        :math:`2n_x` equally weighted points of the cubature Kalman filter, or the
+        :math:`2n_x` equally weighted points of the cubature Kalman filter, the
+        fifth-degree cubature rule (:func:`cubature5`, :math:`2n_x^2 + 1` points), or the
         Gauss-Hermite rule of ``order`` :math:`p` (:func:`gauss_hermite`: :math:`p^{n_x}`
         points :math:`x + L\xi_i`, :math:`L L^\top = P`; the Gauss-Hermite Kalman
         filter; covariance form, vector states).
@@ -418,10 +419,11 @@ def _relinearised(ukf: UKF, xb, Pb, x1, P1, y, mask, Rm, uy, p) -> tuple:
 
 def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
     """:func:`sigma_rule` of ``ukf``'s options in the tangent space of ``model``."""
-    if ukf.points == "gauss-hermite" and (ukf._sqrt or not model.manifold.trivial):
-        raise ValueError("points='gauss-hermite' is built in the covariance form on "
-                         "vector states; use form='covariance' (and a model without "
-                         "quaternions or angles)")
+    if ukf.points in ("gauss-hermite", "cubature5") and (ukf._sqrt
+                                                         or not model.manifold.trivial):
+        raise ValueError(f"points={ukf.points!r} is built in the covariance form on "
+                         f"vector states; use form='covariance' (and a model without "
+                         f"quaternions or angles)")
     return sigma_rule(ukf.points, model.ndx, ukf.order, ukf.alpha, ukf.beta, ukf.kappa,
                       stacklevel=4)
 
@@ -438,6 +440,9 @@ def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 0.1, beta: fl
     if points not in POINTS:
         raise ValueError(f"points must be one of {', '.join(map(repr, POINTS))}, "
                          f"got {points!r}")
+    if points == "cubature5":
+        unit, W = cubature5(n)
+        return 1.0, W, W.copy(), unit
     if points == "gauss-hermite":
         unit, W = gauss_hermite(n, order)
         if W.size > MANY_POINTS:
@@ -448,6 +453,30 @@ def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 0.1, beta: fl
     if points != "cubature" and n + kappa <= 0:
         raise ValueError(f"kappa must make nx + kappa positive (nx = {n}), got {kappa!r}")
     return (*sigma_weights(points, n, alpha, beta, kappa), None)
+
+
+def cubature5(n: int) -> tuple[np.ndarray, np.ndarray]:
+    r"""The fifth-degree fully symmetric rule for :math:`N(0, I_n)` (McNamee & Stenger
+    1967; Särkkä & Svensson 2023, sec. 8.6): :math:`2n^2 + 1` unit points, the centre
+    (weight :math:`2/(n+2)`), :math:`\pm\sqrt{n+2}\,e_i` (weight
+    :math:`(4-n)/(2(n+2)^2)`) and :math:`\pm\sqrt{(n+2)/2}\,(e_i \pm e_j)`, :math:`i < j`
+    (weight :math:`1/(n+2)^2`). Exact for every polynomial of total degree 5 or less;
+    for :math:`n > 4` the axis weights are negative (the covariance form only)."""
+    eye = np.eye(n)
+    cols = [np.zeros(n)]
+    W = [2.0 / (n + 2)]
+    for i in range(n):
+        for sign in (1.0, -1.0):
+            cols.append(sign * np.sqrt(n + 2.0) * eye[i])
+            W.append((4.0 - n) / (2.0 * (n + 2) ** 2))
+    r = np.sqrt((n + 2.0) / 2.0)
+    for i in range(n):
+        for j in range(i + 1, n):
+            for si in (1.0, -1.0):
+                for sj in (1.0, -1.0):
+                    cols.append(r * (si * eye[i] + sj * eye[j]))
+                    W.append(1.0 / (n + 2) ** 2)
+    return np.array(cols).T, np.array(W)
 
 
 def gauss_hermite(n: int, order: int) -> tuple[np.ndarray, np.ndarray]:
