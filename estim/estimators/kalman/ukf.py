@@ -179,21 +179,12 @@ class UKF(FusedKalman):
         Wm, Wc = self._Wm, self._Wc
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
 
-        def mean(points, weights):
-            return sum((float(w) * v for w, v in zip(weights, points, strict=True)),
-                       ca.SX.zeros(points[0].numel()))
-
-        def cov(a, b, weights):
-            return sum((float(w) * (da @ db.T) for w, da, db in zip(weights, a, b,
-                                                                    strict=True)),
-                       ca.SX.zeros(a[0].numel(), b[0].numel()))
-
         if predict:
             sig, definite = self._sigma_points(x, P)
             FX = [m.F(v, u, p) for v in sig]
-            xb = mean(FX, Wm)
+            xb = _mean(FX, Wm)
             dF = [v - xb for v in FX]
-            Pb = cov(dF, dF, Wc) + Q
+            Pb = _cov(dF, dF, Wc) + Q
             ok_mean = ca.logic_and(definite, finite(ca.vertcat(*FX)))
         else:
             xb, Pb = x, P
@@ -204,13 +195,13 @@ class UKF(FusedKalman):
                                 finite(ca.vertcat(xb, ca.vec(Pb))))
         uy = m.measurement_input(u)  # the input at this measurement
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]  # missing rows: 0
-        zp = mean(Z, Wm)
+        zp = _mean(Z, Wm)
         dZ = [v - zp for v in Z]
         dX = [v - xb for v in sig]
         D = ca.diag(mask)
-        S = cov(dZ, dZ, Wc) + D @ R @ D + ca.diag(1 - mask)
+        S = _cov(dZ, dZ, Wc) + D @ R @ D + ca.diag(1 - mask)
         S = 0.5 * (S + S.T)
-        Pxz = cov(dX, dZ, Wc)
+        Pxz = _cov(dX, dZ, Wc)
         e = ca.if_else(mask, y - zp, 0)
         K = ca.solve(S, Pxz.T).T
         xh = xb + K @ e
@@ -379,6 +370,18 @@ def _unscented_prediction(ukf: UKF):
     return predict
 
 
+def _mean(points: list, weights: np.ndarray) -> ca.SX:
+    """:math:`\\sum_i w_i v_i` of the sigma points' images ``points``."""
+    return sum((float(w) * v for w, v in zip(weights, points, strict=True)),
+               ca.SX.zeros(points[0].numel()))
+
+
+def _cov(a: list, b: list, weights: np.ndarray) -> ca.SX:
+    """:math:`\\sum_i w_i a_i b_i^\\top` of deviations ``a``, ``b``."""
+    return sum((float(w) * (da @ db.T) for w, da, db in zip(weights, a, b, strict=True)),
+               ca.SX.zeros(a[0].numel(), b[0].numel()))
+
+
 def _relinearised(ukf: UKF, xb, Pb, x1, P1, y, mask, Rm, uy, p) -> tuple:
     r"""Iterations 2 to :math:`K` of the iterated posterior linearisation filter
     (García-Fernández, Svensson, Morelande & Särkkä 2015) from the UKF's update
@@ -401,12 +404,10 @@ def _relinearised(ukf: UKF, xb, Pb, x1, P1, y, mask, Rm, uy, p) -> tuple:
         sig, ok = ukf._sigma_points(xi, Pi)
         definite = ca.logic_and(definite, ok)
         Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
-        zb = sum((float(w) * z for w, z in zip(Wm, Z, strict=True)), ca.SX.zeros(m.ny))
-        Psi = sum((float(w) * (v - xi) @ (z - zb).T for w, v, z in zip(Wc, sig, Z,
-                                                                       strict=True)),
-                  ca.SX.zeros(m.nx, m.ny))
-        Phi = sum((float(w) * (z - zb) @ (z - zb).T for w, z in zip(Wc, Z, strict=True)),
-                  ca.SX.zeros(m.ny, m.ny))
+        zb = _mean(Z, Wm)
+        dZ = [z - zb for z in Z]
+        Psi = _cov([v - xi for v in sig], dZ, Wc)
+        Phi = _cov(dZ, dZ, Wc)
         H = ca.solve(Pi, Psi).T
         S = H @ Pb @ H.T + Phi - H @ Pi @ H.T + Rm
         S = 0.5 * (S + S.T)

@@ -350,11 +350,13 @@ class LeastSquaresNLP(Reweighted):
     def covariance(self, X: np.ndarray) -> np.ndarray | None:
         """Laplace covariance of the last state, ``[(J^T J)^{-1}]_{N-1,N-1}``, at the
         solution ``X`` for the parameters of the last solve (None if singular)."""
-        P = self.gn.covariance(np.asarray(X, float).ravel(), self._p, self._complete)
-        return P if np.isfinite(P).all() else None
+        P = self.covariance_at(np.asarray(X, float).ravel(), self._p, self._complete)
+        return P if P is not None and np.isfinite(P).all() else None
 
-    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
-        """The last slot's Laplace covariance at ``x`` (flat) for the parameters ``p``."""
+    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool
+                      ) -> np.ndarray | None:
+        """The last slot's Laplace covariance at ``x`` (flat) for the parameters ``p``
+        (None where there is none)."""
         return self.gn.covariance(x, p, complete)
 
     def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool
@@ -474,14 +476,10 @@ class SingularNoiseNLP(LeastSquaresNLP):
         return np.where(np.isfinite(W), W, 0.0)
 
     # ------------------------------------------------------------- covariances
-    def covariance(self, X: np.ndarray) -> np.ndarray | None:
-        P = self.covariances_at(np.asarray(X, float).ravel(), self._p, self._complete,
-                                last_only=True)
-        return None if P is None else P[-1]
-
-    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool) -> np.ndarray:
+    def covariance_at(self, x: np.ndarray, p: np.ndarray, complete: bool
+                      ) -> np.ndarray | None:
         P = self.covariances_at(x, p, complete, last_only=True)
-        return np.full((self.model.nx,) * 2, np.nan) if P is None else P[-1]
+        return None if P is None else P[-1]
 
     def covariances_at(self, x: np.ndarray, p: np.ndarray, complete: bool,
                        last_only: bool = False) -> np.ndarray | None:
