@@ -266,6 +266,7 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
     compiled (see :func:`~estim.solvers.seeds.seed_map`).
     """
     from estim.estimators.kalman.fused_calls import SeedFilter
+    from estim.solvers.kalman.kalman import NFLAGS
 
     S = len(seeds)
     plant = _Plant(scenario)
@@ -276,7 +277,7 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
         building.result()
     x_end, X, Y = np.empty((S, nx)), np.empty((S, T, nx)), np.empty((S, T, ny))
     states = {name: np.empty((S, T, nx + nx * nx)) for name in filters}
-    flags = {name: np.empty((S, T, 8)) for name in filters}
+    flags = {name: np.empty((S, T, NFLAGS)) for name in filters}
     scores = {name: _Scores(S, nx) for name in filters}
     outs: dict[str, list[dict]] = {name: [] for name in filters}
     finite = np.empty(S, dtype=bool)

@@ -63,6 +63,26 @@ def _root_record():
     return m, Y, U
 
 
+ITERATED = {
+    "iekf_vdp": lambda m, **t: estim.EKF(m, **t, iterations=3, damping="line-search"),
+    "lmekf_vdp": lambda m, **t: estim.EKF(m, **t, iterations=2,
+                                          damping="levenberg-marquardt"),
+    "iplf_vdp": lambda m, **t: estim.UKF(m, **t, points="gauss-hermite", order=3,
+                                         iterations=2, damping="relaxed")}
+
+
+def _cubic_record():
+    """A cube-law sensor seen from a prior far from the state: Levenberg-Marquardt with
+    two iterations does not converge (every step suspect)."""
+    m = estim.Model(states=["x"], outputs=["y"], dynamics=lambda x, u, p: x,
+                    output=lambda x, u, p: x ** 3, name="cube sensor")
+    rng = np.random.default_rng(0)
+    x = 2 + np.cumsum(rng.normal(0, 0.05, 40))
+    est = estim.EKF(m, Q=0.0025, R=1e-4, x0=[0.1], P0=1.0, iterations=2,
+                    damping="levenberg-marquardt")
+    return est, (x ** 3 + rng.normal(0, 0.01, 40))[:, None], None
+
+
 def _configuration(key: str):
     """``(estimator, Y, U)`` of a configuration; ``U[k]`` acts after sample ``k``."""
     reactor = estim.scenarios.batch_reactor(n_steps=200)
@@ -76,6 +96,11 @@ def _configuration(key: str):
                "cubature": lambda: estim.UKF(reactor.model, **reactor.tuning,
                                              points="cubature")}[kind]()
         return est, Y, U
+    if key == "lmekf_cubic":
+        return _cubic_record()
+    if key in ITERATED:  # iterated, damped and Gauss-Hermite updates
+        Y, U = _scenario_record(vdp)
+        return ITERATED[key](vdp.model, **vdp.tuning), Y, U
     if key.endswith("vdp"):
         Y, U = _scenario_record(vdp)
         F = estim.EKF if key.startswith("ekf") else estim.UKF
@@ -162,9 +187,9 @@ def _close(a, b):
 CONFIGURATIONS = ["ekf_reactor", "ekfclip_reactor", "merwe_reactor", "cubature_reactor",
                   "ekf_vdp", "ukf_vdp", "ekf_gated_vdp", "ukf_gated_vdp", "ekf_tanks",
                   "ukf_tanks", "ekf_gated_tanks", "ukf_foh_tanks", "ekf_root", "ukf_root",
-                  "ekf_attitude", "ukf_attitude"]
+                  "ekf_attitude", "ukf_attitude", *ITERATED, "lmekf_cubic"]
 #: Statuses each record must show (beyond "ok").
-SHOWN = {"gated": {2}, "tanks": {4}, "root": {1, 3, 4}, "ekfclip": {1}}
+SHOWN = {"gated": {2}, "tanks": {4}, "root": {1, 3, 4}, "ekfclip": {1}, "cubic": {1}}
 
 
 @pytest.fixture(scope="module")

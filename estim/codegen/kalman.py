@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 
 from estim.codegen.files import CFLAGS, c_array, generate, renamed, work_sizes, write_driver
+from estim.solvers.kalman.kalman import NFLAGS
 from estim.solvers.kalman.triangular import tria
 
 if TYPE_CHECKING:
@@ -123,7 +124,7 @@ def dimensions(estimator: EKF | UKF, sizes: Mapping[str, int]) -> dict[str, int]
          "SZ_W": sizes["w"]}
     doubles = (nd * nd + ny * ny + nx + nd * nd  # Q, R, x0, P0
                + 2 * ns + d["NU1"] + 1 + d["NY1"]  # s, s_trusted, u_last, nis, innovation
-               + d["NW1"] + nt + ns + d["NY1"] + 8 + ns  # w_in, tuning, results
+               + d["NW1"] + nt + ns + d["NY1"] + NFLAGS + ns  # w_in, tuning, results
                + (nd * nd if estimator.form == "sqrt" else 0)  # L0, the factor of P0
                + sizes["w"])
     ints = 2  # first, trusted (int, 4 bytes each)
@@ -151,6 +152,12 @@ def describe(estimator: EKF | UKF) -> str:
     points = getattr(estimator, "points", None)  # the UKF's sigma points
     if points:
         parts.append(f"points={points!r}")
+    if getattr(estimator, "order", 3) != 3 and points == "gauss-hermite":
+        parts.append(f"order={estimator.order}")
+    if getattr(estimator, "iterations", 1) > 1:
+        parts.append(f"iterations={estimator.iterations}")
+    if getattr(estimator, "damping", None) is not None:
+        parts.append(f"damping={estimator.damping!r}")
     if estimator.clip:
         parts.append("clip=True")
     if estimator.gate is not None:
@@ -166,7 +173,8 @@ def write(estimator: EKF | UKF, directory: Path, name: str,
     generate(funs, directory, name)
     write_driver(paths, "kalman", name, estimator.model, describe(estimator),
                  values(estimator), dimensions(estimator, work_sizes(funs)),
-                 {"sqrt": estimator.form == "sqrt"}, flags)
+                 {"sqrt": estimator.form == "sqrt",
+                  "damped": getattr(estimator, "damping", None) is not None}, flags)
 
 
 def memory(estimator: EKF | UKF) -> int:

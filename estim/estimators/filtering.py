@@ -145,6 +145,9 @@ class FilterResult(Estimates):
         ``"failed: ..."``).
     success : bool
         Every step succeeded.
+    converged : (T,) bool array or None
+        For a filter whose update iterates (``iterations`` > 1): whether each sample's
+        update converged (:mod:`estim.estimators.kalman.iterated_updates`); None otherwise.
     t, state_names, manifold :
         Sample times, state names and the states' manifold (see :class:`Estimates`).
     """
@@ -155,3 +158,4 @@ class FilterResult(Estimates):
     nis: np.ndarray
     status: tuple[str, ...]
     success: bool
+    converged: np.ndarray | None = None

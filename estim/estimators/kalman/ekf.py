@@ -8,6 +8,7 @@ from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_int
 from estim.estimators.kalman.fused import FusedKalman
+from estim.estimators.kalman.iterated_updates import check_iterated, ekf_update
 from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts, smoothing_passes
 from estim.estimators.kalman.square_root import check_form, covariances, ekf_step
 from estim.estimators.manifold_steps import (
@@ -88,8 +89,22 @@ class EKF(FusedKalman):
         :math:`\hat x_k = x^{(K)}`, :math:`P_k` the Joseph form with the last
         :math:`K_i, C_i`; the innovation, NIS and gate are the prediction's
         (:math:`i = 0`). The iterations are unrolled in the one compiled step;
-        ``info.iterations`` is :math:`K`. :meth:`smooth` then iterates the smoother
-        too. Covariance form, vector states.
+        ``info.iterations`` is :math:`K`, ``info.extra["converged"]`` whether the update
+        converged (its next Gauss-Newton step below ``tol`` posterior standard
+        deviations; ``FilterResult.converged`` over a record). :meth:`smooth` then
+        iterates the smoother too. Covariance form, vector states.
+    damping : {None, "line-search", "levenberg-marquardt"}
+        Damp the iterations (with ``iterations`` > 1) so that each lowers the update's MAP
+        cost :math:`V(x) = \|x - \bar x_k\|^2_{\bar P_k^{-1}} + \|y_k - h(x)\|^2_{R^{-1}}`:
+        a backtracking line search on the Gauss-Newton step, or Levenberg-Marquardt steps
+        (:mod:`estim.estimators.kalman.iterated_updates`), for outputs so nonlinear that the
+        plain iteration overshoots or diverges. The covariance is then the Joseph form
+        linearised at the final iterate. A damped update that has not converged after
+        ``iterations`` makes the step ``"suspect: ..."`` (the estimate is the last
+        iterate, which has the lowest cost found). None (default): the plain iteration.
+    tol : float
+        The iterated update has converged when its next step is at most ``tol`` posterior
+        standard deviations (default 1e-4).
     jit : bool
         Compile the step and the whole-record scans (:meth:`filter`, the batched
         seeds of :func:`~estim.compare`) to machine code through the per-machine
@@ -120,10 +135,12 @@ class EKF(FusedKalman):
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
                  upper: ArrayLike | None = None, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False, iterations: int = 1):
+                 form: str = "covariance", jit: bool = False, iterations: int = 1,
+                 damping: str | None = None, tol: float = 1e-4):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.iterations = as_int(iterations, "iterations", minimum=1)
+        self.damping, self.tol = check_iterated("ekf", self.iterations, damping, tol)
         self._update_iterations = self.iterations if self.iterations > 1 else 0
         if self.iterations > 1 and (self._sqrt or not model.manifold.trivial):
             raise ValueError(f"iterations={self.iterations}: the iterated EKF is built in the "
@@ -154,29 +171,28 @@ class EKF(FusedKalman):
         uy = m.measurement_input(u)  # the input at this measurement
         Rm = D @ R @ D + ca.diag(1 - mask)
         e = ca.if_else(mask, y - m.H(xb, uy, p), 0)  # the innovation (and the NIS's)
-        xi = xb
-        for i in range(self.iterations):  # Gauss-Newton on the update (one: the EKF)
-            C = D @ m.H_x(xi, uy, p)
-            Si = C @ Pb @ C.T + Rm
-            Si = 0.5 * (Si + Si.T)
-            K = ca.solve(Si, C @ Pb).T
-            ei = e if i == 0 else ca.if_else(mask, y - m.H(xi, uy, p) - C @ (xb - xi), 0)
-            xi = xb + K @ ei
-            if i == 0:
-                S = Si  # the prediction's, for the NIS
-        xh = xi
+        converged = None
+        if self.iterations > 1:  # Gauss-Newton on the update, plain or damped
+            xh, Ph, S, converged = ekf_update(m, xb, Pb, y, mask, Rm, uy, p, self.iterations,
+                                              self.damping, self.tol)
+        else:
+            C = D @ m.H_x(xb, uy, p)
+            S = C @ Pb @ C.T + Rm
+            S = 0.5 * (S + S.T)
+            K = ca.solve(S, C @ Pb).T
+            xh = xb + K @ e
+            IKC = ca.DM.eye(nx) - K @ C
+            Ph = IKC @ Pb @ IKC.T + K @ Rm @ K.T
+            Ph = 0.5 * (Ph + Ph.T)
         if self.clip:
             xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
-        IKC = ca.DM.eye(nx) - K @ C
-        Ph = IKC @ Pb @ IKC.T + K @ Rm @ K.T
-        Ph = 0.5 * (Ph + Ph.T)
         nis = ca.dot(e, ca.solve(S, e))
         s_new = ca.vertcat(xh, ca.vec(Ph))
         s_prior = ca.vertcat(xb, ca.vec(Pb))
         ok, ok_mean, ok_prior = ekf_checks(s_new, nis, Ph, xb, Pb)
         name = "ekf_predict_update" if predict else "ekf_update"
         return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
-                                    ok_mean, mask, s_prior)
+                                    ok_mean, mask, s_prior, converged)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None, iterations: int | None = None) -> SmoothResult:

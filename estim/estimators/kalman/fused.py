@@ -66,6 +66,10 @@ class FusedKalman(Estimator):
     jit = False
     #: ``info.iterations`` of a step: the Gauss-Newton iterations of an iterated update
     _update_iterations = 0
+    #: The damping of an iterated update (None: plain, or no iteration), and the tolerance
+    #: of its convergence (:mod:`estim.estimators.kalman.iterated_updates`)
+    damping: str | None = None
+    tol = 1e-4
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -101,11 +105,11 @@ class FusedKalman(Estimator):
         return step_symbols(self.model, self._diagonal)
 
     def _fused_function(self, name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf,
-                        ok_mean, mask, s_prior) -> ca.Function:
+                        ok_mean, mask, s_prior, converged=None) -> ca.Function:
         """The step's Function with its flags (:func:`estim.solvers.kalman.kalman.fused_function`),
-        the gate of this filter included."""
+        the gate of this filter and the convergence of an iterated update included."""
         return fused_function(name, inputs, s_new, e, nis, ok, ok_prior, y_inf, ok_mean, mask,
-                              s_prior, gate=self.gate)
+                              s_prior, gate=self.gate, converged=converged)
 
     def _tuning_changed(self) -> None:
         nd = self.model.ndx
@@ -143,7 +147,7 @@ class FusedKalman(Estimator):
         if not flags[1]:
             return self._recover(flag_array, s_prior)
         nx = self._nx
-        suspect = flags[6] or flags[7]
+        suspect = flags[6] or flags[7] or (self.damping is not None and not flags[8])
         trace = 0.0 if suspect else state_trace(s_new, nx, self._diagonal_stride, self._sqrt)
         untrusted = suspect or trace > self._blown  # (blown up: the filter lost the state)
         if untrusted and self._trusted:
@@ -157,9 +161,11 @@ class FusedKalman(Estimator):
         info = StepInfo._fast(P=reported(self._P_view, self._sqrt), innovation=e.copy(),
                               nis=flags[0] if flags[4] else float("nan"),  # no output
                               iterations=self._update_iterations)
+        if self._update_iterations:
+            info.extra["converged"] = bool(flags[8])
         if suspect:
             info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
-                                                        bool(flags[7]))
+                                                        bool(flags[7]), bool(flags[8]))
         elif untrusted:
             info.__dict__["status"] = blown_up(trace)
         return self._s[:nx].copy(), info
@@ -168,8 +174,14 @@ class FusedKalman(Estimator):
         """``(the kept-prediction status, what failed)`` of a failed step."""
         raise NotImplementedError
 
-    def _consistency(self, nis: float, dof: int, rejected: bool) -> str:
-        """Status of a filter step whose NIS is beyond the suspect or the gate limit."""
+    def _consistency(self, nis: float, dof: int, rejected: bool, converged: bool = True
+                     ) -> str:
+        """Status of a filter step whose NIS is beyond the suspect or the gate limit, or
+        whose damped iterated update did not converge."""
+        if not converged and self.damping is not None and not rejected:
+            return (f"suspect: the damped iterated update ({self.damping}) did not converge "
+                    f"in {self.iterations} iterations (its next step is beyond {self.tol:g} "
+                    f"posterior sd); kept the last iterate")
         if not rejected:
             return consistency_status(nis, dof)
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
@@ -272,6 +284,10 @@ class FusedKalman(Estimator):
         measured = F[4, :n] > 0
         nis[:n][measured] = F[0, :n][measured]
         flagged, suspect = record_statuses(self, F[:, :n].T, P[:n])
+        converged = None
+        if self._update_iterations:
+            converged = np.zeros(T, dtype=bool)
+            converged[:n] = F[8, :n] > 0
         status = [flagged.get(k, "ok") for k in range(n)]
         if n:  # the filter as the step loop leaves it after sample n - 1
             trusted = np.flatnonzero(~suspect)
@@ -295,10 +311,13 @@ class FusedKalman(Estimator):
             if info.innovation is not None:
                 innovation[k] = info.innovation
             nis[k] = info.nis
+            if converged is not None:
+                converged[k] = info.extra.get("converged", False)
             status.append(info.status)
             success = success and info.success
         return stamped(FilterResult(x=X, P=P, innovation=innovation, nis=nis,
-                                    status=tuple(status), success=success), self.model, t)
+                                    status=tuple(status), success=success,
+                                    converged=converged), self.model, t)
 
     def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples
@@ -319,26 +338,8 @@ class FusedKalman(Estimator):
                                 "_filter_seeds"))
 
     def _filter_seeds(self, Y: np.ndarray, u_step: np.ndarray) -> dict:
-        r"""Filter the records of several seeds at once, as :meth:`step` at every sample
-        after a :meth:`reset` (the batched path of :func:`~estim.compare`).
-
-        Parameters
-        ----------
-        Y : (S, T, ny) array
-            The seeds' measurements.
-        u_step : (T, nu) array
-            The input given to :meth:`step` with each sample (the same for every seed).
-
-        Returns
-        -------
-        dict
-            ``x (S, T, nx)``, ``P (S, T, nx, nx)``, ``nis (S, T)``, ``status`` (per
-            seed the status of every sample that is not ``"ok"``, ``{k: status}``; None
-            for a seed whose filter met a failed update: its recovery depends on the
-            filter's history, so that seed must be run step by step), ``seconds`` (wall
-            time of the call over the seeds), ``total`` (with the set-up and the
-            statuses) and ``how`` (``"compiled"`` or ``"interpreted"``, see
-            :func:`estim.solvers.seeds.seed_map`).
-        """
+        """Filter the records ``Y (S, T, ny)`` of several seeds at once, as :meth:`step` at
+        every sample after a :meth:`reset` (the batched path of :func:`~estim.compare`;
+        :func:`~estim.estimators.kalman.fused_calls.filter_seeds` says what it returns)."""
         return filter_seeds(self, Y, u_step)
 

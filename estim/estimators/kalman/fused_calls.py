@@ -23,7 +23,7 @@ import numpy as np
 
 from estim._fast import FastFunction, jitted, may_fail
 from estim.estimators.kalman.statuses import record_statuses, reported
-from estim.solvers.kalman.kalman import record_function
+from estim.solvers.kalman.kalman import NFLAGS, record_function
 from estim.solvers.seed_threads import evaluate
 from estim.solvers.seeds import COMPILE_MIN_SAMPLES, seed_map
 
@@ -118,7 +118,7 @@ def scan_record(est: FusedKalman, Y: np.ndarray, W: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fused step over the record ``Y (T, ny)`` with the transitions' inputs ``W (T,
     nw)`` from ``est``'s state: the filter states ``(T, ns)``, innovations ``(T, ny)``
-    and flags ``(T, 8)``, sample by sample (:func:`record_call`; in windows of
+    and flags ``(T, 9)``, sample by sample (:func:`record_call`; in windows of
     :data:`RECORD_WINDOW` samples beyond that length). After a window with a failed
     update the later windows are not filtered: their rows stay NaN."""
     T, ny = Y.shape
@@ -132,7 +132,7 @@ def scan_record(est: FusedKalman, Y: np.ndarray, W: np.ndarray
     Wp = np.empty((n * L, W.shape[1]))
     Wp[:T], Wp[T:] = W, W[-1]
     ns = est._s.size
-    out = [np.full((n * L, k), np.nan) for k in (ns, ny, 8)]
+    out = [np.full((n * L, k), np.nan) for k in (ns, ny, NFLAGS)]
     s = est._s.copy()
     for k in range(n):
         rows = slice(k * L, (k + 1) * L)
@@ -174,7 +174,7 @@ class SeedFilter:
         self.how = self.fun.how
 
     def run(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The filter states ``(n, T, nx + nx^2)`` and flags ``(n, T, 8)`` of the seeds'
+        """The filter states ``(n, T, nx + nx^2)`` and flags ``(n, T, 9)`` of the seeds'
         measurements ``Y (n, T, ny)``."""
         est, n = self.est, len(Y)
         t0 = time.perf_counter()
@@ -183,7 +183,7 @@ class SeedFilter:
         return Sx.reshape(n, self.T, -1), F.reshape(n, self.T, -1)
 
     def run_into(self, Y: np.ndarray, Sx: np.ndarray, F: np.ndarray, slot: int) -> float:
-        """:meth:`run` into the rows ``Sx (n, T, nx + nx^2)`` and ``F (n, T, 8)`` (C
+        """:meth:`run` into the rows ``Sx (n, T, nx + nx^2)`` and ``F (n, T, 9)`` (C
         contiguous, written in place) with the serial map of ``slot``
         (:func:`estim.solvers.seed_threads.evaluate`: for a pipeline's threads); returns
         the seconds it took (not added to :attr:`seconds`)."""
@@ -194,8 +194,8 @@ class SeedFilter:
         return time.perf_counter() - t0
 
     def results(self, Sx: np.ndarray, F: np.ndarray) -> dict:
-        """``x``, ``P``, ``nis`` and ``status`` (see :meth:`FusedKalman._filter_seeds
-        <estim.estimators.kalman.fused.FusedKalman._filter_seeds>`) of :meth:`run`'s output."""
+        """``x``, ``P``, ``nis`` and ``status`` (see :func:`filter_seeds`) of :meth:`run`'s
+        output."""
         est = self.est
         n, T, nx, nd = len(Sx), self.T, est.model.nx, est.model.ndx
         P = Sx[:, :, nx:].reshape(n, T, nd, nd).transpose(0, 1, 3, 2)  # column-major
@@ -210,9 +210,28 @@ class SeedFilter:
 
 def filter_seeds(est: FusedKalman, Y: np.ndarray, u_step: np.ndarray) -> dict:
     r"""Filter the records of several seeds at once, as ``est.step`` at every sample
-    after a reset (see :meth:`FusedKalman._filter_seeds
-    <estim.estimators.kalman.fused.FusedKalman._filter_seeds>`, which documents the result), in
-    one evaluation of :class:`SeedFilter`."""
+    after a reset, in one evaluation of :class:`SeedFilter` (the batched path of
+    :func:`~estim.compare`).
+
+    Parameters
+    ----------
+    est : FusedKalman
+    Y : (S, T, ny) array
+        The seeds' measurements.
+    u_step : (T, nu) array
+        The input given to ``step`` with each sample (the same for every seed).
+
+    Returns
+    -------
+    dict
+        ``x (S, T, nx)``, ``P (S, T, nx, nx)``, ``nis (S, T)``, ``status`` (per
+        seed the status of every sample that is not ``"ok"``, ``{k: status}``; None
+        for a seed whose filter met a failed update: its recovery depends on the
+        filter's history, so that seed must be run step by step), ``seconds`` (wall
+        time of the call over the seeds), ``total`` (with the set-up and the
+        statuses) and ``how`` (``"compiled"`` or ``"interpreted"``, see
+        :func:`estim.solvers.seeds.seed_map`).
+    """
     t0 = time.perf_counter()
     seeds = SeedFilter(est, u_step, len(Y))
     seeds.fun.build(len(Y))  # not timed by run

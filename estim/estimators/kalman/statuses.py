@@ -46,13 +46,16 @@ def record_statuses(est: FusedKalman, F: np.ndarray, P: np.ndarray
                     ) -> tuple[dict[int, str], np.ndarray]:
     """The statuses that are not ``"ok"`` of a record's steps, ``{sample: status}``, as
     :meth:`~estim.estimators.kalman.fused.FusedKalman.step` reports them, from the flags
-    ``F (T, 8)`` and covariances ``P (T, n, n)`` of the compiled scan, and which steps
+    ``F (T, NFLAGS)`` and covariances ``P (T, n, n)`` of the compiled scan, and which steps
     leave the filter untrusted ``(T,)``."""
     suspect = (F[:, 6] + F[:, 7]) > 0
+    if est.damping is not None:  # a damped iterated update that did not converge
+        suspect |= F[:, 8] == 0
     with np.errstate(invalid="ignore"):  # (inf - inf in a blown-up covariance)
         traces = np.trace(P, axis1=1, axis2=2)
     blown = ~suspect & (traces > est._blown)
-    out = {int(k): est._consistency(float(F[k, 0]), int(F[k, 4]), bool(F[k, 7]))
+    out = {int(k): est._consistency(float(F[k, 0]), int(F[k, 4]), bool(F[k, 7]),
+                                    bool(F[k, 8]))
            for k in np.flatnonzero(suspect)}
     out.update({int(k): blown_up(float(traces[k])) for k in np.flatnonzero(blown)})
     return out, suspect | blown

@@ -12,6 +12,7 @@ from estim._manifold import NP
 from estim._validate import as_bool, as_float, as_int
 from estim.estimators.base import EstimationWarning
 from estim.estimators.kalman.fused import FusedKalman
+from estim.estimators.kalman.iterated_updates import check_iterated, posterior_linearised_update
 from estim.estimators.kalman.smoothing import (
     SmoothResult,
     posterior_linearised,
@@ -88,9 +89,19 @@ class UKF(FusedKalman):
         Iterations of the measurement update (default 1: the UKF). With :math:`K > 1`
         the iterated posterior linearisation filter (IPLF): the update is redone
         :math:`K - 1` times with :math:`h` linearised by statistical linear regression on
-        the sigma points of the last posterior (:func:`_relinearised`), unrolled in the
-        one compiled step; ``info.iterations`` is :math:`K`; :meth:`smooth` iterates
-        too (the IPLS). Covariance form, vector states.
+        the sigma points of the last posterior
+        (:func:`~estim.estimators.kalman.iterated_updates.posterior_linearised_update`),
+        unrolled in the one compiled step; ``info.iterations`` is :math:`K`,
+        ``info.extra["converged"]`` whether the next iteration would move the mean by at
+        most ``tol`` posterior standard deviations; :meth:`smooth` iterates too (the
+        IPLS). Covariance form, vector states.
+    damping : {None, "relaxed"}
+        With ``iterations`` > 1: move the mean and covariance half-way to each new
+        posterior (:mod:`~estim.estimators.kalman.iterated_updates`), the same fixed point
+        without the plain iteration's oscillation on strongly nonlinear outputs (give it
+        some 30 iterations); unconverged after ``iterations``: a ``"suspect"`` step.
+    tol : float
+        Convergence tolerance in posterior standard deviations (default 1e-4).
     alpha, beta, kappa : float
         Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
         distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
@@ -133,7 +144,7 @@ class UKF(FusedKalman):
                  P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None,
                  form: str = "covariance", jit: bool = False, order: int = 3,
-                 iterations: int = 1):
+                 iterations: int = 1, damping: str | None = None, tol: float = 1e-4):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)
@@ -148,6 +159,7 @@ class UKF(FusedKalman):
         check_manifold_options(model, self.form, self.clip, self.lower, self.upper)
         self.order = as_int(order, "order", minimum=1)
         self.iterations = as_int(iterations, "iterations", minimum=1)
+        self.damping, self.tol = check_iterated("ukf", self.iterations, damping, tol)
         if self.iterations > 1 and (self._sqrt or not model.manifold.trivial):
             raise ValueError(f"iterations={self.iterations}: the iterated posterior "
                              f"linearisation is built in the covariance form on vector "
@@ -207,9 +219,11 @@ class UKF(FusedKalman):
         xh = xb + K @ e
         Ph = Pb - K @ S @ K.T
         Ph = 0.5 * (Ph + Ph.T)
+        converged = None
         if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
-            xh, Ph, posterior = _relinearised(self, xb, Pb, xh, Ph, y, mask,
-                                              D @ R @ D + ca.diag(1 - mask), uy, p)
+            xh, Ph, posterior, converged = posterior_linearised_update(
+                self, xb, Pb, xh, Ph, y, mask, D @ R @ D + ca.diag(1 - mask), uy, p,
+                _mean, _cov)
             ok_prior = ca.logic_and(ok_prior, posterior)
         if self.clip:
             xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
@@ -220,7 +234,7 @@ class UKF(FusedKalman):
         ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
         name = "ukf_predict_update" if predict else "ukf_update"
         return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
-                                    ok_mean, mask, s_prior)
+                                    ok_mean, mask, s_prior, converged)
 
     def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
         r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
@@ -380,42 +394,6 @@ def _cov(a: list, b: list, weights: np.ndarray) -> ca.SX:
     """:math:`\\sum_i w_i a_i b_i^\\top` of deviations ``a``, ``b``."""
     return sum((float(w) * (da @ db.T) for w, da, db in zip(weights, a, b, strict=True)),
                ca.SX.zeros(a[0].numel(), b[0].numel()))
-
-
-def _relinearised(ukf: UKF, xb, Pb, x1, P1, y, mask, Rm, uy, p) -> tuple:
-    r"""Iterations 2 to :math:`K` of the iterated posterior linearisation filter
-    (García-Fernández, Svensson, Morelande & Särkkä 2015) from the UKF's update
-    ``(x1, P1)``: the statistical linear regression of :math:`h` on the sigma points of
-    the current posterior :math:`N(x_i, P_i)`,
-
-    .. math::
-        ar z = \sum_j W^m_j h(\mathcal X_j), \quad
-        \Psi = \sum_j W^c_j (\mathcal X_j - x_i)(h(\mathcal X_j) - ar z)^	op, \quad
-        \Phi = \sum_j W^c_j (h(\mathcal X_j) - ar z)(\cdot)^	op, \
-        H = \Psi^	op P_i^{-1}, \quad b = ar z - H x_i, \quad
-        \Omega = \Phi - H P_i H^	op,
-
-    then the Kalman update of the prediction :math:`(ar x, ar P)` by
-    :math:`y = H x + b + v`, :math:`v \sim N(0, R + \Omega)`. Returns the last posterior
-    and whether every :math:`P_i` had its sigma points (positive definite)."""
-    m, Wm, Wc = ukf.model, ukf._Wm, ukf._Wc
-    xi, Pi, definite = x1, P1, ca.SX(1)
-    for _ in range(ukf.iterations - 1):
-        sig, ok = ukf._sigma_points(xi, Pi)
-        definite = ca.logic_and(definite, ok)
-        Z = [ca.if_else(mask, m.H(v, uy, p), 0) for v in sig]
-        zb = _mean(Z, Wm)
-        dZ = [z - zb for z in Z]
-        Psi = _cov([v - xi for v in sig], dZ, Wc)
-        Phi = _cov(dZ, dZ, Wc)
-        H = ca.solve(Pi, Psi).T
-        S = H @ Pb @ H.T + Phi - H @ Pi @ H.T + Rm
-        S = 0.5 * (S + S.T)
-        K = ca.solve(S, H @ Pb).T
-        xi = xb + K @ ca.if_else(mask, y - H @ xb - (zb - H @ xi), 0)
-        Pi = Pb - K @ S @ K.T
-        Pi = 0.5 * (Pi + Pi.T)
-    return xi, Pi, definite
 
 
 def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:

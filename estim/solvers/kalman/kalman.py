@@ -17,6 +17,7 @@ whole record (:func:`record_function`). The flags are
 6     suspect: NIS beyond the :data:`~estim.consistency.SUSPECT_TAIL` tail of
       :math:`\chi^2(\text{outputs measured})`
 7     gated: NIS beyond the ``gate`` tail
+8     the iterated update converged (1 for a filter that does not iterate)
 ====  ==================================================================
 
 What a step does with them (keep the update, the prediction, or re-anchor) is the
@@ -34,7 +35,10 @@ from estim.consistency import SUSPECT_TAIL, chi2_limit
 from estim.model import Model
 from estim.solvers.kalman.triangular import tria
 
-__all__ = ["ekf_checks", "finite", "fused_function", "matrix", "record_function",
+#: The flags of a fused step (see the module).
+NFLAGS = 9
+
+__all__ = ["NFLAGS", "ekf_checks", "finite", "fused_function", "matrix", "record_function",
            "step_symbols"]
 
 
@@ -77,11 +81,12 @@ def step_symbols(model: Model, diagonal: dict[str, bool]) -> tuple:
 
 
 def fused_function(name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf, ok_mean,
-                   mask, s_prior, gate: float | None = None) -> ca.Function:
+                   mask, s_prior, gate: float | None = None, converged=None) -> ca.Function:
     r"""The step's CasADi Function ``(s, u, y, tuning) -> (s_new, innovation, flags,
     s_prior)`` from the filter's expressions: the flags (see the module) with the
     suspect and gate tests, NIS beyond the :math:`\chi^2` tail of the number of
-    outputs measured (``SUSPECT_TAIL``, and ``gate`` when set)."""
+    outputs measured (``SUSPECT_TAIL``, and ``gate`` when set); ``converged``: whether an
+    iterated update converged (None: a filter that does not iterate)."""
     ny = mask.numel()
     measured = ca.sum1(mask) if ny else ca.SX(0)
     onehot = ca.vertcat(*[measured == k for k in range(1, ny + 1)])
@@ -93,7 +98,8 @@ def fused_function(name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf, 
         return ca.logic_and(measured > 0, nis > ca.dot(limits, onehot))
 
     flags = ca.vertcat(nis, ok, ok_prior, y_inf, measured, ok_mean,
-                       beyond(SUSPECT_TAIL), beyond(gate))
+                       beyond(SUSPECT_TAIL), beyond(gate),
+                       ca.SX(1) if converged is None else converged)
     return ca.Function(name, inputs, [s_new, e, flags, s_prior],
                        ["s", "u", "y", "tuning"], ["s_new", "innovation", "flags", "s_prior"])
 
