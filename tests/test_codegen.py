@@ -68,7 +68,8 @@ ITERATED = {
     "lmekf_vdp": lambda m, **t: estim.EKF(m, **t, iterations=2,
                                           damping="levenberg-marquardt"),
     "iplf_vdp": lambda m, **t: estim.UKF(m, **t, points="gauss-hermite", order=3,
-                                         iterations=2, damping="relaxed")}
+                                         iterations=2, damping="relaxed"),
+    "ghsqrt_vdp": lambda m, **t: estim.UKF(m, **t, points="cubature5", form="sqrt")}
 
 
 def _cubic_record():

@@ -51,8 +51,6 @@ def test_what_is_refused_and_warned():
         estim.UKF(m, **kw, points="gauss-hermite", order=0)
     with pytest.raises(ValueError, match="points must be one of"):
         estim.UKF(m, **kw, points="hermite")
-    with pytest.raises(ValueError, match="covariance form on vector states"):
-        estim.UKF(m, **kw, points="gauss-hermite", form="sqrt")
     seven = estim.Model(states=7, outputs=1, dynamics=lambda x, u, p: x,
                         output=lambda x, u, p: x[0])
     with warnings.catch_warnings(record=True) as caught:
@@ -114,5 +112,50 @@ def test_the_fifth_degree_filter_on_a_linear_model_is_the_kalman_filter():
                                  points="cubature5"), Y)
     np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-12)
     np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-12)
-    with pytest.raises(ValueError, match="'cubature5' is built in the covariance form"):
-        estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, points="cubature5", form="sqrt")
+
+
+@pytest.mark.parametrize("points,order", [("gauss-hermite", 3), ("gauss-hermite", 4),
+                                          ("cubature5", 3)])
+def test_the_square_root_form_draws_the_same_rules(points, order):
+    """The square-root UKF's points :math:`x + S \\xi_i` from the factor itself give the
+    covariance form's estimates on van der Pol (to rounding), and the Kalman filter on
+    the linear model."""
+    vdp = estim.scenarios.van_der_pol(n_steps=150)
+    Y = estim.simulate(vdp, None, seed=0, warn=False).y
+    kw = {"points": points, "order": order}
+    a = estim.UKF(vdp.model, **vdp.tuning, **kw).filter(Y)
+    b = estim.UKF(vdp.model, **vdp.tuning, **kw, form="sqrt").filter(Y)
+    np.testing.assert_allclose(b.x, a.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.P, a.P, rtol=0, atol=1e-12)
+    assert set(b.status) == {"ok"}
+    Yl = record(25, seed=6)
+    x_kf, P_kf, _ = kalman(Yl)
+    log = estim.replay(estim.UKF(linear_model(), Q=Q, R=R, x0=X0, P0=P0, form="sqrt",
+                                 **kw), Yl)
+    np.testing.assert_allclose(log.x_hat, x_kf, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.P, P_kf, rtol=0, atol=1e-12)
+
+
+def test_the_rules_on_a_unit_quaternion():
+    """Gauss-Hermite and fifth-degree points in the tangent space of a unit quaternion
+    (the multiplicative UKF, ``x (+) S xi``), both forms: the whole-record call is the
+    step loop, the two forms agree to rounding and track the attitude as the Merwe points
+    do (mean error over the last 20 samples within 1 % of theirs)."""
+    from test_attitude import scenario
+
+    sc = scenario(T=80)
+    truth = estim.simulate(sc, None, seed=0)
+    err = {}
+    for points in ("merwe", "gauss-hermite", "cubature5"):
+        res = {}
+        for form in ("covariance", "sqrt"):
+            ukf = estim.UKF(sc.model, **sc.tuning, points=points, form=form)
+            res[form] = ukf.filter(truth.y, sc.inputs)
+            log = estim.replay(ukf, truth.y, sc.inputs)
+            np.testing.assert_allclose(res[form].x, log.x_hat, rtol=0, atol=1e-12)
+            assert set(res[form].status) == {"ok"}
+        np.testing.assert_allclose(res["sqrt"].x, res["covariance"].x, rtol=0, atol=1e-10)
+        angle = np.linalg.norm(estim.errors(res["covariance"], truth=truth), axis=1)
+        err[points] = angle[-20:].mean()
+    assert err["gauss-hermite"] == pytest.approx(err["merwe"], rel=0.01)
+    assert err["cubature5"] == pytest.approx(err["merwe"], rel=0.01)

@@ -299,9 +299,10 @@ def test_unscented_proposal(PF):
     m = linear_model()
     kw = dict(Q=Q, R=R, x0=X0, P0=P0, n_particles=200, seed=3)
     ekf = PF(m, proposal="ekf", **kw).filter(Y)
-    ukf = PF(m, proposal="ukf", **kw).filter(Y)
-    np.testing.assert_allclose(ukf.x, ekf.x, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(ukf.log_likelihood, ekf.log_likelihood, rtol=1e-9)
+    for rule in ({}, {"points": "gauss-hermite", "order": 3}, {"points": "cubature5"}):
+        ukf = PF(m, proposal="ukf", **kw, **rule).filter(Y)  # every rule: the same moments
+        np.testing.assert_allclose(ukf.x, ekf.x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(ukf.log_likelihood, ekf.log_likelihood, rtol=1e-9)
     g = estim.Model(states=["x"], inputs=["t"], outputs=["y"],
                     dynamics=lambda x, u, p: x / 2 + 25 * x / (1 + x**2) + 8 * ca.cos(1.2 * u[0]),
                     output=lambda x, u, p: x**2 / 20)
@@ -312,19 +313,30 @@ def test_unscented_proposal(PF):
             x = x / 2 + 25 * x / (1 + x**2) + 8 * np.cos(1.2 * (t - 1)) + rng.normal(0, 10**0.5)
         ys.append(x**2 / 20 + rng.normal())
     Yg, Ug = np.array(ys)[:, None], np.arange(29.0)[:, None]
-    out = {prop: [PF(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=500,
-                                       proposal=prop, seed=s).filter(Yg, Ug)
-                  for s in range(20)] for prop in ("bootstrap", "ukf")}
+    rules = {"bootstrap": {"proposal": "bootstrap"}, "ukf": {"proposal": "ukf"},
+             "gh5": {"proposal": "ukf", "points": "gauss-hermite", "order": 5}}
+    out = {name: [PF(g, Q=10.0, R=1.0, x0=[0.0], P0=4.0, n_particles=500, seed=s,
+                     **rule).filter(Yg, Ug) for s in range(20)]
+           for name, rule in rules.items()}
     ll = {k: np.array([r.log_likelihood for r in v]) for k, v in out.items()}
     assert all(r.success for v in out.values() for r in v)
-    se = np.sqrt(ll["bootstrap"].var(ddof=1) / 20 + ll["ukf"].var(ddof=1) / 20)
-    assert abs(ll["ukf"].mean() - ll["bootstrap"].mean()) < 3 * se
+    for name in ("ukf", "gh5"):  # each a valid importance sampler (3 se of the difference)
+        se = np.sqrt(ll["bootstrap"].var(ddof=1) / 20 + ll[name].var(ddof=1) / 20)
+        assert abs(ll[name].mean() - ll["bootstrap"].mean()) < 3 * se
     # the proposal follows the measurement: more effective particles (measured: 276
     # against 192 of 500 on average)
     ess = {k: np.mean([r.ess.mean() for r in v]) for k, v in out.items()}
     assert ess["ukf"] > 1.2 * ess["bootstrap"], ess
     with pytest.raises(ValueError, match="Q must be positive definite"):
         PF(m, Q=np.diag([0.0, 1e-2]), R=R, x0=X0, P0=P0, proposal="ukf")
+    with pytest.raises(ValueError, match="give proposal='ukf'"):
+        PF(m, Q=Q, R=R, x0=X0, P0=P0, points="gauss-hermite")
+    with pytest.raises(ValueError, match=r"\(rules of positive weights\), got 'merwe'"):
+        PF(m, Q=Q, R=R, x0=X0, P0=P0, proposal="ukf", points="merwe")
+    five = estim.Model(states=5, outputs=1, dynamics=lambda x, u, p: x,
+                       output=lambda x, u, p: x[0])
+    with pytest.raises(ValueError, match="negative weights beyond four states"):
+        PF(five, Q=1.0, R=1.0, x0=np.zeros(5), P0=1.0, proposal="ukf", points="cubature5")
 
 
 def test_particles_whose_state_is_lost_get_no_weight(PF):

@@ -178,7 +178,12 @@ def _weighted(weights: Any, vs: list) -> Any:
 
 def sigma_offsets(est: Any, cols: list) -> list:
     """A UKF's sigma points' offsets about their centre from the columns ``cols`` of a
-    factor of :math:`cP`: both signs, and 0 first for merwe points."""
+    factor of :math:`cP`: both signs, and 0 first for merwe points; :math:`L \\xi_i` for a
+    rule given by its unit points :math:`\\xi_i` (Gauss-Hermite, fifth-degree cubature:
+    ``est._unit``, :math:`c = 1`)."""
+    if est._unit is not None:
+        L = ca.horzcat(*cols)
+        return [L @ ca.DM(xi) for xi in est._unit.T]
     centre = [] if est.points == "cubature" else [ca.SX.zeros(cols[0].numel())]
     return centre + cols + [-c for c in cols]
 

@@ -24,6 +24,7 @@ from estim.estimators.manifold_steps import check_manifold_options, usque_step
 from estim.model import Model
 from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.rts import transitions
+from estim.solvers.quadrature import cubature5, gauss_hermite
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
 POINTS = ("merwe", "julier", "cubature", "cubature5", "gauss-hermite")
@@ -78,13 +79,13 @@ class UKF(FusedKalman):
     points : {"merwe", "julier", "cubature", "cubature5", "gauss-hermite"}
         Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
         :math:`2n_x` equally weighted points of the cubature Kalman filter, the
-        fifth-degree cubature rule (:func:`cubature5`, :math:`2n_x^2 + 1` points), or the
-        Gauss-Hermite rule of ``order`` :math:`p` (:func:`gauss_hermite`: :math:`p^{n_x}`
-        points :math:`x + L\xi_i`, :math:`L L^\top = P`; the Gauss-Hermite Kalman
-        filter; covariance form, vector states).
+        fifth-degree cubature rule (:func:`~estim.solvers.quadrature.cubature5`,
+        :math:`2n_x^2 + 1` points), or the Gauss-Hermite rule of ``order`` :math:`p`
+        (:func:`~estim.solvers.quadrature.gauss_hermite`: :math:`p^{n_x}` points
+        :math:`x \oplus L\xi_i`, :math:`L L^\top = P`; the Gauss-Hermite Kalman filter),
+        in both forms and on quaternion and angle states.
     order : int
-        The Gauss-Hermite rule's order (points per dimension; default 3). Above
-        10 000 points in all a warning gives the count.
+        The Gauss-Hermite rule's points per dimension (default 3); warned above 10 000.
     iterations : int
         Iterations of the measurement update (default 1: the UKF). With :math:`K > 1`
         the iterated posterior linearisation filter (IPLF): the update is redone
@@ -237,20 +238,20 @@ class UKF(FusedKalman):
                                     ok_mean, mask, s_prior, converged)
 
     def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
-        r"""The sigma points of a mean ``x`` and covariance ``P``, one a row
-        (``(2 nx + 1, nx)``, ``(2 nx, nx)`` for ``points="cubature"``); with a stack
-        ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``.
+        r"""The sigma points of a mean ``x`` and covariance ``P``, one a row (``(n_sigma,
+        nx)``; with a stack ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``).
 
         The offsets are the rows of the upper Cholesky factor :math:`U` of
         :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
         x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
         L = np.linalg.cholesky(self._scale * P)
-        if self._unit is not None:  # x + L xi for every unit point
-            return x[..., None, :] + np.swapaxes(L @ self._unit, -1, -2)
-        off = np.swapaxes(L, -1, -2)  # rows of U = L^T
         xs = x[..., None, :]
-        centre = [] if self.points == "cubature" else [xs]
         M = self.model.manifold
+        if self._unit is not None:  # x (+) L xi for every unit point
+            off = np.swapaxes(L @ self._unit, -1, -2)
+            return xs + off if M.euclidean_states else M.retract(xs, off, NP)
+        off = np.swapaxes(L, -1, -2)  # rows of U = L^T
+        centre = [] if self.points == "cubature" else [xs]
         if not M.euclidean_states:  # x (+) the offsets, in the tangent space
             return np.concatenate(centre + [M.retract(xs, off, NP), M.retract(xs, -off, NP)],
                                   axis=-2)
@@ -398,11 +399,6 @@ def _cov(a: list, b: list, weights: np.ndarray) -> ca.SX:
 
 def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
     """:func:`sigma_rule` of ``ukf``'s options in the tangent space of ``model``."""
-    if ukf.points in ("gauss-hermite", "cubature5") and (ukf._sqrt
-                                                         or not model.manifold.trivial):
-        raise ValueError(f"points={ukf.points!r} is built in the covariance form on "
-                         f"vector states; use form='covariance' (and a model without "
-                         f"quaternions or angles)")
     return sigma_rule(ukf.points, model.ndx, ukf.order, ukf.alpha, ukf.beta, ukf.kappa,
                       stacklevel=4)
 
@@ -432,49 +428,6 @@ def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 0.1, beta: fl
     if points != "cubature" and n + kappa <= 0:
         raise ValueError(f"kappa must make nx + kappa positive (nx = {n}), got {kappa!r}")
     return (*sigma_weights(points, n, alpha, beta, kappa), None)
-
-
-def cubature5(n: int) -> tuple[np.ndarray, np.ndarray]:
-    r"""The fifth-degree fully symmetric rule for :math:`N(0, I_n)` (McNamee & Stenger
-    1967; Särkkä & Svensson 2023, sec. 8.6): :math:`2n^2 + 1` unit points, the centre
-    (weight :math:`2/(n+2)`), :math:`\pm\sqrt{n+2}\,e_i` (weight
-    :math:`(4-n)/(2(n+2)^2)`) and :math:`\pm\sqrt{(n+2)/2}\,(e_i \pm e_j)`, :math:`i < j`
-    (weight :math:`1/(n+2)^2`). Exact for every polynomial of total degree 5 or less;
-    for :math:`n > 4` the axis weights are negative (the covariance form only)."""
-    eye = np.eye(n)
-    cols = [np.zeros(n)]
-    W = [2.0 / (n + 2)]
-    for i in range(n):
-        for sign in (1.0, -1.0):
-            cols.append(sign * np.sqrt(n + 2.0) * eye[i])
-            W.append((4.0 - n) / (2.0 * (n + 2) ** 2))
-    r = np.sqrt((n + 2.0) / 2.0)
-    for i in range(n):
-        for j in range(i + 1, n):
-            for si in (1.0, -1.0):
-                for sj in (1.0, -1.0):
-                    cols.append(r * (si * eye[i] + sj * eye[j]))
-                    W.append(1.0 / (n + 2) ** 2)
-    return np.array(cols).T, np.array(W)
-
-
-def gauss_hermite(n: int, order: int) -> tuple[np.ndarray, np.ndarray]:
-    r"""The Gauss-Hermite rule of ``order`` :math:`p` for :math:`N(0, I_n)`: the unit
-    points ``(n, p^n)``, the Cartesian product of the :math:`p` roots of the
-    probabilists' Hermite polynomial :math:`He_p`, and their weights ``(p^n,)``, the
-    products of the one-dimensional weights (normalised to sum to 1). Exact for
-    polynomials of degree :math:`2p - 1` in each coordinate (Särkkä & Svensson 2023,
-    sec. 8.3; the points of a mean :math:`m` and covariance :math:`P = L L^\top` are
-    :math:`m + L \xi_i`)."""
-    from itertools import product
-
-    from numpy.polynomial.hermite_e import hermegauss
-
-    nodes, weights = hermegauss(order)
-    weights = weights / weights.sum()
-    unit = np.array(list(product(nodes, repeat=n))).T.reshape(n, -1)
-    W = np.array([np.prod(c) for c in product(weights, repeat=n)])
-    return unit, W
 
 
 def _cholesky(A) -> tuple[ca.SX, ca.SX]:

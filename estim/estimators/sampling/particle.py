@@ -62,6 +62,7 @@ from estim.estimators.sampling.particle_graphs import (
     graphs,
     measured_tuning,
     prior_tuning,
+    proposal_rule,
 )
 from estim.estimators.sampling.particle_smoothing import ParticleSmoothResult, backward_simulation
 from estim.model import Model
@@ -246,6 +247,10 @@ class ParticleFilter(CompiledParticles):
         :math:`\bar x^i`. Both are exact (the optimal proposal) for a linear output,
         and lose far fewer particles than the bootstrap when the measurements are
         precise. They need a positive definite ``Q``.
+    points, order : str, int
+        The unscented proposal's rule (:mod:`estim.solvers.quadrature`): ``"cubature"``
+        (default, above), ``"gauss-hermite"`` of ``order`` or ``"cubature5"`` (up to four
+        states): positive weights only, so the proposal's covariance stays definite.
     lower, upper : optional
         The support of the state (default: the model's bounds): a particle outside gets
         weight zero, as under a prior truncated to the bounds (concentrations that
@@ -283,7 +288,8 @@ class ParticleFilter(CompiledParticles):
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
                  ess_threshold: float = 0.5, loglik: Callable | None = None,
                  proposal: str = "bootstrap", lower: ArrayLike | None = None,
-                 upper: ArrayLike | None = None, seed: int = 0, jit: bool = False):
+                 upper: ArrayLike | None = None, seed: int = 0, jit: bool = False,
+                 points: str = "cubature", order: int = 3):
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.lower, self.upper = self._bounds(lower, upper)
         bounded = np.isfinite(self.lower).any() or np.isfinite(self.upper).any()
@@ -297,6 +303,8 @@ class ParticleFilter(CompiledParticles):
             raise TypeError(f"loglik must be a function (y, yhat, p) -> scalar expression "
                             f"or None, got {type(loglik).__name__}")
         self.proposal = as_choice(proposal, PROPOSALS, "proposal")
+        self.points, self.order = points, order
+        self._rule = proposal_rule(self.proposal, points, order, self.model.ndx)
         seed_ = as_seed(seed)
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
@@ -306,7 +314,7 @@ class ParticleFilter(CompiledParticles):
         self._reset()
 
     def _build(self) -> None:
-        g = graphs(self.model, self.loglik, self.proposal)
+        g = graphs(self.model, self.loglik, self.proposal, self._rule)
         self._weigh, self._advance, self._transit = (
             over_points(f) for f in (g.weigh, g.advance, g.transit))
         self._start = None if g.start is None else over_points(g.start)
@@ -443,19 +451,9 @@ class ParticleFilter(CompiledParticles):
                t: ArrayLike | None = None) -> ParticleFilterResult:
         """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
 
-        Parameters
-        ----------
-        Y : (T, ny) array
-            Measurements, NaN where missing.
-        U : (T-1, nu) or (T, nu) array, optional
-            ``U[k]`` acts from sample k to k+1 (with ``hold="foh"``: ``(T, nu)``,
-            the input at each sample), as in :meth:`EKF.filter <estim.EKF.filter>`.
-        t : (T,) array, optional
-            Sample times, kept in the result (default :math:`k\\,\\Delta t`).
-
-        Returns
-        -------
-        ParticleFilterResult
+        ``Y (T, ny)`` (NaN where missing) and ``U`` as in :meth:`EKF.filter
+        <estim.EKF.filter>`; the sample times ``t (T,)`` are kept in the result (default
+        :math:`k\\,\\Delta t`). Returns a :class:`ParticleFilterResult`.
         """
         if self._kernel is not None:  # the whole record in compiled calls
             X, P, statuses, ess, inc = self._compiled_filter(Y, U)

@@ -18,6 +18,7 @@ import numpy as np
 
 from estim.estimators.manifold_steps import output_jacobian
 from estim.model import Model
+from estim.solvers.quadrature import cubature, cubature5, gauss_hermite
 
 __all__ = ["Graphs", "definite", "graphs", "measured_tuning", "prior_tuning", "scalar"]
 
@@ -72,7 +73,34 @@ class Graphs(NamedTuple):
     first: ca.Function
 
 
-def graphs(model: Model, loglik: Callable | None, proposal: str) -> Graphs:
+def proposal_rule(proposal: str, points: object, order: object, n: int
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The unscented proposal's rule ``(unit points (n, N), weights (N,))`` of
+    ``ParticleFilter(points=, order=)`` (None: the default cubature), checked: a rule of
+    positive weights, with ``proposal="ukf"`` only."""
+    from estim._validate import as_int
+
+    rules = ("cubature", "gauss-hermite", "cubature5")
+    if not isinstance(points, str) or points not in rules:
+        raise ValueError(f"points must be one of {', '.join(map(repr, rules))} (rules of "
+                         f"positive weights), got {points!r}")
+    order = as_int(order, "order", minimum=1)
+    if points == "cubature":
+        return None
+    if proposal != "ukf":
+        raise ValueError(f"points={points!r} chooses the unscented proposal's rule: give "
+                         f"proposal='ukf' (got {proposal!r})")
+    if points == "cubature5":
+        if n > 4:
+            raise ValueError(f"points='cubature5' has negative weights beyond four states "
+                             f"(here {n}): the proposal's covariance could lose "
+                             f"definiteness; use 'cubature' or 'gauss-hermite'")
+        return cubature5(n)
+    return gauss_hermite(n, order)
+
+
+def graphs(model: Model, loglik: Callable | None, proposal: str,
+           rule: tuple[np.ndarray, np.ndarray] | None = None) -> Graphs:
     """``weigh(x, w, y0, WR, miss) -> (yhat, l)``, ``advance(x, v, w, tun, y0, WR, miss)
     -> (x_next, yhat, l)``, the linearised proposal's first step ``start`` (from the
     prior; None for the bootstrap filter), ``transit(x, w) -> F(x, w)`` and ``first(x0,
@@ -130,24 +158,28 @@ def graphs(model: Model, loglik: Callable | None, proposal: str) -> Graphs:
     else:  # "ekf", "ukf", tun: Q, L_Q^-1, R (identity rows where missing), L_Q
         tun = ca.SX.sym("tun", 3 * nd * nd + ny * ny)
         advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss], list(
-            linearised(model, measure, xb, v, w, tun, y0, miss, proposal)))
+            linearised(model, measure, xb, v, w, tun, y0, miss, proposal, rule)))
         # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
         start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss], list(
-            linearised(model, measure, x, v, w, tun, y0, miss, proposal)))
+            linearised(model, measure, x, v, w, tun, y0, miss, proposal, rule)))
         first = start
     transit = ca.Function("pf_transit", [x, w], [xb])
     return Graphs(weigh, advance, start, transit, first)
 
 
 def linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, tun: ca.SX,
-                y0: ca.SX, miss: ca.SX, kind: str = "ekf") -> tuple[ca.SX, ca.SX, ca.SX]:
+                y0: ca.SX, miss: ca.SX, kind: str = "ekf",
+               rule: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple[ca.SX, ca.SX, ca.SX]:
     r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement
     (see :class:`ParticleFilter`'s ``proposal``): with the output linearised at
     :math:`\bar x` (``kind="ekf"``), or through the unscented transform of
     :math:`N(\bar x, Q)` by the spherical-cubature rule (``"ukf"``: the :math:`2n`
-    points :math:`\bar x \pm \sqrt{n}\, L_Q e_j` of weight :math:`1/(2n)`, whose
-    joint covariance of state and output is positive semi-definite, so that the
-    updated covariance :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
+    points :math:`\bar x \pm \sqrt{n}\, L_Q e_j` of weight :math:`1/(2n)`, or the
+    ``rule``'s unit points :math:`\xi_j` and weights :math:`W_j`, the points
+    :math:`\bar x + L_Q \xi_j`: with positive weights the joint covariance of state and
+    output is positive semi-definite, so that the updated covariance
+    :math:`Q - K P_{yy} K^\top`, its Schur complement, is too). The
     particle, its predicted output and its log-weight factor (measurement density
     times :math:`N(x; \bar x, Q) / q(x)`; the :math:`2\pi` terms cancel).
 
@@ -174,18 +206,18 @@ def linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, t
         Sig = IKC @ Qm @ IKC.T + K @ Rm @ K.T  # Joseph form
     else:
         LQ = ca.reshape(tun[2 * n2 + ny * ny:], nx, nx)
-        offsets = [np.sqrt(nx) * LQ[:, j] for j in range(nx)]
-        offsets += [-d for d in offsets]
-        wt = 0.5 / nx
+        unit, W = cubature(nx) if rule is None else rule
+        offsets = [LQ @ ca.DM(xi) for xi in unit.T]
         # the outputs' deviations from h(x_bar) (wrapped); missing rows: 0
         Ys = [(1 - miss) * M.output_difference(model.H(moved(d), uy, p), h0)
               for d in offsets]
-        yb = wt * sum(Ys[1:], Ys[0])
+        yb = sum((float(wt) * Yj for wt, Yj in zip(W, Ys, strict=True)), ca.SX.zeros(ny))
+        db = sum((float(wt) * d for wt, d in zip(W, offsets, strict=True)), ca.SX.zeros(nx))
         Pyy, Pxy = Rm, ca.SX.zeros(nx, ny)
-        for d, Yj in zip(offsets, Ys, strict=True):
+        for wt, d, Yj in zip(W, offsets, Ys, strict=True):
             dy = Yj - yb
-            Pyy = Pyy + wt * (dy @ dy.T)
-            Pxy = Pxy + wt * (d @ dy.T)
+            Pyy = Pyy + float(wt) * (dy @ dy.T)
+            Pxy = Pxy + float(wt) * ((d - db) @ dy.T)
         e = e - (1 - miss) * yb
         K = ca.solve(Pyy, Pxy.T).T  # P_xy P_yy^-1 (Pyy symmetric)
         Sig = Qm - K @ Pyy @ K.T

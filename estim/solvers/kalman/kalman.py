@@ -128,7 +128,7 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
         P0 = ca.SX.sym("P0", nd * nd)
         s_new, e, flags, s_prior = build(predict)(s, w, y, tun)
         if sqrt:
-            factor = tria(ca.horzcat(ca.reshape(s_prior[nx:], nx, nx), ca.reshape(P0, nx, nx)))
+            factor = tria(ca.horzcat(ca.reshape(s_prior[nx:], nd, nd), ca.reshape(P0, nd, nd)))
             gated = ca.vertcat(s_prior[:nx], ca.vec(factor))
         else:
             gated = s_prior + ca.vertcat(ca.SX(nx, 1), P0)
