@@ -62,7 +62,7 @@ def test_filterpy_extended_and_unscented_filters_on_van_der_pol():
     fekf.Q, fekf.R = np.eye(2) * t["Q"], np.eye(2) * t["R"]
     testing.assert_close(adapters.from_filterpy(fekf, m, name="filterpy ekf"),
                          estim.EKF(m, **t), (log.y, None), atol=1e-10, rtol=1e-9)
-    points = MerweScaledSigmaPoints(2, alpha=0.1, beta=2.0, kappa=0.0)
+    points = MerweScaledSigmaPoints(2, alpha=1.0, beta=2.0, kappa=0.0)  # the default
     fukf = UnscentedKalmanFilter(2, 2, dt=m.dt, fx=lambda x, dt: m.f(x),
                                  hx=lambda x: m.h(x), points=points)
     fukf.x, fukf.P = np.array(t["x0"], float), np.eye(2) * t["P0"]

@@ -43,6 +43,15 @@ def test_parse_estimator():
     assert cls.__name__ == "EKF" and kwargs == {"clip": True} and label == "ekf:clip=true"
     _, cls, kwargs = cli.parse_estimator("ukf:alpha=0.5,kappa=1")
     assert cls.__name__ == "UKF" and kwargs == {"alpha": 0.5, "kappa": 1}
+    # the Gaussian filters' family: iterated, damped, other rules, the PF's rule
+    _, cls, kwargs = cli.parse_estimator("iekf=ekf:iterations=10,damping=line-search")
+    assert cls.__name__ == "EKF" and kwargs == {"iterations": 10, "damping": "line-search"}
+    _, cls, kwargs = cli.parse_estimator("ukf:points=gauss-hermite,order=3,iterations=30,"
+                                         "damping=relaxed")
+    assert kwargs == {"points": "gauss-hermite", "order": 3, "iterations": 30,
+                      "damping": "relaxed"}
+    _, cls, kwargs = cli.parse_estimator("pf:proposal=ukf,points=cubature5")
+    assert cls.__name__ == "ParticleFilter" and kwargs["points"] == "cubature5"
     label, cls, kwargs = cli.parse_estimator("mhe-25=mhe:horizon=25,solver=gauss-newton")
     assert label == "mhe-25" and cls.__name__ == "MHE"
     assert kwargs == {"horizon": 25, "solver": "gauss-newton"}

@@ -223,5 +223,8 @@ def test_satellite_attitude(tmp_path):
         add, mult = res[("additive", name)], res[("multiplicative", name)]
         assert mult["norm"] < 1e-12 < add["norm"]
         assert mult["failures"] == add["failures"] == 0
-        assert mult["ratio"] < 0.05 and abs(mult["ratio"] - add["ratio"]) < 0.1 * add["ratio"]
-        assert abs(mult["attitude_deg"] - add["attitude_deg"]) < 0.05 * add["attitude_deg"]
+        # attitude and inertia ratios: the multiplicative forms at least as good as the
+        # additive ones (the additive UKF's points, sqrt(n) sd out, leave the unit sphere
+        # further: worse)
+        assert mult["ratio"] < 0.05 and mult["ratio"] < 1.1 * add["ratio"]
+        assert mult["attitude_deg"] < 1.05 * add["attitude_deg"]

@@ -141,7 +141,7 @@ def test_ml_graph_is_the_filter(kind):
                                                      P0=[1.0, 2.0])
     rep = estim.replay(est, Y)
     rec = _Record(sc.model, Y, None, [0.5, 0.0], np.diag([1.0, 2.0]), 0)
-    nll, eps = _core(sc.model, kind, rec.T, ("merwe", 3, 0.1, 2.0, 0.0))(
+    nll, eps = _core(sc.model, kind, rec.T, ("merwe", 3, 1.0, 2.0, 0.0))(
         Q.ravel(), R.ravel(), sc.model.p, *rec.data())
     eps = np.asarray(eps).T
     nis = np.sum(eps**2, axis=1)

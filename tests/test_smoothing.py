@@ -299,7 +299,7 @@ def test_unscented_smoother_equals_filterpy_on_a_nonlinear_model(missing):
     m, tun = sc.model, sc.tuning
     log = estim.simulate(sc, estim.UKF(m, **tun), seed=1)
     Y = _missing(log.y) if missing else log.y
-    points = MerweScaledSigmaPoints(m.nx, alpha=0.1, beta=2.0, kappa=0.0)
+    points = MerweScaledSigmaPoints(m.nx, alpha=1.0, beta=2.0, kappa=0.0)  # the default
     ukf = UnscentedKalmanFilter(dim_x=m.nx, dim_z=m.ny, dt=m.dt, points=points,
                                 fx=lambda x, dt: m.f(x), hx=lambda x: m.h(x))
     est = estim.UKF(m, **tun)

@@ -37,7 +37,7 @@ class CubaturePoints:
 
 def _filterpy_points(points, n, kappa=0.0):
     if points == "merwe":
-        return MerweScaledSigmaPoints(n, alpha=0.1, beta=2.0, kappa=kappa)
+        return MerweScaledSigmaPoints(n, alpha=1.0, beta=2.0, kappa=kappa)
     if points == "julier":
         return JulierSigmaPoints(n, kappa=kappa)
     return CubaturePoints(n)
@@ -123,13 +123,19 @@ def test_sigma_points_are_filterpys():
         ref = _filterpy_points(points, 4, kw.get("kappa", 0.0))
         np.testing.assert_allclose(est.sigma_points(x, sys.P0), ref.sigma_points(x, sys.P0),
                                    rtol=0, atol=1e-14)
-        c, Wm, Wc = sigma_weights(points, 4, 0.1, 2.0, kw.get("kappa", 0.0))
+        c, Wm, Wc = sigma_weights(points, 4, 1.0, 2.0, kw.get("kappa", 0.0))
         np.testing.assert_allclose(Wm, ref.Wm, rtol=1e-14)
         np.testing.assert_allclose(Wc, ref.Wc, rtol=1e-14)
         assert Wm.sum() == pytest.approx(1.0, abs=1e-12)
         # a stack of means and covariances at once
         stack = est.sigma_points(np.array([x, -x]), np.array([sys.P0, 2 * sys.P0]))
         np.testing.assert_allclose(stack[1], ref.sigma_points(-x, 2 * sys.P0), atol=1e-14)
+    # filterpy's example spread (a negative centre weight), the former default
+    narrow = estim.UKF(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0, alpha=0.1)
+    ref = MerweScaledSigmaPoints(4, alpha=0.1, beta=2.0, kappa=0.0)
+    np.testing.assert_allclose(narrow.sigma_points(x, sys.P0), ref.sigma_points(x, sys.P0),
+                               rtol=0, atol=1e-14)
+    np.testing.assert_allclose(narrow._Wc, ref.Wc, rtol=1e-14)
 
 
 def _numpy_ukf(est, Y, U):

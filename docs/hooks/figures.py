@@ -3,7 +3,8 @@
 The ```` ```python ```` blocks of each page in ``PAGES`` run in order in one
 namespace (``numpy as np``, ``casadi as ca`` and ``estim`` imported, as the
 pages say; blocks marked ``<!-- no-run: reason -->`` or ``<!-- signature -->``
-are skipped), in a temporary directory, with matplotlib's Agg backend. Every
+are skipped), in a temporary directory that holds a link to the repository's
+``examples/`` (the pages load data from there), with matplotlib's Agg backend. Every
 PNG they write is added to the site as ``figures/<name>.png``, so the page links
 ``figures/<name>.png`` and shows exactly what its code draws with the real
 plotting helpers. An exception in a block stops the build.
@@ -22,7 +23,7 @@ from pathlib import Path
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
-PAGES = ("plotting.md", "particle.md", "attitude.md")
+PAGES = ("plotting.md", "particle.md", "attitude.md", "gaussian_filters.md")
 FOLDER = "figures"
 
 _FENCE = re.compile(
@@ -55,6 +56,9 @@ def figures(page: Path) -> dict[str, bytes]:
     namespace = {"__name__": "__doc_page__", "np": np, "ca": ca, "estim": estim}
     cwd = os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
+        examples = page.resolve().parents[1] / "examples"
+        if examples.is_dir():
+            os.symlink(examples, Path(tmp) / "examples")
         os.chdir(tmp)
         try:
             for line, code in _blocks(page.read_text(encoding="utf-8")):

@@ -54,7 +54,7 @@ ESTIMATORS = ("ekf", "ukf")
 def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
                    Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
                    P0: ArrayLike | None = None, params: Mapping[str, float] | None = None,
-                   estimator: str = "ekf", burn: int | None = None, alpha: float = 0.1,
+                   estimator: str = "ekf", burn: int | None = None, alpha: float = 1.0,
                    beta: float = 2.0, kappa: float = 0.0, points: str = "merwe",
                    order: int = 3) -> float:
     r"""The prediction-error log-likelihood of a record under the EKF or UKF.
@@ -139,7 +139,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                        seed: int | None = 0, spread: float = 1.0, burn: int | None = None,
                        method: str = "BFGS", hessian: str = "differences", tol: float = 1e-8,
                        max_iter: int = 200,
-                       alpha: float = 0.1, beta: float = 2.0, kappa: float = 0.0,
+                       alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
                        points: str = "merwe", order: int = 3) -> TuningResult:
     r"""Noise covariances (and model parameters) that maximise the likelihood of a record.
 

@@ -247,7 +247,8 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     Uy = np.array([u for u, _ in steps]).reshape(T, m.nu)
     Wm, Wc = estimator._Wm, estimator._Wc
     ns = len(Wm)
-    H_map = m.H.map(T * ns)
+    H_map, F_map = m.H.map(T * ns), m.F.map(max(T - 1, 1) * ns)
+    Wr = np.repeat(W, ns, axis=0).T  # the transitions' inputs at each sigma point
     pm = ca.DM(m.p)
 
     def regression(sig, X, P, out):
@@ -267,8 +268,8 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
         H, b, Om = regression(sig, Xs, Ps, Z)
         A, a, Lam = np.empty((0, nx, nx)), np.empty((0, nx)), np.empty((0, nx, nx))
         if T > 1:
-            Fs = transitions(m, sig[:-1].reshape((T - 1) * ns, nx), np.repeat(W, ns, axis=0)
-                             ).reshape(T - 1, ns, nx)
+            Fs = np.asarray(F_map(sig[:-1].reshape((T - 1) * ns, nx).T, Wr, pm)).T.reshape(
+                T - 1, ns, nx)
             A, a, Lam = regression(sig[:-1], Xs[:-1], Ps[:-1], Fs)
         return A, a, Lam + estimator.Q, H, b, Om + estimator.R
 
@@ -286,25 +287,33 @@ def _passes(estimator, first: SmoothResult, Y: np.ndarray, Xs: np.ndarray, Ps: n
     whether no mean moved beyond ``tol`` relative to its size."""
     T, nx = len(Xs), Xs.shape[1]
     mask = np.isfinite(Y)
+    full, some = mask.all(axis=1).tolist(), mask.any(axis=1).tolist()
+    eye = np.eye(nx)
     done, converged = start, passes == 0
     for _ in range(passes):
         A, a, Qk, H, b, Rk = linearise(Xs, Ps)
         Xf, Pf = np.empty((T, nx)), np.empty((T, nx, nx))
         xb, Pb, D = np.empty((T - 1, nx)), np.empty((T - 1, nx, nx)), np.empty((T - 1, nx, nx))
         x, P = np.asarray(estimator.x0, float), np.asarray(estimator.P0, float)
+        AT = A.transpose(0, 2, 1)
+        r = Y - b  # the measurements less the affine terms (NaN where missing)
         for k in range(T):
             if k:
                 x = A[k - 1] @ Xf[k - 1] + a[k - 1]
-                D[k - 1] = Pf[k - 1] @ A[k - 1].T
-                P = A[k - 1] @ D[k - 1] + Qk[k - 1]
+                Dk = D[k - 1] = Pf[k - 1] @ AT[k - 1]
+                P = A[k - 1] @ Dk + Qk[k - 1]
                 xb[k - 1], Pb[k - 1] = x, 0.5 * (P + P.T)
-            rows = mask[k]
-            if rows.any():  # the update by the measured rows (Joseph form)
-                C, Rm = H[k][rows], Rk[k][np.ix_(rows, rows)]
-                S = C @ P @ C.T + Rm
-                K = np.linalg.solve(0.5 * (S + S.T), C @ P).T
-                x = x + K @ (Y[k, rows] - C @ x - b[k, rows])
-                IKC = np.eye(nx) - K @ C
+            if some[k]:  # the update by the measured rows (Joseph form)
+                if full[k]:
+                    C, Rm, rk = H[k], Rk[k], r[k]
+                else:
+                    rows = mask[k]
+                    C, Rm, rk = H[k][rows], Rk[k][np.ix_(rows, rows)], r[k, rows]
+                CP = C @ P
+                S = CP @ C.T + Rm
+                K = np.linalg.solve(0.5 * (S + S.T), CP).T
+                x = x + K @ (rk - C @ x)
+                IKC = eye - K @ C
                 P = IKC @ P @ IKC.T + K @ Rm @ K.T
             Xf[k], Pf[k] = x, 0.5 * (P + P.T)
         new, Ps, _ = backward(Xf, Pf, xb, Pb, D)

@@ -104,9 +104,9 @@ class UKF(FusedKalman):
     tol : float
         Convergence tolerance in posterior standard deviations (default 1e-4).
     alpha, beta, kappa : float
-        Sigma-point spread (:math:`\alpha`, merwe), prior knowledge of the
-        distribution (:math:`\beta = 2` for Gaussian, merwe) and secondary
-        scaling (:math:`\kappa`, merwe and julier; :math:`n_x + \kappa > 0`).
+        Spread (:math:`\alpha`, merwe), prior knowledge (:math:`\beta = 2` for Gaussian,
+        merwe), secondary scaling (:math:`\kappa`, merwe and julier; :math:`n_x + \kappa
+        > 0`); the default, chosen on 13 cases: docs/gaussian_filters.md.
     clip : bool
         Project the estimate onto the model bounds after each update.
     gate : float, optional
@@ -142,7 +142,7 @@ class UKF(FusedKalman):
     _checks_inf_itself = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
-                 P0: ArrayLike, points: str = "merwe", alpha: float = 0.1, beta: float = 2.0,
+                 P0: ArrayLike, points: str = "merwe", alpha: float = 1.0, beta: float = 2.0,
                  kappa: float = 0.0, clip: bool = False, gate: float | None = None,
                  form: str = "covariance", jit: bool = False, order: int = 3,
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4):
@@ -335,7 +335,7 @@ class UKF(FusedKalman):
                 else "non-finite prediction F(x, u) at the sigma points")
 
 
-def sigma_weights(points: str, n: int, alpha: float = 0.1, beta: float = 2.0,
+def sigma_weights(points: str, n: int, alpha: float = 1.0, beta: float = 2.0,
                   kappa: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
     r"""The spread :math:`c` (the offsets are the rows of the Cholesky factor of
     :math:`c P`) and the mean and covariance weights of a sigma-point set.
@@ -403,7 +403,7 @@ def _rule(ukf: UKF, model: Model) -> tuple[float, np.ndarray, np.ndarray, np.nda
                       stacklevel=4)
 
 
-def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 0.1, beta: float = 2.0,
+def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 1.0, beta: float = 2.0,
                kappa: float = 0.0, stacklevel: int = 2
                ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray | None]:
     """The sigma-point rule ``points`` for ``n`` dimensions: the spread :math:`c`, the mean
