@@ -4,9 +4,11 @@ smoother against full information, in the same process.
 The textbook pendulum (``estim.models.sine_pendulum``, 300 samples, ``Q = diag(1e-4,
 0.06)``, R = 0.01):
 
-1. the median time of ``step`` over the record (``estim.replay``) for ``EKF`` and
-   ``EKF(iterations=K)``, K = 2, 3, 5, interpreted and with ``jit=True``: the ratio to the
-   EKF's step (the issue's bound: at most K + 1);
+1. the median time of ``step`` over the record (``estim.replay``) and the time per sample
+   of ``filter`` (the compiled scan: the step's arithmetic without Python's overhead) for
+   ``EKF`` and ``EKF(iterations=K)``, K = 2, 3, 5, plain and damped, interpreted and with
+   ``jit=True``: the ratio to the EKF's (the bound: at most K + 1; the iterated update
+   adds one linearisation for its convergence test);
 2. ``EKF(...).smooth(Y, iterations=100)`` (converged) against
    ``FullInformation(solver="gauss-newton")`` on the same record and the same prior,
    from the extended smoother's trajectory: time and the largest difference.
@@ -42,20 +44,37 @@ def main() -> None:
     tuning = {"Q": Q, "R": 0.01, "x0": [1.2, 0.0], "P0": 0.09}
     log = estim.simulate(m, None, x0=[1.5, 0.0], n_steps=300, Q=Q, R=0.01, seed=1)
     print("## 1. step time, ratio to the EKF's step\n")
-    print("| filter | jit | step | ratio |")
-    print("|---|---|---|---|")
+    print("step: the median of `step` over the record (`estim.replay`, Python's overhead "
+          "included); per sample: `filter` over the record (the compiled scan) divided by "
+          "its length, the arithmetic of the step.\n")
+    print("| filter | jit | step | ratio | per sample in `filter` | ratio |")
+    print("|---|---|---|---|---|---|")
+    variants = {"EKF": {}, **{f"EKF(iterations={K})": {"iterations": K} for K in (2, 3, 5)},
+                "EKF(iterations=5, damping='line-search')": {"iterations": 5,
+                                                             "damping": "line-search"},
+                "EKF(iterations=5, damping='levenberg-marquardt')": {
+                    "iterations": 5, "damping": "levenberg-marquardt"}}
     for jit in ([False, True] if compiler() else [False]):
-        times: dict[int, list[float]] = {}
-        for K in (1, 2, 3, 5):
-            est = estim.EKF(m, **tuning, iterations=K, jit=jit)
+        times: dict[str, list[float]] = {}
+        scans: dict[str, list[float]] = {}
+        for label, kw in variants.items():
+            est = estim.EKF(m, **tuning, **kw, jit=jit)
             estim.replay(est, log.y)  # builds, loads
-            times[K] = [float(np.median(estim.replay(est, log.y).solve_time))
-                        for _ in range(args.repeats)]
-        base = statistics.median(times[1])
-        for K, runs in times.items():
-            label = "EKF" if K == 1 else f"EKF(iterations={K})"
+            est.filter(log.y)
+            times[label] = [float(np.median(estim.replay(est, log.y).solve_time))
+                            for _ in range(args.repeats)]
+            scans[label] = []
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                for _ in range(5):
+                    est.filter(log.y)
+                scans[label].append((time.perf_counter() - t0) / 5 / len(log.y))
+        base, base_scan = statistics.median(times["EKF"]), statistics.median(scans["EKF"])
+        for label in variants:
+            runs, scan = times[label], scans[label]
             print(f"| {label} | {jit} | {span([t * 1e6 for t in runs])} µs | "
-                  f"{span([t / base for t in runs])} |", flush=True)
+                  f"{span([t / base for t in runs])} | {span([t * 1e6 for t in scan])} µs | "
+                  f"{span([t / base_scan for t in scan])} |", flush=True)
     print("\n## 2. the iterated smoother against full information\n")
     ekf = estim.EKF(m, **tuning)
     first = ekf.smooth(log.y)
