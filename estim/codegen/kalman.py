@@ -152,8 +152,9 @@ def describe(estimator: EKF | UKF) -> str:
     points = getattr(estimator, "points", None)  # the UKF's sigma points
     if points:
         parts.append(f"points={points!r}")
-    if getattr(estimator, "order", 3) != 3 and points == "gauss-hermite":
-        parts.append(f"order={estimator.order}")
+    order = getattr(estimator, "order", 3)
+    if order != 3 and points == "gauss-hermite":
+        parts.append(f"order={order}")
     if getattr(estimator, "iterations", 1) > 1:
         parts.append(f"iterations={estimator.iterations}")
     if getattr(estimator, "damping", None) is not None:

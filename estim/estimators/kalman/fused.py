@@ -70,6 +70,8 @@ class FusedKalman(Estimator):
     #: of its convergence (:mod:`estim.estimators.kalman.iterated_updates`)
     damping: str | None = None
     tol = 1e-4
+    #: Iterations of the measurement update (set by the subclass's constructor)
+    iterations = 1
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
