@@ -328,3 +328,40 @@ class TransitionInputs:
         at the next sample): an array, or a CasADi expression for building graphs."""
         nu = self.nu
         return w[nu:2 * nu] if self.sampled else w[:nu]
+
+
+def as_noise_input(L: Any, nx: int, continuous: bool) -> np.ndarray | None:
+    """``noise_input=`` checked: None, or a finite ``(nx, nq)`` matrix of a continuous
+    model (a vector: one column)."""
+    if L is None:
+        return None
+    if not continuous:
+        raise ValueError("noise_input= says how a continuous-time noise enters the states: "
+                         "it needs a continuous model (ode=); a discrete model takes a "
+                         "per-transition Q")
+    try:
+        M = np.array(L, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"noise_input must be an (nx, nq) matrix of numbers, got "
+                        f"{type(L).__name__}") from None
+    if M.ndim == 1:
+        M = M[:, None]
+    if M.ndim != 2 or M.shape[0] != nx or M.shape[1] < 1:
+        raise ValueError(f"noise_input must be an (nx, nq) matrix with nx = {nx} rows and at "
+                         f"least one column, got shape {np.shape(L)}")
+    if not np.isfinite(M).all():
+        raise ValueError("noise_input must be finite")
+    return M
+
+
+def check_equations(ode: Any, dynamics: Any, output: Any) -> Any:
+    """Check that exactly one of ``ode``/``dynamics`` is given and that the equations are
+    callables; returns ``output``."""
+    if (ode is None) == (dynamics is None):
+        raise ValueError("give exactly one of ode= (continuous) or dynamics= (discrete)")
+    for argname, fn in (("ode", ode), ("dynamics", dynamics), ("output", output)):
+        if fn is not None and not callable(fn):
+            raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
+    if output is None:
+        raise ValueError("output= is required: a callable h(x, u, p)")
+    return output

@@ -35,6 +35,8 @@ from estim._discretise import (
     TransitionInputs,
     as_column,
     as_holds,
+    as_noise_input,
+    check_equations,
     discretise,
     equation,
     euler_step,
@@ -164,6 +166,9 @@ class Model(TransitionInputs):
     angles, output_angles : list of str, optional
         States and outputs that are angles in radians: errors and innovations are
         wrapped onto :math:`(-\pi, \pi]` (``F`` wraps the angle states too).
+    noise_input : (nx, nq) array, optional
+        :math:`L` in :math:`dx = f\,dt + L\,d\beta`; the estimators' ``Qc=`` is the density of
+        :math:`\beta` (default :math:`L = I`; continuous models; docs/continuous_noise.md).
 
     Attributes
     ----------
@@ -230,6 +235,7 @@ class Model(TransitionInputs):
         quaternions: Sequence[Sequence[str]] | None = None,
         angles: Sequence[str] | None = None,
         output_angles: Sequence[str] | None = None,
+        noise_input: ArrayLike | None = None,
     ):
         self.state_names = as_names(states, "states", "x")
         self.algebraic_names = as_names(algebraic, "algebraic", "z")
@@ -237,7 +243,7 @@ class Model(TransitionInputs):
         self.input_names = as_names(inputs, "inputs", "u")
         if not self.state_names:
             raise ValueError("states must name at least one state")
-        self._output = _check_equations(ode, dynamics, output)
+        self._output = check_equations(ode, dynamics, output)
         self._alg = _check_algebraic(self.algebraic_names, ode, alg, z0, integrator)
         self.z0 = as_vector(0.0 if z0 is None and self.nz == 1 else
                             [0.0] * self.nz if z0 is None else z0, self.nz, "z0")
@@ -273,6 +279,7 @@ class Model(TransitionInputs):
                              "map (dynamics=) has no sample interval to vary")
         self.manifold = Manifold(self.state_names, self.output_names, quaternions, angles,
                                  output_angles)
+        self.noise_input = as_noise_input(noise_input, self.nx, ode is not None)
         self._build()
 
     # ------------------------------------------------------------------ build
@@ -488,6 +495,7 @@ class Model(TransitionInputs):
         self.__dict__.setdefault("disturbances", {})
         self.__dict__.setdefault("hold", dict.fromkeys(self.input_names, "zoh"))
         self.__dict__.setdefault("manifold", Manifold(self.state_names, self.output_names))
+        self.__dict__.setdefault("noise_input", None)
         self._build()
 
 
@@ -526,20 +534,6 @@ def _functions(model: Model) -> tuple[ca.Function | None, ca.Function, ca.Functi
 
 
 # ------------------------------------------------------------ the arguments
-def _check_equations(ode: Equation | None, dynamics: Equation | None,
-                     output: Equation | None) -> Equation:
-    """Check that exactly one of ``ode``/``dynamics`` is given and that the equations are
-    callables; returns ``output``."""
-    if (ode is None) == (dynamics is None):
-        raise ValueError("give exactly one of ode= (continuous) or dynamics= (discrete)")
-    for argname, fn in (("ode", ode), ("dynamics", dynamics), ("output", output)):
-        if fn is not None and not callable(fn):
-            raise TypeError(f"{argname} must be callable f(x, u, p), got {type(fn).__name__}")
-    if output is None:
-        raise ValueError("output= is required: a callable h(x, u, p)")
-    return output
-
-
 def _check_algebraic(names: list[str], ode: Equation | None, alg: Equation | None,
                      z0: ArrayLike | None, integrator: str) -> Equation | None:
     """``alg=`` checked against ``algebraic=``: both or neither, with ``ode=``."""

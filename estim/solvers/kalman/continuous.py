@@ -1,0 +1,203 @@
+r"""Process noise in continuous time: a spectral density :math:`Q_c` entering through a
+noise input matrix :math:`L`,
+
+.. math::
+    dx = f(x, u)\,dt + L\, d\beta, \qquad E[d\beta\, d\beta^\top] = Q_c\, dt,
+
+so that the noise a transition receives grows with its interval, where a per-transition
+covariance ``Q`` is the same for 1 ms and for 1 s. Two ways to carry a Gaussian over an
+interval :math:`\Delta t` (Särkkä & Svensson, *Bayesian Filtering and Smoothing*, 2nd ed.,
+2023, ch. 10):
+
+* **The exact discretisation of a linear (or linearised) model**
+  (:func:`van_loan`): :math:`\Phi = e^{A \Delta t}` and
+  :math:`Q_d(\Delta t) = \int_0^{\Delta t} e^{A\tau} W e^{A^\top \tau}\, d\tau`,
+  :math:`W = L Q_c L^\top`, from one matrix exponential (Van Loan 1978).
+* **The moment equations integrated beside the mean** (:func:`moment_step`,
+  :func:`sigma_moment_step`): for the extended filter
+  :math:`\dot m = f(m, u)`, :math:`\dot P = A P + P A^\top + W` with
+  :math:`A = \partial f / \partial x` at :math:`m`; for the sigma-point filter
+  (Särkkä 2007) :math:`\dot m = \sum_i W^m_i f(\mathcal X_i)`,
+  :math:`\dot P = \sum_i W^c_i \left[(\mathcal X_i - m)(f_i - \bar f)^\top +
+  (f_i - \bar f)(\mathcal X_i - m)^\top\right] + W`, the sigma points :math:`\mathcal X_i`
+  drawn from :math:`(m, P)` at every stage; both by classic Runge-Kutta sub-steps, in
+  CasADi expressions (one compiled step, no Python per step).
+
+On a linear model :math:`\dot P` is a polynomial of degree 3 in time when :math:`A` is
+nilpotent (the Wiener velocity), which Runge-Kutta integrates exactly; otherwise the
+sub-steps' error is that of RK4.
+
+References
+----------
+C. F. Van Loan, "Computing integrals involving the matrix exponential", IEEE TAC 23(3),
+1978; A. H. Jazwinski, *Stochastic Processes and Filtering Theory*, 1970;
+S. Särkkä, "On unscented Kalman filtering for state estimation of continuous-time
+nonlinear systems", IEEE TAC 52(9), 2007.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["DOUBLINGS", "moment_step", "sigma_moment_step", "van_loan"]
+
+#: The squarings of :func:`van_loan`'s scaling: the exponent is taken of the matrix divided
+#: by :math:`2^{32}`, then doubled back; with the Taylor series of degree
+#: :data:`TAYLOR_DEGREE` this is exact to rounding for :math:`\|M \Delta t\|` up to about
+#: :math:`10^8`.
+DOUBLINGS = 32
+TAYLOR_DEGREE = 8
+
+
+def _exponential(X: Any, symbolic: bool) -> tuple[Any, Any]:
+    r""":math:`(e^X - I,\ e^X)` by scaling and doubling, exact to rounding over a wide
+    range of :math:`\|X\|`: the Taylor series of :math:`E = e^Y - I` at
+    :math:`Y = X / 2^{D}` (``D`` = :data:`DOUBLINGS`), then ``D`` doublings. While the
+    entries of :math:`E` are small they double as :math:`E \leftarrow 2E + E^2`
+    (:math:`e^{2Y} - I`), which keeps their relative precision where squaring
+    :math:`I + E` would lose it (an interval of 1e-3 on a slow model); once an entry
+    passes 1/2 the matrix :math:`F = I + E` is squared instead, which keeps the precision of
+    a decaying exponential that :math:`I + E` with :math:`E \to -I` would cancel (an
+    interval of 10 time constants). The switch is per evaluation (``if_else`` in an
+    expression). Returns both: the caller takes the form that does not cancel."""
+    n = X.shape[0]
+    eye = ca.DM.eye(n) if symbolic else np.eye(n)
+    Y = X / 2.0 ** DOUBLINGS
+    term, E = Y, Y
+    for k in range(2, TAYLOR_DEGREE + 1):
+        term = (term @ Y) / k
+        E = E + term
+    F, switched = eye + E, 0
+    for _ in range(DOUBLINGS):
+        if symbolic:
+            E_next = 2 * E + E @ E
+            big = ca.mmax(ca.fabs(E_next)) > 0.5
+            F = ca.if_else(switched, F @ F, eye + E_next)
+            E = ca.if_else(switched, E, E_next)
+            switched = ca.logic_or(switched, big)
+        elif switched:
+            F = F @ F
+        else:
+            E = 2 * E + E @ E
+            F = eye + E
+            switched = np.abs(E).max() > 0.5
+    if symbolic:
+        return ca.if_else(switched, F - eye, E), F
+    return (F - eye, F) if switched else (E, F)
+
+
+def van_loan(A: Any, W: Any, dt: Any) -> tuple[Any, Any]:
+    r"""The exact discretisation over ``dt`` of :math:`\dot x = A x + w`,
+    :math:`E[w w^\top] = W \delta(t - s)`: :math:`\Phi = e^{A\,\Delta t}` and
+    :math:`Q_d = \int_0^{\Delta t} e^{A\tau} W e^{A^\top\tau}\, d\tau`, from the exponential
+    of :math:`M = \begin{bmatrix} -A & W \\ 0 & A^\top \end{bmatrix} \Delta t`,
+    :math:`e^M = \begin{bmatrix} \cdot & G \\ 0 & \Phi^\top \end{bmatrix}`,
+    :math:`Q_d = \Phi G` (Van Loan 1978). Works on numbers (numpy) and on CasADi
+    expressions (``dt`` a symbol: a variable interval); :math:`Q_d` is symmetrised.
+
+    Parameters
+    ----------
+    A : (n, n) array or expression
+        The (linearised) drift.
+    W : (n, n) array or expression
+        :math:`L Q_c L^\top`, the noise's spectral density through its input matrix.
+    dt : float or scalar expression
+        The interval (positive).
+
+    Returns
+    -------
+    Phi, Qd : (n, n)
+    """
+    symbolic = any(isinstance(v, (ca.SX, ca.MX)) for v in (A, W, dt))
+    n = A.shape[0]
+    if symbolic:
+        Z = ca.SX(n, n) if not isinstance(A, ca.MX) else ca.MX(n, n)
+        M = ca.vertcat(ca.horzcat(-A, W), ca.horzcat(Z, A.T)) * dt
+    else:
+        A, W = np.asarray(A, float), np.asarray(W, float)
+        M = np.block([[-A, W], [np.zeros((n, n)), A.T]]) * float(dt)
+    E, F = _exponential(M, symbolic)
+    # Phi = F22^T, Q_d = Phi G with G = F12: from E (= F - I) while it is small, where
+    # Phi G = G + E22^T G keeps G's digits, else from F itself
+    G, Phi = F[:n, n:], F[n:, n:].T
+    if symbolic:
+        small = ca.mmax(ca.fabs(E[n:, n:])) <= 0.5
+        Qd = ca.if_else(small, E[:n, n:] + E[n:, n:].T @ E[:n, n:], Phi @ G)
+    else:
+        Qd = E[:n, n:] + E[n:, n:].T @ E[:n, n:] if np.abs(E[n:, n:]).max() <= 0.5 \
+            else Phi @ G
+    return Phi, 0.5 * (Qd + Qd.T)
+
+
+def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W: Any,
+                h: Any, substeps: int) -> tuple[Any, Any]:
+    r"""The extended filter's prediction over an interval ``h``: :math:`\dot m = f(m)`,
+    :math:`\dot P = A P + P A^\top + W` (:math:`A` = ``jac(m, u, p)``) by ``substeps`` classic
+    Runge-Kutta steps of the pair, the input along the interval ``u_of`` (a callable of
+    the fraction of the interval, or the held input). Returns :math:`(m, P)` at the end
+    (:math:`P` symmetrised)."""
+    from estim._discretise import input_at
+
+    n = x.numel()
+
+    def rhs(z, u):
+        m, S = z[:n], ca.reshape(z[n:], n, n)
+        A = jac(m, u, p)
+        Pdot = A @ S + S @ A.T + W
+        return ca.vertcat(f(m, u, p), ca.vec(Pdot))
+
+    z = ca.vertcat(x, ca.vec(P))
+    dt = h / substeps
+    for i in range(substeps):
+        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
+        um = input_at(u_of, sm)
+        k1 = rhs(z, input_at(u_of, s0))
+        k2 = rhs(z + dt / 2 * k1, um)
+        k3 = rhs(z + dt / 2 * k2, um)
+        k4 = rhs(z + dt * k3, input_at(u_of, s1))
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    Pn = ca.reshape(z[n:], n, n)
+    return z[:n], 0.5 * (Pn + Pn.T)
+
+
+def sigma_moment_step(f: Callable, points: Callable, Wm: np.ndarray, Wc: np.ndarray,
+                      x: Any, P: Any, u_of: Any, p: Any, W: Any, h: Any,
+                      substeps: int) -> tuple[Any, Any, Any]:
+    r"""The sigma-point filter's prediction over ``h`` (Särkkä 2007; see the module), the
+    points ``points(m, P) -> (list of columns, definite)`` drawn at every Runge-Kutta
+    stage; returns :math:`(m, P)` at the end and whether every stage's covariance had its
+    sigma points (positive definite)."""
+    from estim._discretise import input_at
+
+    n = x.numel()
+    ok = ca.SX(1)
+
+    def rhs(z, u):
+        nonlocal ok
+        m, S = z[:n], ca.reshape(z[n:], n, n)
+        S = 0.5 * (S + S.T)
+        sig, definite = points(m, S)
+        ok = ca.logic_and(ok, definite)
+        fs = [f(v, u, p) for v in sig]
+        fbar = sum((float(w) * v for w, v in zip(Wm, fs, strict=True)), ca.SX.zeros(n))
+        C = sum((float(w) * ((v - m) @ (g - fbar).T) for w, v, g in zip(Wc, sig, fs,
+                                                                        strict=True)),
+                ca.SX.zeros(n, n))
+        return ca.vertcat(fbar, ca.vec(C + C.T + W))
+
+    z = ca.vertcat(x, ca.vec(P))
+    dt = h / substeps
+    for i in range(substeps):
+        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
+        um = input_at(u_of, sm)
+        k1 = rhs(z, input_at(u_of, s0))
+        k2 = rhs(z + dt / 2 * k1, um)
+        k3 = rhs(z + dt / 2 * k2, um)
+        k4 = rhs(z + dt * k3, input_at(u_of, s1))
+        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    Pn = ca.reshape(z[n:], n, n)
+    return z[:n], 0.5 * (Pn + Pn.T), ok
