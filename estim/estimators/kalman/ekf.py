@@ -7,6 +7,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_int
+from estim.estimators.kalman.continuous import (
+    SUBSTEPS,
+    continuous_noise,
+    ekf_prediction,
+    smoother_prediction,
+)
 from estim.estimators.kalman.fused import FusedKalman
 from estim.estimators.kalman.iterated_updates import check_iterated, ekf_update
 from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts, smoothing_passes
@@ -54,6 +60,14 @@ class EKF(FusedKalman):
     Q, R, x0, P0 :
         Process and measurement covariances, initial guess and its
         covariance (see :class:`~estim.estimators.base.Estimator`).
+    Qc : (nq, nq) array, optional
+        Instead of ``Q``, on a continuous model: the spectral density of a
+        continuous-time process noise entering through the model's ``noise_input``
+        :math:`L`. The prediction then integrates
+        :math:`\dot m = f(m, u)`, :math:`\dot P = A P + P A^\top + L Q_c L^\top` over each
+        interval by ``substeps`` Runge-Kutta steps (the continuous-discrete EKF;
+        :mod:`estim.estimators.kalman.continuous`, docs/continuous_noise.md): the noise of
+        a transition is that of its interval, with irregular stamps too.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
@@ -132,11 +146,13 @@ class EKF(FusedKalman):
     _checks_inf_itself = True
     _manifold_aware = True
 
-    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
-                 P0: ArrayLike, clip: bool = False, lower: ArrayLike | None = None,
-                 upper: ArrayLike | None = None, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False, iterations: int = 1,
-                 damping: str | None = None, tol: float = 1e-4):
+    def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
+                 x0: ArrayLike, P0: ArrayLike, clip: bool = False,
+                 lower: ArrayLike | None = None, upper: ArrayLike | None = None,
+                 gate: float | None = None, form: str = "covariance", jit: bool = False,
+                 iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
+                 Qc: ArrayLike | None = None, substeps: int = SUBSTEPS):
+        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form)
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.iterations = as_int(iterations, "iterations", minimum=1)
@@ -161,7 +177,9 @@ class EKF(FusedKalman):
         m = self.model
         nx = m.nx
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
-        if predict:
+        if predict and self.Qc is not None:  # the moments over the interval
+            xb, Pb = ekf_prediction(self, x, P, u, p, Q)
+        elif predict:
             xb = m.F(x, u, p)
             A = m.F_x(x, u, p)
             Pb = A @ P @ A.T + Q
@@ -262,6 +280,8 @@ class EKF(FusedKalman):
         passes = smoothing_passes(self, iterations)
         clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
             else None
+        if self.Qc is not None:  # the moment equations over each interval
+            predict = smoother_prediction(self)
         first = rts(self, Y, U, t, predict, clip)
         return first if passes == 1 else iterated(self, first, Y, U, t, passes)
 

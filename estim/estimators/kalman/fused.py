@@ -72,6 +72,10 @@ class FusedKalman(Estimator):
     tol = 1e-4
     #: Iterations of the measurement update (set by the subclass's constructor)
     iterations = 1
+    #: A continuous-time noise's spectral density (``Qc=``; ``Q`` then holds ``L Qc L^T``)
+    #: and the Runge-Kutta sub-steps of its moment equations
+    Qc: np.ndarray | None = None
+    substeps = 4
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -112,6 +116,11 @@ class FusedKalman(Estimator):
         the gate of this filter and the convergence of an iterated update included."""
         return fused_function(name, inputs, s_new, e, nis, ok, ok_prior, y_inf, ok_mean, mask,
                               s_prior, gate=self.gate, converged=converged)
+
+    def _check_tuning(self, new: dict) -> None:
+        if self.Qc is not None and "Q" in new:
+            raise ValueError("this filter's process noise is a spectral density (Qc=): "
+                             "build a new filter with the new Qc")
 
     def _tuning_changed(self) -> None:
         nd = self.model.ndx

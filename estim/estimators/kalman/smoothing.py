@@ -169,11 +169,12 @@ def smoothing_passes(estimator, iterations: int | None) -> int:
     passes = estimator.iterations if iterations is None else \
         as_int(iterations, "iterations", minimum=1)
     if passes > 1 and (estimator.clip or estimator.gate is not None or estimator._sqrt
-                       or not estimator.model.manifold.trivial):
+                       or not estimator.model.manifold.trivial
+                       or getattr(estimator, "Qc", None) is not None):
         raise ValueError(f"iterations={passes}: the iterated smoother's passes are "
                          f"unconstrained, use every measurement and vector states: not "
-                         f"with clip=True, a gate, the square-root form or quaternion or "
-                         f"angle states")
+                         f"with clip=True, a gate, the square-root form, quaternion or "
+                         f"angle states, or Qc=")
     return passes
 
 

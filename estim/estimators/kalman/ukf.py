@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_float, as_int
 from estim.estimators.base import EstimationWarning
+from estim.estimators.kalman.continuous import SUBSTEPS, continuous_noise, ukf_prediction
 from estim.estimators.kalman.fused import FusedKalman
 from estim.estimators.kalman.iterated_updates import check_iterated, posterior_linearised_update
 from estim.estimators.kalman.smoothing import (
@@ -76,6 +77,10 @@ class UKF(FusedKalman):
     model : Model
     Q, R, x0, P0 :
         As for every estimator.
+    Qc, substeps :
+        Instead of ``Q``, on a continuous model: a continuous-time noise's spectral density
+        (as for :class:`~estim.EKF`); the prediction integrates the sigma-point moment
+        equations (Särkkä 2007) by ``substeps`` Runge-Kutta steps.
     points : {"merwe", "julier", "cubature", "cubature5", "gauss-hermite"}
         Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
         :math:`2n_x` equally weighted points of the cubature Kalman filter, the
@@ -141,11 +146,13 @@ class UKF(FusedKalman):
     _manifold_aware = True
     _checks_inf_itself = True
 
-    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
-                 P0: ArrayLike, points: str = "merwe", alpha: float = 1.0, beta: float = 2.0,
-                 kappa: float = 0.0, clip: bool = False, gate: float | None = None,
-                 form: str = "covariance", jit: bool = False, order: int = 3,
-                 iterations: int = 1, damping: str | None = None, tol: float = 1e-4):
+    def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
+                 x0: ArrayLike, P0: ArrayLike, points: str = "merwe", alpha: float = 1.0,
+                 beta: float = 2.0, kappa: float = 0.0, clip: bool = False,
+                 gate: float | None = None, form: str = "covariance", jit: bool = False,
+                 order: int = 3, iterations: int = 1, damping: str | None = None,
+                 tol: float = 1e-4, Qc: ArrayLike | None = None, substeps: int = SUBSTEPS):
+        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form)
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)
@@ -192,7 +199,10 @@ class UKF(FusedKalman):
         Wm, Wc = self._Wm, self._Wc
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
 
-        if predict:
+        if predict and self.Qc is not None:  # the sigma-point moments over the interval
+            xb, Pb, definite = ukf_prediction(self, x, P, u, p, Q)
+            ok_mean = ca.logic_and(definite, finite(ca.vertcat(xb, ca.vec(Pb))))
+        elif predict:
             sig, definite = self._sigma_points(x, P)
             FX = [m.F(v, u, p) for v in sig]
             xb = _mean(FX, Wm)
@@ -313,6 +323,9 @@ class UKF(FusedKalman):
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
         passes = smoothing_passes(self, iterations)
+        if self.Qc is not None:
+            raise ValueError("UKF.smooth with Qc= is not built yet: EKF(Qc=...).smooth gives "
+                             "the continuous-discrete extended smoother")
         first = rts(self, Y, U, t, _unscented_prediction(self),
                     self.model.clip if self.clip else None)
         return first if passes == 1 else posterior_linearised(self, first, Y, U, t, passes)

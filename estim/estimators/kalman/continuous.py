@@ -1,0 +1,115 @@
+r"""The fused filters with a continuous-time process noise (``Qc=``): the continuous-discrete
+EKF and UKF, whose prediction integrates the mean and the covariance over each interval
+(:func:`~estim.solvers.kalman.continuous.moment_step`,
+:func:`~estim.solvers.kalman.continuous.sigma_moment_step`), so that the noise a transition
+receives is that of its interval, as long or as short as the time stamps make it.
+
+The tuning's ``Q`` slot holds :math:`W = L Q_c L^\top` (``L`` the model's ``noise_input``),
+the spectral density the moment equations add, so the fused step, its whole-record scan, the
+batched seeds of :func:`~estim.compare` and ``jit=True`` carry it as they carry a
+per-transition ``Q``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import casadi as ca
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estim._validate import as_covariance, as_int
+from estim.solvers.kalman.continuous import moment_step, sigma_moment_step
+
+__all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction"]
+
+#: Runge-Kutta sub-steps of the moment equations per interval, by default.
+SUBSTEPS = 4
+
+
+def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
+                     substeps: object, form: str) -> tuple[Any, np.ndarray | None, int]:
+    """``(the Q the estimator stores, Qc, substeps)``: ``Q`` itself, or with ``Qc`` the
+    density :math:`W = L Q_c L^\\top` it enters the states with; checked (exactly one of
+    the two, ``Qc`` on a continuous vector model, the covariance form)."""
+    substeps = as_int(substeps, "substeps", minimum=1)
+    if Qc is None:
+        if Q is None:
+            raise ValueError("give the process noise: Q= (a covariance per transition) or, "
+                             "for a continuous model, Qc= (a spectral density per unit time)")
+        return Q, None, substeps
+    if Q is not None:
+        raise ValueError("give Q= (per transition) or Qc= (a spectral density, per unit "
+                         "time), not both")
+    if not model.continuous:
+        raise ValueError(f"Qc= is a spectral density per unit time: it needs a continuous "
+                         f"model (ode=); {model.name} is discrete: give a per-transition Q")
+    if model.nz or not model.manifold.trivial:
+        raise ValueError("Qc= is built for ordinary differential equations on vector states "
+                         "(no algebraic states, quaternions or angles) for now: give Q=")
+    if form != "covariance":
+        raise ValueError("Qc= is built in the covariance form for now: use "
+                         "form='covariance', or a per-transition Q with form='sqrt'")
+    L = np.eye(model.nx) if model.noise_input is None else model.noise_input
+    Qc = as_covariance(Qc, L.shape[1], "Qc", definite=False)
+    W = L @ Qc @ L.T
+    return 0.5 * (W + W.T), Qc, substeps
+
+
+def _interval(model: Any, w: Any) -> tuple[Any, Any]:
+    """The input along the interval (a callable of its fraction, or held) and its length,
+    from the transition's input ``w`` (the interval its last entry with ``variable_dt``)."""
+    if model.variable_dt:
+        return model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
+    return model.input_path(w), model.dt
+
+
+def _jacobian(model: Any) -> ca.Function:
+    x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
+    p = ca.SX.sym("p", model.p.size)
+    return ca.Function("f_x", [x, u, p], [ca.jacobian(model.f_c(x, u, p), x)])
+
+
+def ekf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any]:
+    r"""The continuous-discrete EKF's prediction of ``(x, P)`` over the interval of ``w``:
+    :math:`\dot m = f(m)`, :math:`\dot P = A P + P A^\top + W` by ``est.substeps`` Runge-Kutta
+    steps."""
+    m = est.model
+    u_of, h = _interval(m, w)
+    return moment_step(m.f_c, _jacobian(m), x, P, u_of, p, W, h, est.substeps)
+
+
+def ukf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any, Any]:
+    r"""The continuous-discrete UKF's prediction (Särkkä 2007): the sigma-point moment
+    equations with ``est``'s rule, the points drawn at every Runge-Kutta stage; and whether
+    every stage's covariance was positive definite."""
+    m = est.model
+    u_of, h = _interval(m, w)
+    return sigma_moment_step(m.f_c, est._sigma_points, est._Wm, est._Wc, x, P, u_of, p, W,
+                             h, est.substeps)
+
+
+def smoother_prediction(est: Any):
+    r"""The continuous-discrete extended smoother's predictions of every transition at once:
+    ``(X, P, Wt) -> (x_bar, P_bar, D)``, :math:`(\bar x, \bar P)` from the moment equations
+    and :math:`D = P_k \Phi_k^\top`, :math:`\Phi_k` the Jacobian of the mean's flow over the
+    interval (Särkkä & Svensson 2023, sec. 10.6)."""
+    m = est.model
+    n = m.nx
+    x, w = ca.SX.sym("x", n), ca.SX.sym("w", m.nw)
+    Ps, Ws = ca.SX.sym("P", n, n), ca.SX.sym("W", n, n)
+    xb, Pb = ekf_prediction(est, x, Ps, w, ca.DM(m.p), Ws)
+    fun = ca.Function("cd_predict", [x, ca.vec(Ps), w, ca.vec(Ws)],
+                      [xb, ca.vec(Pb), ca.vec(ca.jacobian(xb, x))])
+    Wq = est.Q.ravel(order="F")
+
+    def predict(X, P, Wt):
+        k = len(X)
+        out = fun.map(k)(X.T, P.transpose(0, 2, 1).reshape(k, n * n).T, Wt.T,
+                         np.repeat(Wq[:, None], k, axis=1))
+        xb = np.asarray(out[0]).T
+        Pb = np.asarray(out[1]).T.reshape(k, n, n).transpose(0, 2, 1)
+        Phi = np.asarray(out[2]).T.reshape(k, n, n).transpose(0, 2, 1)
+        return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), P @ Phi.transpose(0, 2, 1)
+
+    return predict
