@@ -40,6 +40,7 @@ from estim.estimators.kalman.statuses import (
     record_statuses,
     reported,
     state_trace,
+    unconverged,
 )
 from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
@@ -64,16 +65,10 @@ class FusedKalman(Estimator):
     form, _sqrt = "covariance", False
     #: Whether the steps and the whole-record scans run compiled (``jit=True``).
     jit = False
-    #: ``info.iterations`` of a step: the Gauss-Newton iterations of an iterated update
-    _update_iterations = 0
-    #: The damping of an iterated update (None: plain, or no iteration), and the tolerance
-    #: of its convergence (:mod:`estim.estimators.kalman.iterated_updates`)
+    #: Iterations of the update and ``info.iterations``, their tolerance and damping; a
+    #: continuous noise's density (``Qc``) and its moments' Runge-Kutta sub-steps
+    iterations, _update_iterations, tol = 1, 0, 1e-4
     damping: str | None = None
-    tol = 1e-4
-    #: Iterations of the measurement update (set by the subclass's constructor)
-    iterations = 1
-    #: A continuous-time noise's spectral density (``Qc=``; ``Q`` then holds ``L Qc L^T``)
-    #: and the Runge-Kutta sub-steps of its moment equations
     Qc: np.ndarray | None = None
     substeps = 4
 
@@ -118,9 +113,9 @@ class FusedKalman(Estimator):
                               s_prior, gate=self.gate, converged=converged)
 
     def _check_tuning(self, new: dict) -> None:
-        if self.Qc is not None and "Q" in new:
-            raise ValueError("this filter's process noise is a spectral density (Qc=): "
-                             "build a new filter with the new Qc")
+        if self.Qc is not None and "Q" in new:  # (Q holds L Qc L^T)
+            raise ValueError("this filter's process noise is a spectral density (Qc=): build "
+                             "a new filter with the new Qc")
 
     def _tuning_changed(self) -> None:
         nd = self.model.ndx
@@ -190,9 +185,7 @@ class FusedKalman(Estimator):
         """Status of a filter step whose NIS is beyond the suspect or the gate limit, or
         whose damped iterated update did not converge."""
         if not converged and self.damping is not None and not rejected:
-            return (f"suspect: the damped iterated update ({self.damping}) did not converge "
-                    f"in {self.iterations} iterations (its next step is beyond {self.tol:g} "
-                    f"posterior sd); kept the last iterate")
+            return unconverged(self)
         if not rejected:
             return consistency_status(nis, dof)
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "

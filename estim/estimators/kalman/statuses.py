@@ -13,7 +13,7 @@ if TYPE_CHECKING:
     from estim.estimators.kalman.fused import FusedKalman
 
 __all__ = ["BLOWN_UP", "HUGE_MEASUREMENT", "blown_up", "overflowing", "record_statuses", "reported",
-           "state_trace"]
+           "state_trace", "unconverged"]
 
 #: a covariance whose trace exceeds this many times the larger of the traces of ``P0`` and
 #: ``Q`` makes a step ``"suspect"``: the filter has lost the state (an absorbed outlier
@@ -29,6 +29,13 @@ def blown_up(trace: float) -> str:
     """The status of a step whose covariance blew up (see :data:`BLOWN_UP`)."""
     return (f"suspect: the covariance blew up (trace {trace:.3g}, over {BLOWN_UP:g} times "
             f"the larger of P0's and Q's): the filter has lost the state")
+
+
+def unconverged(est: Any) -> str:
+    """The status of a step whose damped iterated update did not converge."""
+    return (f"suspect: the damped iterated update ({est.damping}) did not converge in "
+            f"{est.iterations} iterations (its next step is beyond {est.tol:g} posterior sd); "
+            f"kept the last iterate")
 
 
 def overflowing(model: Any, y: np.ndarray) -> str:

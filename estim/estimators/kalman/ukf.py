@@ -248,24 +248,10 @@ class UKF(FusedKalman):
                                     ok_mean, mask, s_prior, converged)
 
     def sigma_points(self, x: ArrayLike, P: ArrayLike) -> np.ndarray:
-        r"""The sigma points of a mean ``x`` and covariance ``P``, one a row (``(n_sigma,
-        nx)``; with a stack ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``).
-
-        The offsets are the rows of the upper Cholesky factor :math:`U` of
-        :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
-        x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
-        L = np.linalg.cholesky(self._scale * P)
-        xs = x[..., None, :]
-        M = self.model.manifold
-        if self._unit is not None:  # x (+) L xi for every unit point
-            off = np.swapaxes(L @ self._unit, -1, -2)
-            return xs + off if M.euclidean_states else M.retract(xs, off, NP)
-        off = np.swapaxes(L, -1, -2)  # rows of U = L^T
-        centre = [] if self.points == "cubature" else [xs]
-        if not M.euclidean_states:  # x (+) the offsets, in the tangent space
-            return np.concatenate(centre + [M.retract(xs, off, NP), M.retract(xs, -off, NP)],
-                                  axis=-2)
-        return np.concatenate(centre + [xs + off, xs - off], axis=-2)
+        """The sigma points of a mean ``x`` and covariance ``P``, one a row (``(n_sigma,
+        nx)``; with a stack ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``; see
+        :func:`sigma_points`)."""
+        return sigma_points(self, x, P)
 
     def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None, iterations: int | None = None) -> SmoothResult:
@@ -346,6 +332,27 @@ class UKF(FusedKalman):
                 "update non-finite or its covariance not positive definite" if flags[2]
                 else "prediction F(x, u): covariance not positive definite" if flags[5]
                 else "non-finite prediction F(x, u) at the sigma points")
+
+
+def sigma_points(ukf: UKF, x: ArrayLike, P: ArrayLike) -> np.ndarray:
+    r"""The sigma points of a mean ``x`` and covariance ``P``, one a row (``(n_sigma,
+    nx)``; with a stack ``x (k, nx)``, ``P (k, nx, nx)``: ``(k, n_sigma, nx)``).
+
+    The offsets are the rows of the upper Cholesky factor :math:`U` of
+    :math:`c P` (:math:`U^\top U = c P`), as in filterpy."""
+    x, P = np.asarray(x, dtype=float), np.asarray(P, dtype=float)
+    L = np.linalg.cholesky(ukf._scale * P)
+    xs = x[..., None, :]
+    M = ukf.model.manifold
+    if ukf._unit is not None:  # x (+) L xi for every unit point
+        off = np.swapaxes(L @ ukf._unit, -1, -2)
+        return xs + off if M.euclidean_states else M.retract(xs, off, NP)
+    off = np.swapaxes(L, -1, -2)  # rows of U = L^T
+    centre = [] if ukf.points == "cubature" else [xs]
+    if not M.euclidean_states:  # x (+) the offsets, in the tangent space
+        return np.concatenate(centre + [M.retract(xs, off, NP), M.retract(xs, -off, NP)],
+                              axis=-2)
+    return np.concatenate(centre + [xs + off, xs - off], axis=-2)
 
 
 def sigma_weights(points: str, n: int, alpha: float = 1.0, beta: float = 2.0,
