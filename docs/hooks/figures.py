@@ -23,7 +23,8 @@ from pathlib import Path
 from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
-PAGES = ("plotting.md", "particle.md", "attitude.md", "gaussian_filters.md")
+PAGES = ("plotting.md", "particle.md", "attitude.md", "gaussian_filters.md",
+         "continuous_noise.md")
 FOLDER = "figures"
 
 _FENCE = re.compile(
