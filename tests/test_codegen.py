@@ -379,10 +379,10 @@ def test_what_export_refuses(tmp_path):
     with pytest.raises(TypeError, match="estimator"):
         codegen.export("ekf", tmp_path)
     m = estim.models.van_der_pol()
-    variable = estim.Model(states=["a"], outputs=["a"], ode=lambda x, u, p: -x,
-                           output=lambda x, u, p: x, dt=0.1, variable_dt=True)
-    with pytest.raises(ValueError, match="variable_dt"):
-        codegen.export(estim.EKF(variable, Q=1.0, R=1.0, x0=[0.0], P0=1.0), tmp_path)
+    cvodes = estim.Model(states=["a"], outputs=["a"], ode=lambda x, u, p: -x,
+                         output=lambda x, u, p: x, dt=0.1, integrator="cvodes")
+    with pytest.raises(ValueError, match="CVODES"):
+        codegen.export(estim.EKF(cvodes, Q=1.0, R=1.0, x0=[0.0], P0=1.0), tmp_path)
     est = estim.EKF(m, **sc.tuning)
     with pytest.raises(ValueError, match="identifier"):
         codegen.export(est, tmp_path, name="2 filters")

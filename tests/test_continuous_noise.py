@@ -187,3 +187,60 @@ def test_what_continuous_noise_refuses():
         f.filter(np.zeros((3, 1)), t=[0.0, 1.0, 1.0])
     with pytest.raises(ValueError, match="UKF.smooth with Qc"):
         estim.UKF(m, Qc=0.7, **kw).smooth(np.zeros((3, 1)), t=[0.0, 0.5, 1.0])
+
+
+@pytest.mark.skipif(compiler() is None, reason="no C compiler on this machine")
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_the_exported_filter_takes_the_interval(kind, tmp_path):
+    """``variable_dt`` in the C export: ``step(f, y, u, dt, x_hat, P)``, the continuous
+    noise inside the step; over the irregular record the same estimates, covariances and
+    statuses as Python to 1e-10, a non-positive interval refused (-1, the filter
+    unchanged), and the example program reads the stamps from the record's first column."""
+    import csv
+    import ctypes
+    import subprocess
+
+    from codegen_build import build
+
+    from estim import codegen
+
+    t, dts, Y = irregular_record(40, seed=3)
+    F = estim.EKF if kind == "ekf" else estim.UKF
+    f = F(wiener_velocity(), Qc=Q_DENSITY, R=R_VAR, x0=[0.0, 1.0], P0=1.0)
+    codegen.export(f, tmp_path, name=f"cd_{kind}")
+    lib = ctypes.CDLL(str(build(tmp_path, f"cd_{kind}")))
+    d = ctypes.POINTER(ctypes.c_double)
+    step = getattr(lib, f"cd_{kind}_step")
+    step.argtypes = [ctypes.c_void_p, d, d, ctypes.c_double, d, d]
+    getattr(lib, f"cd_{kind}_size").restype = ctypes.c_size_t
+    memory = np.zeros(int(getattr(lib, f"cd_{kind}_size")()) // 8 + 1)
+    assert getattr(lib, f"cd_{kind}_init")(ctypes.c_void_p(memory.ctypes.data)) == 0
+    res = f.filter(Y, t=t)
+    xs, Ps, codes = [], [], []
+    for k, y in enumerate(Y):
+        y = np.ascontiguousarray(y, dtype=float)
+        x, P = np.empty(2), np.empty(4)
+        if k == 5:  # a non-positive interval: refused, nothing changed
+            assert step(ctypes.c_void_p(memory.ctypes.data), y.ctypes.data_as(d), None,
+                        -1.0, x.ctypes.data_as(d), P.ctypes.data_as(d)) == -1
+        codes.append(step(ctypes.c_void_p(memory.ctypes.data), y.ctypes.data_as(d), None,
+                          float(dts[k - 1]) if k else 0.0, x.ctypes.data_as(d),
+                          P.ctypes.data_as(d)))
+        xs.append(x.copy())
+        Ps.append(P.reshape(2, 2, order="F").copy())
+    np.testing.assert_allclose(np.array(xs), res.x, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.array(Ps), res.P, rtol=0, atol=1e-10)
+    assert codes == [0 if s == "ok" else 1 for s in res.status]
+    # the example program: t, y per line
+    record = tmp_path / "record.csv"
+    record.write_text("t,y\n" + "".join(f"{a!r},{b!r}\n" for a, b in zip(
+        t.tolist(), Y[:, 0].tolist(), strict=True)))
+    subprocess.run(["make", "-s", "example"], cwd=tmp_path, check=True,
+                   capture_output=True)
+    out = tmp_path / "estimates.csv"
+    subprocess.run([str(tmp_path / f"cd_{kind}_example"), str(record), str(out)],
+                   check=True, capture_output=True)
+    rows = list(csv.reader(out.open()))
+    assert rows[0] == ["status", "p", "v", "sd_p", "sd_v"]
+    np.testing.assert_allclose(np.array(rows[1:], dtype=float)[:, 1:3], res.x, rtol=0,
+                               atol=1e-10)

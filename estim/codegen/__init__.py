@@ -192,4 +192,4 @@ def _exportable(estimator: object) -> None:
     if isinstance(estimator, MHE):
         mhe.check(estimator)
     else:
-        check_model(estimator.model)
+        check_model(estimator.model, variable_dt=True)

@@ -58,19 +58,21 @@ def cflags(optimize: str) -> str:
     return CFLAGS.replace("-O2", OPTIMIZE[optimize])
 
 
-def check_model(m: Model) -> None:
-    """Refuse a model whose step CasADi's code generator cannot write as plain C with
-    the model's fixed ``dt``.
+def check_model(m: Model, variable_dt: bool = False) -> None:
+    """Refuse a model whose step CasADi's code generator cannot write as plain C (with
+    the model's fixed ``dt``, unless the export takes ``variable_dt``: the Kalman
+    filters' ``step(y, u, dt)``).
 
     Raises
     ------
     ValueError
-        ``variable_dt=True`` (the interval would be an argument of the C step),
+        ``variable_dt=True`` where the export has no interval argument (the MHE),
         integration by CVODES (which needs the CasADi runtime) or algebraic states.
     """
-    if m.variable_dt:
-        raise ValueError(f"{m.name} has variable_dt=True: the C step takes the model's "
-                         f"fixed dt only; build the model without variable_dt to export")
+    if m.variable_dt and not variable_dt:
+        raise ValueError(f"{m.name} has variable_dt=True: the exported MHE takes the "
+                         f"model's fixed dt only (the EKF and UKF exports take dt); build "
+                         f"the model without variable_dt to export it")
     if getattr(m, "integrator", None) == "cvodes":
         raise ValueError(f"{m.name} is integrated by CVODES, which needs the CasADi "
                          f"runtime: build the model with integrator='rk4' to export")
@@ -175,7 +177,7 @@ def write_driver(paths: Mapping[str, Path], kind: str, name: str, model: Model,
     tangent = model.state_names if model.manifold.euclidean_states else \
         model.manifold.tangent_names
     values = {**values, **example_text(model, tangent)}
-    switches = {**(switches or {}), "mhe": kind == "mhe"}
+    switches = {"variable_dt": model.variable_dt, **(switches or {}), "mhe": kind == "mhe"}
     for key, filename in files.items():
         paths[key].write_text(fill(template(filename), name, model, description, values,
                                    dims, switches, flags))
@@ -187,10 +189,13 @@ def example_text(model: Model, tangent: Sequence[str]) -> dict[str, str]:
     u_note = ")" if not model.nu else \
         (f"), then the {model.nu} input(s) that acted since the previous sample (with "
          f"hold=\"foh\": the input at this sample)")
-    return {"record_header": ",".join([*model.output_names, *model.input_names]),
+    stamp = ["t"] if model.variable_dt else []
+    t_note = "\n *   the time stamp t first (the model's variable_dt: each interval from it)," \
+        if model.variable_dt else ""
+    return {"record_header": ",".join([*stamp, *model.output_names, *model.input_names]),
             "estimate_header": ",".join(["status", *model.state_names,
                                          *(f"sd_{n}" for n in tangent)]),
-            "u_note": u_note}
+            "u_note": u_note, "t_note": t_note}
 
 
 def c_double(v: float) -> str:

@@ -24,7 +24,15 @@ from typing import TYPE_CHECKING
 
 import casadi as ca
 
-from estim.codegen.files import CFLAGS, c_array, generate, renamed, work_sizes, write_driver
+from estim.codegen.files import (
+    CFLAGS,
+    c_array,
+    c_double,
+    generate,
+    renamed,
+    work_sizes,
+    write_driver,
+)
 from estim.solvers.kalman.kalman import NFLAGS
 from estim.solvers.kalman.triangular import tria
 
@@ -140,7 +148,7 @@ def values(estimator: EKF | UKF) -> dict[str, str]:
     return {"Q": c_array(estimator.Q), "R": c_array(estimator.R),
             "X0": c_array(estimator.x0), "P0": c_array(estimator.P0),
             "LOWER": c_array(getattr(estimator, "lower", m.lower)),
-            "UPPER": c_array(getattr(estimator, "upper", m.upper))}
+            "UPPER": c_array(getattr(estimator, "upper", m.upper)), "DT": c_double(m.dt)}
 
 
 def describe(estimator: EKF | UKF) -> str:
@@ -175,7 +183,8 @@ def write(estimator: EKF | UKF, directory: Path, name: str,
     write_driver(paths, "kalman", name, estimator.model, describe(estimator),
                  values(estimator), dimensions(estimator, work_sizes(funs)),
                  {"sqrt": estimator.form == "sqrt",
-                  "damped": getattr(estimator, "damping", None) is not None}, flags)
+                  "damped": getattr(estimator, "damping", None) is not None,
+                  "variable_dt": estimator.model.variable_dt}, flags)
 
 
 def memory(estimator: EKF | UKF) -> int:
