@@ -244,3 +244,51 @@ def test_the_exported_filter_takes_the_interval(kind, tmp_path):
     assert rows[0] == ["status", "p", "v", "sd_p", "sd_v"]
     np.testing.assert_allclose(np.array(rows[1:], dtype=float)[:, 1:3], res.x, rtol=0,
                                atol=1e-10)
+
+
+def square_wiener_velocity() -> estim.Model:
+    """The Wiener velocity with the identity noise input (Qc = diag(0, q)): the likelihood
+    of a continuous noise takes a square one."""
+    return estim.Model(states=["p", "v"], outputs=["y"],
+                       ode=lambda x, u, p: ca.vertcat(x[1], 0), output=lambda x, u, p: x[0],
+                       variable_dt=True, dt=0.1)
+
+
+@pytest.mark.parametrize("estimator", ["ekf", "ukf"])
+def test_the_likelihood_of_a_continuous_noise_is_the_exact_one(estimator):
+    """``log_likelihood(..., Qc=, t=)`` on irregular stamps: the exact Kalman filter's
+    log-likelihood (numpy, the exact discretisation of every interval) to 1e-10."""
+    t, dts, Y = irregular_record()
+    x0, P0 = np.array([0.0, 1.0]), np.diag([1.0, 2.0])
+    x, P, ll = x0.copy(), P0.copy(), 0.0
+    H = np.array([[1.0, 0.0]])
+    for k, y in enumerate(Y):
+        if k:
+            F = np.array([[1.0, dts[k - 1]], [0.0, 1.0]])
+            x, P = F @ x, F @ P @ F.T + wiener_velocity_qd(dts[k - 1])
+        S = float((H @ P @ H.T)[0, 0]) + R_VAR
+        e = float(y[0] - (H @ x)[0])
+        ll -= 0.5 * (np.log(S) + e * e / S + np.log(2 * np.pi))
+        K = P @ H.T / S
+        x, P = x + (K * e).ravel(), P - K @ K.T * S
+    got = estim.tuning.log_likelihood(square_wiener_velocity(), Y, Qc=np.diag([0.0, Q_DENSITY]),
+                                      R=R_VAR, x0=x0, P0=P0, t=t, estimator=estimator)
+    assert got == pytest.approx(ll, abs=1e-10)
+    with pytest.raises(ValueError, match="one of them"):
+        estim.tuning.log_likelihood(square_wiener_velocity(), Y, Q=1.0, Qc=1.0, R=R_VAR, t=t)
+    with pytest.raises(ValueError, match="square noise_input"):
+        estim.tuning.log_likelihood(wiener_velocity(), Y, Qc=1.0, R=R_VAR, t=t)
+
+
+def test_maximum_likelihood_recovers_a_spectral_density():
+    """On 1500 irregular samples the density q (0.7) and R (0.05) are recovered within
+    2.5 standard errors (measured: 0.824 +- 0.087 and 0.0519 +- 0.0021), the position's
+    zero density at its boundary."""
+    t, _, Y = irregular_record(1500, seed=5)
+    res = estim.tuning.maximum_likelihood(
+        square_wiener_velocity(), Y, t=t, continuous=True, Q0=np.diag([1e-8, 0.3]), R0=0.1,
+        x0=[0.0, 1.0], P0=np.diag([1.0, 2.0]), starts=1)
+    assert abs(res.Q[1, 1] - Q_DENSITY) < 2.5 * res.stderr["Q"][1, 1]
+    assert abs(res.R[0, 0] - R_VAR) < 2.5 * res.stderr["R"][0, 0]
+    assert res.status.startswith("boundary: Q[0,0]")
+    assert res.details["noise"].startswith("continuous")

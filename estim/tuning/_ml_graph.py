@@ -27,7 +27,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._scan import blocked_scan
-from estim._validate import as_covariance, as_inputs, as_int, as_record, as_vector
+from estim._validate import (
+    as_covariance,
+    as_inputs,
+    as_int,
+    as_intervals,
+    as_record,
+    as_vector,
+)
 from estim.estimators.kalman.ukf import sigma_rule
 from estim.model import Model
 
@@ -75,7 +82,9 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
     (``y`` holds 0 elsewhere); ``term`` is :math:`\frac12(\log\det S + e^\top S^{-1} e +
     m \log 2\pi)` and ``whitened`` :math:`L^{-1} e` (:math:`LL^\top = S`).
     """
-    sym: type[Sym] = ca.MX if model.integrator == "cvodes" else ca.SX
+    kind, _, sub = kind.partition("@")  # "ekf@4": a continuous noise, 4 sub-steps
+    substeps = int(sub) if sub else None
+    sym: type[Sym] = ca.MX if model.integrator == "cvodes" and not substeps else ca.SX
     nx, ny, nw, npar = model.nx, model.ny, model.nw, model.p.size
     s = sym.sym("s", nx + nx * nx)
     w, y, mask = sym.sym("w", nw), sym.sym("y", ny), sym.sym("mask", ny)
@@ -84,8 +93,13 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
     Q, R = ca.reshape(q, nx, nx), ca.reshape(r, ny, ny)
     uy = model.measurement_input(w)
     D = ca.diag(mask)
+    if substeps:  # q is the spectral density Qc: W = L Qc L^T, the moments integrated
+        L = ca.DM(np.eye(nx) if model.noise_input is None else model.noise_input)
+        Q = L @ Q @ L.T
     if kind == "ekf":
-        if predict:
+        if predict and substeps:
+            xb, Pb = _moments(model, x, P, w, p, Q, substeps)
+        elif predict:
             xb = model.F(x, w, p)
             A = model.F_x(x, w, p)
             Pb = A @ P @ A.T + Q
@@ -111,7 +125,10 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
             return centre + [x + G[:, i] for i in range(nx)] + \
                 [x - G[:, i] for i in range(nx)]
 
-        if predict:
+        if predict and substeps:
+            xb, Pb = _moments(model, x, P, w, p, Q, substeps,
+                              (lambda m, S: (sigma_points(m, S), ca.SX(1)), Wm, Wc))
+        elif predict:
             chi = [model.F(ci, w, p) for ci in sigma_points(x, P)]
             xb = sum((wi * ci for wi, ci in zip(wm, chi, strict=True)), 0)
             Pb = sum((wi * (ci - xb) @ (ci - xb).T for wi, ci in zip(wc, chi, strict=True)),
@@ -141,6 +158,27 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
                        ["s", "w", "y", "mask", "q", "r", "p"], ["s_new", "term", "whitened"])
 
 
+def _moments(model: Model, x: Sym, P: Sym, w: Sym, p: Sym, W: Sym, substeps: int,
+             sigma: tuple | None = None) -> tuple[Sym, Sym]:
+    """The continuous-discrete prediction over the interval of ``w`` (the moment equations
+    of the extended filter, or with ``sigma = (points, Wm, Wc)`` of the sigma-point one;
+    :mod:`estim.solvers.kalman.continuous`)."""
+    from estim.solvers.kalman.continuous import moment_step, sigma_moment_step
+
+    if model.variable_dt:
+        u_of, h = model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
+    else:
+        u_of, h = model.input_path(w), model.dt
+    if sigma is None:
+        xs, us = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
+        ps = ca.SX.sym("p", model.p.size)
+        jac = ca.Function("f_x", [xs, us, ps], [ca.jacobian(model.f_c(xs, us, ps), xs)])
+        return moment_step(model.f_c, jac, x, P, u_of, p, W, h, substeps)
+    points, Wm, Wc = sigma
+    xb, Pb, _ = sigma_moment_step(model.f_c, points, Wm, Wc, x, P, u_of, p, W, h, substeps)
+    return xb, Pb
+
+
 # compiled likelihoods per model, filter and record length (built once, reused by every
 # start, iteration and later fit of a record of that length)
 _CORES: weakref.WeakKeyDictionary[Model, dict[tuple, Any]] = weakref.WeakKeyDictionary()
@@ -150,7 +188,7 @@ def _core(model: Model, kind: str, T: int, ukf: tuple) -> ca.Function:
     r"""The whole-record recursion ``(q, r, p, x0, P0, Y, M, W, wt) -> (nll, whitened)``:
     the first step an update, then the predict-update step scanned over ``T - 1``
     samples (``mapaccum``); ``nll`` :math:`= \sum_k wt_k \, term_k`."""
-    key = (kind, T, ukf if kind == "ukf" else None)
+    key = (kind, T, ukf if kind.startswith("ukf") else None)
     cache = _CORES.setdefault(model, {})
     if key in cache:
         return cache[key]
@@ -164,7 +202,7 @@ def _core(model: Model, kind: str, T: int, ukf: tuple) -> ca.Function:
     s1, t0, e0 = first(ca.vertcat(x0, P0), W[:, 0], Y[:, 0], M[:, 0], q, r, p)
     _, terms, E = scan(s1, W[:, 1:], Y[:, 1:], M[:, 1:], q, r, p)
     nll = wt[0] * t0 + ca.dot(wt[1:], terms)
-    fun = ca.Function(f"ml_{kind}_{T}", [q, r, p, x0, P0, Y, M, W, wt],
+    fun = ca.Function(f"ml_{kind.replace('@', '_cd')}_{T}", [q, r, p, x0, P0, Y, M, W, wt],
                       [nll, ca.horzcat(e0, E)],
                       ["q", "r", "p", "x0", "P0", "Y", "M", "W", "wt"], ["nll", "whitened"])
     cache[key] = fun
@@ -186,14 +224,12 @@ class _Record:
     samples), and the prior ``x0, P0`` (the approximate diffuse prior by default)."""
 
     def __init__(self, model: Model, Y: ArrayLike, U: ArrayLike | None, x0: ArrayLike | None,
-                 P0: ArrayLike | None, burn: int | None):
+                 P0: ArrayLike | None, burn: int | None, t: ArrayLike | None = None):
         Y = as_record(Y, model.ny, "Y", names=model.output_names, what="outputs")
         T = Y.shape[0]
         if T < 2:
             raise ValueError(f"Y must hold at least 2 samples, got {T}")
-        if model.variable_dt:
-            raise ValueError("model has variable_dt=True: the likelihood integrates over the "
-                             "model's fixed dt (build the model without variable_dt)")
+        dts = as_intervals(t, T, model)  # the stamps of a variable_dt model
         U = as_inputs(U, T, model, "U")
         diffuse = P0 is None
         self.x0 = np.zeros(model.nx) if x0 is None else as_vector(x0, model.nx, "x0")
@@ -211,7 +247,8 @@ class _Record:
         self.wt = (np.arange(T) >= burn).astype(float)[None, :]
         # transition inputs as the filters' step sees them (replay's convention)
         steps_u = U if model.sampled else np.vstack([np.zeros((1, model.nu)), U[:-1]])
-        self.W = model.step_transitions(steps_u).T
+        self.W = model.step_transitions(steps_u, None if dts is None else
+                                        np.concatenate([[model.dt], dts])).T
         self.measured = measured
         if not measured[burn:].any():
             raise ValueError("Y has no measured output after the burn-in samples")

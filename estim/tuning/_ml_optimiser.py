@@ -41,7 +41,7 @@ class _Objective:
 
     def __init__(self, model: Model, kind: str, T: int, ukf: tuple,
                  par: _Parametrisation, data: list[np.ndarray], hessian: str):
-        key = ("objective", kind, T, ukf if kind == "ukf" else None, par.key)
+        key = ("objective", kind, T, ukf if kind.startswith("ukf") else None, par.key)
         cache = _CORES.setdefault(model, {})
         if key not in cache:
             core = _core(model, kind, T, ukf)

@@ -31,7 +31,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_choice, as_covariance, as_float, as_int, as_seed
+from estim._validate import as_bool, as_choice, as_covariance, as_float, as_int, as_seed
 from estim.estimators.kalman.ukf import POINTS
 from estim.model import Model
 from estim.tuning._ml_graph import DIFFUSE_VARIANCE, _core, _Record
@@ -52,11 +52,12 @@ ESTIMATORS = ("ekf", "ukf")
 
 
 def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
-                   Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
+                   Q: ArrayLike | None = None, R: ArrayLike, x0: ArrayLike | None = None,
                    P0: ArrayLike | None = None, params: Mapping[str, float] | None = None,
                    estimator: str = "ekf", burn: int | None = None, alpha: float = 1.0,
                    beta: float = 2.0, kappa: float = 0.0, points: str = "merwe",
-                   order: int = 3) -> float:
+                   order: int = 3, Qc: ArrayLike | None = None, t: ArrayLike | None = None,
+                   substeps: int = 4) -> float:
     r"""The prediction-error log-likelihood of a record under the EKF or UKF.
 
     .. math::
@@ -90,6 +91,13 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     alpha, beta, kappa, points, order :
         The UKF's sigma points (as :class:`~estim.UKF`: ``points`` one of ``"merwe"``,
         ``"julier"``, ``"cubature"``, ``"gauss-hermite"`` of ``order``).
+    Qc, substeps :
+        Instead of ``Q``, on a continuous model: the spectral density of a
+        continuous-time noise (as the filters' ``Qc=``; the model's ``noise_input``
+        square), the moment equations integrated by ``substeps`` Runge-Kutta steps per
+        interval (docs/continuous_noise.md).
+    t : (T,) array, optional
+        Sample times, for a model built with ``variable_dt=True``.
 
     Returns
     -------
@@ -103,8 +111,14 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     State Space Methods*, 2nd ed., Oxford 2012, sec. 7.2.
     """
     model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa, points, order)
-    rec = _Record(model, Y, U, x0, P0, burn)
-    Qm = as_covariance(Q, model.nx, "Q", definite=False)
+    if (Q is None) == (Qc is None):
+        raise ValueError("give Q= (a covariance per transition) or Qc= (a spectral density "
+                         "per unit time, on a continuous model), one of them")
+    if Qc is not None:
+        kind = _continuous_kind(model, kind, substeps)
+    rec = _Record(model, Y, U, x0, P0, burn, t)
+    Qm = as_covariance(Q if Qc is None else Qc, model.nx, "Q" if Qc is None else "Qc",
+                       definite=False)
     Rm = as_covariance(R, model.ny, "R", definite=True)
     p = model.p.copy()
     for k, v in _params_spec(model, params or {}).items():
@@ -112,6 +126,19 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     core = _core(model, kind, rec.T, ukf)
     nll = float(core(Qm.ravel(order="F"), Rm.ravel(order="F"), p, *rec.data())[0])
     return -nll if np.isfinite(nll) else -np.inf
+
+
+def _continuous_kind(model: Model, kind: str, substeps: object) -> str:
+    """The likelihood graph's kind with a continuous noise (``"ekf@4"``: the filter, the
+    Runge-Kutta sub-steps of its moments), checked."""
+    substeps = as_int(substeps, "substeps", minimum=1)
+    if not model.continuous or model.nz or not model.manifold.trivial:
+        raise ValueError("a continuous noise (Qc) needs a continuous model (ode=) on vector "
+                         "states without algebraic equations")
+    if model.noise_input is not None and model.noise_input.shape[1] != model.nx:
+        raise ValueError(f"the likelihood of a continuous noise takes a square noise_input "
+                         f"for now ({model.nx} columns), got {model.noise_input.shape[1]}")
+    return f"{kind}@{substeps}"
 
 
 def _check_common(model: object, estimator: str, alpha: float, beta: float, kappa: float,
@@ -140,7 +167,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                        method: str = "BFGS", hessian: str = "differences", tol: float = 1e-8,
                        max_iter: int = 200,
                        alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
-                       points: str = "merwe", order: int = 3) -> TuningResult:
+                       points: str = "merwe", order: int = 3, continuous: bool = False,
+                       t: ArrayLike | None = None, substeps: int = 4) -> TuningResult:
     r"""Noise covariances (and model parameters) that maximise the likelihood of a record.
 
     Minimises the prediction-error negative log-likelihood of the EKF (or UKF)
@@ -230,6 +258,13 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         Iterations per start.
     alpha, beta, kappa : float
         The UKF's sigma-point parameters.
+    continuous, substeps :
+        Estimate the spectral density :math:`Q_c` of a continuous-time noise instead of a
+        per-transition ``Q`` (``Q0`` then starts it, and the result's ``Q`` is
+        :math:`Q_c`; the model's ``noise_input`` square), the filter's moment equations
+        integrated by ``substeps`` Runge-Kutta steps per interval (docs/continuous_noise.md).
+    t : (T,) array, optional
+        Sample times, for a model built with ``variable_dt=True`` (irregular stamps).
 
     Returns
     -------
@@ -262,7 +297,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     """
     t_start = time.perf_counter()
     model, kind, ukf = _check_common(model, estimator, alpha, beta, kappa, points, order)
-    rec = _Record(model, Y, U, x0, P0, burn)
+    if as_bool(continuous, "continuous"):
+        kind = _continuous_kind(model, kind, substeps)
+    rec = _Record(model, Y, U, x0, P0, burn, t)
     structures = _structures(structure)
     starts = as_int(starts, "starts", minimum=1)
     seed = as_seed(seed)
@@ -321,7 +358,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         "fit_time": time.perf_counter() - t_start,
         "structure": structures,
         "burn": rec.burn,
-        "estimator": kind,
+        "estimator": kind.partition("@")[0],
+        "noise": "continuous (Q is the spectral density Qc)" if "@" in kind else "per transition",
     }
     return TuningResult(method="maximum likelihood", Q=est.Q, R=est.R, params=est.params,
                         stderr=est.stderr, check=innovation_check(eps),
