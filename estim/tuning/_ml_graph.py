@@ -165,6 +165,8 @@ def _moments(model: Model, x: Sym, P: Sym, w: Sym, p: Sym, W: Sym, substeps: int
     :mod:`estim.solvers.kalman.continuous`)."""
     from estim.solvers.kalman.continuous import moment_step, sigma_moment_step
 
+    f = model.f_c
+    assert f is not None  # (a continuous model, checked by the caller)
     if model.variable_dt:
         u_of, h = model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
     else:
@@ -172,10 +174,10 @@ def _moments(model: Model, x: Sym, P: Sym, w: Sym, p: Sym, W: Sym, substeps: int
     if sigma is None:
         xs, us = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
         ps = ca.SX.sym("p", model.p.size)
-        jac = ca.Function("f_x", [xs, us, ps], [ca.jacobian(model.f_c(xs, us, ps), xs)])
-        return moment_step(model.f_c, jac, x, P, u_of, p, W, h, substeps)
+        jac = ca.Function("f_x", [xs, us, ps], [ca.jacobian(f(xs, us, ps), xs)])
+        return moment_step(f, jac, x, P, u_of, p, W, h, substeps)
     points, Wm, Wc = sigma
-    xb, Pb, _ = sigma_moment_step(model.f_c, points, Wm, Wc, x, P, u_of, p, W, h, substeps)
+    xb, Pb, _ = sigma_moment_step(f, points, Wm, Wc, x, P, u_of, p, W, h, substeps)
     return xb, Pb
 
 
