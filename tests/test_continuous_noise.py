@@ -157,7 +157,7 @@ def test_what_continuous_noise_refuses():
     kw = {"R": R_VAR, "x0": [0.0, 0.0], "P0": 1.0}
     with pytest.raises(ValueError, match="not both"):
         estim.EKF(m, Q=1.0, Qc=0.7, **kw)
-    with pytest.raises(ValueError, match="give the process noise"):
+    with pytest.raises(TypeError, match="missing the process noise: 'Q'"):
         estim.UKF(m, **kw)
     discrete = estim.Model(states=1, outputs=1, dynamics=lambda x, u, p: x,
                            output=lambda x, u, p: x)

@@ -34,9 +34,10 @@ def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
     the two, ``Qc`` on a continuous vector model, the covariance form)."""
     substeps = as_int(substeps, "substeps", minimum=1)
     if Qc is None:
-        if Q is None:
-            raise ValueError("give the process noise: Q= (a covariance per transition) or, "
-                             "for a continuous model, Qc= (a spectral density per unit time)")
+        if Q is None:  # (a missing required argument, as Python says it)
+            raise TypeError("missing the process noise: 'Q' (a covariance per transition) "
+                            "or, for a continuous model, 'Qc' (a spectral density per unit "
+                            "time)")
         return Q, None, substeps
     if Q is not None:
         raise ValueError("give Q= (per transition) or Qc= (a spectral density, per unit "

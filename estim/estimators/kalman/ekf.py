@@ -68,6 +68,8 @@ class EKF(FusedKalman):
         interval by ``substeps`` Runge-Kutta steps (the continuous-discrete EKF;
         :mod:`estim.estimators.kalman.continuous`, docs/continuous_noise.md): the noise of
         a transition is that of its interval, with irregular stamps too.
+    substeps : int
+        Runge-Kutta steps per interval of the moment equations with ``Qc`` (default 4).
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
