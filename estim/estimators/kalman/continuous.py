@@ -19,12 +19,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_covariance, as_int
-from estim.solvers.kalman.continuous import moment_step, sigma_moment_step
+from estim.solvers.kalman.continuous import moment_step, sigma_moment_step, van_loan
 
 __all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction"]
 
 #: Runge-Kutta sub-steps of the moment equations per interval, by default.
 SUBSTEPS = 4
+#: How the continuous-discrete EKF carries the covariance over an interval.
+DISCRETISATIONS = ("moments", "van-loan")
 
 
 def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
@@ -74,10 +76,20 @@ def _jacobian(model: Any) -> ca.Function:
 def ekf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any]:
     r"""The continuous-discrete EKF's prediction of ``(x, P)`` over the interval of ``w``:
     :math:`\dot m = f(m)`, :math:`\dot P = A P + P A^\top + W` by ``est.substeps`` Runge-Kutta
-    steps."""
+    steps; or with ``est.discretisation == "van-loan"`` the mean by the model's ``F`` and
+    the covariance by the exact discretisation of the linearisation at ``x`` (the input at
+    the interval's start), :math:`\bar P = \Phi P \Phi^\top + Q_d(\Delta t)`
+    (:func:`~estim.solvers.kalman.continuous.van_loan`: exact on a linear model)."""
     m = est.model
     u_of, h = _interval(m, w)
-    return moment_step(m.f_c, _jacobian(m), x, P, u_of, p, W, h, est.substeps)
+    jac = _jacobian(m)
+    if getattr(est, "discretisation", "moments") == "van-loan":
+        from estim._discretise import input_at
+
+        Phi, Qd = van_loan(jac(x, input_at(u_of, 0.0), p), W, h)
+        Pb = Phi @ P @ Phi.T + Qd
+        return m.F(x, w, p), 0.5 * (Pb + Pb.T)
+    return moment_step(m.f_c, jac, x, P, u_of, p, W, h, est.substeps)
 
 
 def ukf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any, Any]:

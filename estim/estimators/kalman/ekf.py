@@ -6,8 +6,9 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_bool, as_int
+from estim._validate import as_bool, as_choice, as_int
 from estim.estimators.kalman.continuous import (
+    DISCRETISATIONS,
     SUBSTEPS,
     continuous_noise,
     ekf_prediction,
@@ -70,6 +71,11 @@ class EKF(FusedKalman):
         a transition is that of its interval, with irregular stamps too.
     substeps : int
         Runge-Kutta steps per interval of the moment equations with ``Qc`` (default 4).
+    discretisation : {"moments", "van-loan"}
+        With ``Qc``: integrate the moment equations (default), or carry the covariance by
+        the exact discretisation of the linearisation at the estimate,
+        :math:`\bar P = \Phi P \Phi^\top + Q_d(\Delta t)` (Van Loan; exact on a linear
+        model whatever ``substeps``), the mean by the model's ``F``.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
@@ -153,8 +159,13 @@ class EKF(FusedKalman):
                  lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  gate: float | None = None, form: str = "covariance", jit: bool = False,
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
-                 Qc: ArrayLike | None = None, substeps: int = SUBSTEPS):
+                 Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
+                 discretisation: str = "moments"):
         Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form)
+        self.discretisation = as_choice(discretisation, DISCRETISATIONS, "discretisation")
+        if self.discretisation != "moments" and self.Qc is None:
+            raise ValueError("discretisation= carries a continuous noise (Qc=) over an "
+                             "interval: give Qc, or leave discretisation at 'moments'")
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.iterations = as_int(iterations, "iterations", minimum=1)
