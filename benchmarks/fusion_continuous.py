@@ -22,6 +22,8 @@ whose NEES averaged over the seeds lies in its 95 % chi-square band. Run::
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -30,30 +32,25 @@ import estim
 from estim.records import merge
 from estim.solvers.kalman.continuous import van_loan
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import sensor_fusion  # noqa: E402  (the example's sensors and record)
+
+SENSORS = sensor_fusion.SENSORS
+
 A = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
 L = np.array([[0.0], [0.0], [1.0]])
 DENSITY = 0.5
-SENSORS = {"imu": ("acc", 100.0, 0.0, 0.05), "gnss": ("h_gnss", 1.0, 0.0, 2.0),
-           "baro": ("h_baro", 20.0, 0.003, 0.5)}
-ROW = {"acc": 2, "h_gnss": 0, "h_baro": 0}
+
+
+def jerk(x: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
+    """The truth over an interval: the exact transition of a white jerk of density
+    ``DENSITY`` (Van Loan)."""
+    Phi, Qd = van_loan(A, DENSITY * L @ L.T, dt)
+    return Phi @ x + rng.multivariate_normal(np.zeros(3), Qd)
 
 
 def record(seconds: float, seed: int):
-    rng = np.random.default_rng(seed)
-    times = {s: np.arange(int(rate * seconds)) / rate + off
-             for s, (_, rate, off, _) in SENSORS.items()}
-    t_all = np.unique(np.concatenate(list(times.values())))
-    x, truth = np.array([100.0, 0.0, 0.0]), {}
-    for k, tk in enumerate(t_all):
-        if k:
-            Phi, Qd = van_loan(A, DENSITY * L @ L.T, tk - t_all[k - 1])
-            x = Phi @ x + rng.multivariate_normal(np.zeros(3), Qd)
-        truth[float(tk)] = x.copy()
-    streams = {}
-    for s, (out, _, _, sd) in SENSORS.items():
-        Y = np.array([truth[float(tk)][ROW[out]] for tk in times[s]])
-        streams[s] = (times[s], Y + sd * rng.standard_normal(len(Y)), out)
-    return streams, truth
+    return sensor_fusion.record(seconds, seed, transition=jerk)
 
 
 def main() -> None:

@@ -42,16 +42,21 @@ def vehicle() -> estim.Model:
     return estim.models.vertical_channel(variable_dt=True)
 
 
-def record(seconds: float, seed: int = 0) -> tuple[dict, dict]:
-    """The streams ``{sensor: (t, Y, output)}`` and the truth ``{t: x}`` at every stamp."""
+def record(seconds: float, seed: int = 0, transition=None) -> tuple[dict, dict]:
+    """The streams ``{sensor: (t, Y, output)}`` and the truth ``{t: x}`` at every stamp;
+    ``transition(x, dt, rng)`` moves the truth over an interval (default: the exact
+    dynamics and the per-transition noise ``Q``)."""
     rng = np.random.default_rng(seed)
     times = {s: np.arange(int(rate * seconds)) / rate + off
              for s, (_, rate, off, _) in SENSORS.items()}
     t_all = np.unique(np.concatenate(list(times.values())))
+    if transition is None:
+        def transition(x, dt, rng):
+            return expm(A * dt) @ x + rng.multivariate_normal(np.zeros(3), Q)
     x, truth = np.array([100.0, 0.0, 0.0]), {}
     for k, tk in enumerate(t_all):
         if k:
-            x = expm(A * (tk - t_all[k - 1])) @ x + rng.multivariate_normal(np.zeros(3), Q)
+            x = transition(x, tk - t_all[k - 1], rng)
         truth[float(tk)] = x.copy()
     streams = {}
     for s, (out, _, _, sd) in SENSORS.items():

@@ -140,8 +140,6 @@ def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W
     Runge-Kutta steps of the pair, the input along the interval ``u_of`` (a callable of
     the fraction of the interval, or the held input). Returns :math:`(m, P)` at the end
     (:math:`P` symmetrised)."""
-    from estim._discretise import input_at
-
     n = x.numel()
 
     def rhs(z, u):
@@ -150,18 +148,7 @@ def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W
         Pdot = A @ S + S @ A.T + W
         return ca.vertcat(f(m, u, p), ca.vec(Pdot))
 
-    z = ca.vertcat(x, ca.vec(P))
-    dt = h / substeps
-    for i in range(substeps):
-        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
-        um = input_at(u_of, sm)
-        k1 = rhs(z, input_at(u_of, s0))
-        k2 = rhs(z + dt / 2 * k1, um)
-        k3 = rhs(z + dt / 2 * k2, um)
-        k4 = rhs(z + dt * k3, input_at(u_of, s1))
-        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    Pn = ca.reshape(z[n:], n, n)
-    return z[:n], 0.5 * (Pn + Pn.T)
+    return _integrated(rhs, x, P, u_of, h, substeps)
 
 
 def sigma_moment_step(f: Callable, points: Callable, Wm: np.ndarray, Wc: np.ndarray,
@@ -171,8 +158,6 @@ def sigma_moment_step(f: Callable, points: Callable, Wm: np.ndarray, Wc: np.ndar
     points ``points(m, P) -> (list of columns, definite)`` drawn at every Runge-Kutta
     stage; returns :math:`(m, P)` at the end and whether every stage's covariance had its
     sigma points (positive definite)."""
-    from estim._discretise import input_at
-
     n = x.numel()
     ok = ca.SX(1)
 
@@ -189,15 +174,19 @@ def sigma_moment_step(f: Callable, points: Callable, Wm: np.ndarray, Wc: np.ndar
                 ca.SX.zeros(n, n))
         return ca.vertcat(fbar, ca.vec(C + C.T + W))
 
-    z = ca.vertcat(x, ca.vec(P))
-    dt = h / substeps
-    for i in range(substeps):
-        s0, sm, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
-        um = input_at(u_of, sm)
-        k1 = rhs(z, input_at(u_of, s0))
-        k2 = rhs(z + dt / 2 * k1, um)
-        k3 = rhs(z + dt / 2 * k2, um)
-        k4 = rhs(z + dt * k3, input_at(u_of, s1))
-        z = z + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    m, Pn = _integrated(rhs, x, P, u_of, h, substeps)
+    return m, Pn, ok
+
+
+def _integrated(rhs: Callable, x: Any, P: Any, u_of: Any, h: Any, substeps: int
+                ) -> tuple[Any, Any]:
+    """The pair ``(m, P)`` from ``(x, P)`` over ``h`` by ``substeps`` classic Runge-Kutta
+    steps of ``rhs(z, u)`` on :math:`z = [m; \\operatorname{vec} P]` (the input along the
+    interval ``u_of``); :math:`P` symmetrised."""
+    from estim._discretise import rk4_step
+
+    n = x.numel()
+    z = rk4_step(lambda zz, u, _: rhs(zz, u), ca.vertcat(x, ca.vec(P)), u_of, None, h,
+                 substeps)
     Pn = ca.reshape(z[n:], n, n)
-    return z[:n], 0.5 * (Pn + Pn.T), ok
+    return z[:n], 0.5 * (Pn + Pn.T)
