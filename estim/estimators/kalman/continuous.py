@@ -21,7 +21,8 @@ from numpy.typing import ArrayLike
 from estim._validate import as_covariance, as_int
 from estim.solvers.kalman.continuous import moment_step, sigma_moment_step, van_loan
 
-__all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction"]
+__all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction",
+           "unscented_smoother_prediction"]
 
 #: Runge-Kutta sub-steps of the moment equations per interval, by default.
 SUBSTEPS = 4
@@ -124,5 +125,38 @@ def smoother_prediction(est: Any):
         Pb = np.asarray(out[1]).T.reshape(k, n, n).transpose(0, 2, 1)
         Phi = np.asarray(out[2]).T.reshape(k, n, n).transpose(0, 2, 1)
         return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), P @ Phi.transpose(0, 2, 1)
+
+    return predict
+
+
+def unscented_smoother_prediction(est: Any):
+    r"""The continuous-discrete unscented smoother's predictions of every transition:
+    ``(X, P, Wt) -> (x_bar, P_bar, D)``, :math:`(\bar x, \bar P)` from the sigma-point
+    moment equations and the cross-covariance
+    :math:`D = \sum_i W^c_i (\mathcal X_i - \hat x_k)(\varphi(\mathcal X_i) - \bar\varphi)^\top`
+    of the filter's sigma points through the noise-free flow :math:`\varphi` (the model's
+    ``F``: the noise over the interval is independent of :math:`x_k`; exact on a linear
+    model, where the smoother is the RTS smoother of the exact discretisation)."""
+    from estim.solvers.kalman.rts import transitions
+
+    m = est.model
+    n = m.nx
+    x, w = ca.SX.sym("x", n), ca.SX.sym("w", m.nw)
+    Ps, Ws = ca.SX.sym("P", n, n), ca.SX.sym("W", n, n)
+    xb, Pb, _ = ukf_prediction(est, x, Ps, w, ca.DM(m.p), Ws)
+    fun = ca.Function("cd_sigma_predict", [x, ca.vec(Ps), w, ca.vec(Ws)], [xb, ca.vec(Pb)])
+    Wq = est.Q.ravel(order="F")
+
+    def predict(X, P, Wt):
+        k, ns = len(X), len(est._Wm)
+        out = fun.map(k)(X.T, P.transpose(0, 2, 1).reshape(k, n * n).T, Wt.T,
+                         np.repeat(Wq[:, None], k, axis=1))
+        Pb = np.asarray(out[1]).T.reshape(k, n, n).transpose(0, 2, 1)
+        sig = est.sigma_points(X, P)  # (k, ns, n)
+        Fs = transitions(m, sig.reshape(k * ns, n), np.repeat(Wt, ns, axis=0)
+                         ).reshape(k, ns, n)
+        fbar = np.einsum("i,kij->kj", est._Wm, Fs)
+        D = np.einsum("i,kia,kib->kab", est._Wc, sig - X[:, None, :], Fs - fbar[:, None, :])
+        return np.asarray(out[0]).T, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
 
     return predict

@@ -11,7 +11,12 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_float, as_int
 from estim.estimators.base import EstimationWarning
-from estim.estimators.kalman.continuous import SUBSTEPS, continuous_noise, ukf_prediction
+from estim.estimators.kalman.continuous import (
+    SUBSTEPS,
+    continuous_noise,
+    ukf_prediction,
+    unscented_smoother_prediction,
+)
 from estim.estimators.kalman.fused import FusedKalman
 from estim.estimators.kalman.iterated_updates import check_iterated, posterior_linearised_update
 from estim.estimators.kalman.smoothing import (
@@ -309,10 +314,9 @@ class UKF(FusedKalman):
         S. Särkkä, "Unscented Rauch-Tung-Striebel smoother", IEEE TAC 53(3), 2008.
         """
         passes = smoothing_passes(self, iterations)
-        if self.Qc is not None:
-            raise ValueError("UKF.smooth with Qc= is not built yet: EKF(Qc=...).smooth gives "
-                             "the continuous-discrete extended smoother")
-        first = rts(self, Y, U, t, _unscented_prediction(self),
+        predict = unscented_smoother_prediction(self) if self.Qc is not None else \
+            _unscented_prediction(self)  # (the moment equations over each interval)
+        first = rts(self, Y, U, t, predict,
                     self.model.clip if self.clip else None)
         return first if passes == 1 else posterior_linearised(self, first, Y, U, t, passes)
 
