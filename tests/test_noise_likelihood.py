@@ -386,6 +386,28 @@ def test_ml_van_der_pol_estimates_mu_from_a_wrong_start(vdp_fit):
     assert "mu" in res.summary()
 
 
+def test_ml_starts_over_the_parameters(vdp_fit):
+    """param_spread: the other starts move mu by factors e^N(0, 0.5^2) (seeded; Q and R
+    held, so without it there is one start); the best of them is returned, the same
+    optimum as one start from mu = 0.5 here."""
+    sc, log, _ = vdp_fit
+    wrong = sc.model.with_params(mu=0.5)
+    kw = {"x0": sc.tuning["x0"], "P0": sc.tuning["P0"], "Q0": [0.05, 0.05],
+          "R0": [0.5, 0.5], "params": ["mu"], "structure": "fixed"}
+    one = maximum_likelihood(wrong, log.y, starts=3, **kw)
+    assert len(one.details["starts"]) == 1  # nothing perturbed: one start
+    many = maximum_likelihood(wrong, log.y, starts=3, param_spread=0.5, **kw)
+    values = many.details["starts"]
+    # three runs from three values of mu, the same optimum from each (this likelihood
+    # has one), the best returned
+    # (bitwise different ends: different starts; identical ones would end identically)
+    assert len(values) == 3 and 0 < np.ptp(values) < 1e-6 * abs(values[0])
+    assert many.details["best_start"] == int(np.argmin(values))
+    assert many.params["mu"] == pytest.approx(one.params["mu"], abs=1e-5)
+    with pytest.raises(ValueError, match="param_spread"):
+        maximum_likelihood(wrong, log.y, param_spread=-1.0, **kw)
+
+
 # ------------------------------------------------------------------------- bad input
 def test_ml_bad_input():
     model = _local_level()

@@ -185,17 +185,22 @@ class _Optimum:
 
 
 def _optimise(obj: _Objective, par: _Parametrisation, f0: float, starts: int,
-              seed: int | None, spread: float, method: str, tol: float, max_iter: int
-              ) -> _Optimum:
+              seed: int | None, spread: float, method: str, tol: float, max_iter: int,
+              param_spread: float = 0.0) -> _Optimum:
     r"""Minimise ``obj`` from ``par.theta0`` (whose value is ``f0``) and ``starts - 1``
     starts whose noise parameters are perturbed by :math:`\mathcal N(0,
-    \text{spread}^2)` (seeded), then polish the best with Newton steps (for the
+    \text{spread}^2)` and model parameters by the factor :math:`e^{\mathcal N(0,
+    \text{param\_spread}^2)}` (seeded), then polish the best with Newton steps (for the
     gradient methods)."""
     rng = np.random.default_rng(seed)
     thetas = [par.theta0]
-    for _ in range(starts - 1 if par.n_noise and spread > 0 else 0):  # else all the same
+    n_par = par.theta0.size - par.n_noise
+    varied = (par.n_noise and spread > 0) or (n_par and param_spread > 0)
+    for _ in range(starts - 1 if varied else 0):  # else all the same
         th = par.theta0.copy()
         th[:par.n_noise] += spread * rng.standard_normal(par.n_noise)
+        if n_par and param_spread > 0:  # (no draw otherwise: the same starts as before)
+            th[par.n_noise:] *= np.exp(param_spread * rng.standard_normal(n_par))
         thetas.append(th)
     runs: list[Any | None] = []
     for th in thetas:

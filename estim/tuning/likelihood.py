@@ -168,7 +168,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
                        max_iter: int = 200,
                        alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0,
                        points: str = "merwe", order: int = 3, continuous: bool = False,
-                       t: ArrayLike | None = None, substeps: int = 4) -> TuningResult:
+                       t: ArrayLike | None = None, substeps: int = 4,
+                       param_spread: float = 0.0) -> TuningResult:
     r"""Noise covariances (and model parameters) that maximise the likelihood of a record.
 
     Minimises the prediction-error negative log-likelihood of the EKF (or UKF)
@@ -199,7 +200,11 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
       \nabla\ell`, is below ``tol`` (or the rounding level of :math:`\ell`).
     * Multi-start: the first start is ``Q0, R0`` (and the parameters' starts), the
       others perturb the noise parameters by :math:`\mathcal N(0, \text{spread}^2)` on
-      the log scale (seeded); the best optimum is returned.
+      the log scale and, with ``param_spread``, each model parameter by the factor
+      :math:`e^{\mathcal N(0, \text{param\_spread}^2)}` (seeded); the best optimum is
+      returned. A local optimum has a positive definite Hessian and small standard errors
+      like the global one: where the likelihood is rugged (a chaotic model seen sparsely)
+      only several starts over the parameters can tell them apart.
     * Standard errors: the inverse observed information
       :math:`\operatorname{cov}\hat\theta \approx \nabla^2\ell(\hat\theta)^{-1}`, taken to
       the entries of ``Q``, ``R`` by the delta method,
@@ -234,6 +239,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         Seed of the perturbed starts.
     spread : float
         Standard deviation of the perturbations of the log-variances (natural log).
+    param_spread : float
+        Standard deviation of the perturbations of the model parameters' logs (relative
+        changes; default 0: the parameters start where given at every start).
     burn : int, optional
         Number of first samples whose terms are left out of the likelihood. Default 0,
         or ``nx`` with the diffuse prior (statsmodels' ``loglikelihood_burn``).
@@ -304,6 +312,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     starts = as_int(starts, "starts", minimum=1)
     seed = as_seed(seed)
     spread = as_float(spread, "spread", minimum=0.0)
+    param_spread = as_float(param_spread, "param_spread", minimum=0.0)
     tol = as_float(tol, "tol", positive=True)
     max_iter = as_int(max_iter, "max_iter", minimum=1)
     method = _check_method(method)
@@ -335,7 +344,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     f0, _ = obj(par.theta0)  # the first evaluation builds the derivative graphs
     compile_time = time.perf_counter() - t0
 
-    opt = _optimise(obj, par, f0, starts, seed, spread, method, tol, max_iter)
+    opt = _optimise(obj, par, f0, starts, seed, spread, method, tol, max_iter, param_spread)
     est = _estimates(par, opt, tol, model.nx, model.ny)
     eps = obj.whitened(opt.theta)
     eps[~rec.measured] = np.nan
@@ -359,7 +368,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         "structure": structures,
         "burn": rec.burn,
         "estimator": kind.partition("@")[0],
-        "noise": "continuous (Q is the spectral density Qc)" if "@" in kind else "per transition",
+        "noise": "continuous (Q is the spectral density Qc)" if "@" in kind else
+        "per transition",
     }
     return TuningResult(method="maximum likelihood", Q=est.Q, R=est.R, params=est.params,
                         stderr=est.stderr, check=innovation_check(eps),
