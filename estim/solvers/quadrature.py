@@ -27,7 +27,9 @@ def cubature5(n: int) -> tuple[np.ndarray, np.ndarray]:
     (weight :math:`2/(n+2)`), :math:`\pm\sqrt{n+2}\,e_i` (weight
     :math:`(4-n)/(2(n+2)^2)`) and :math:`\pm\sqrt{(n+2)/2}\,(e_i \pm e_j)`, :math:`i < j`
     (weight :math:`1/(n+2)^2`). Exact for every polynomial of total degree 5 or less;
-    for :math:`n > 4` the axis weights are negative (the covariance form only)."""
+    for :math:`n > 4` the axis weights are negative (the square-root UKF downdates by them,
+    a failed step where the result is not positive definite; the particle filter's proposal
+    refuses them)."""
     eye = np.eye(n)
     cols = [np.zeros(n)]
     W = [2.0 / (n + 2)]
