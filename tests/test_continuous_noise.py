@@ -121,6 +121,25 @@ def test_continuous_discrete_filters_are_the_exact_kalman_filter(make):
     np.testing.assert_allclose(sm.P, Pr, rtol=0, atol=1e-12)
 
 
+def test_the_square_root_form_integrates_the_factor():
+    """``EKF(Qc=..., form="sqrt")`` carries the factor S by its own moment equation,
+    dS/dt = S Phi(S^-1 dP/dt S^-T), which is not polynomial in time even where P is: the
+    error against the exact filter falls at Runge-Kutta's fourth order as the sub-steps
+    double (measured: 4.9e-4, 2.9e-5, 1.8e-6 in the means at 4, 8, 16 sub-steps; intervals
+    up to 1 s with a tight posterior make it stiff), and every step stays ok."""
+    t, dts, Y = irregular_record()
+    x0, P0 = np.array([0.0, 1.0]), np.diag([1.0, 2.0])
+    xs, Ps = exact_kalman(Y, dts, x0, P0)
+    errors = []
+    for n in (4, 8, 16):
+        res = estim.EKF(wiener_velocity(), Qc=Q_DENSITY, R=R_VAR, x0=x0, P0=P0, form="sqrt",
+                        substeps=n).filter(Y, t=t)
+        assert set(res.status) == {"ok"}
+        errors.append(max(np.abs(res.x - xs).max(), np.abs(res.P - Ps).max()))
+    assert errors[0] / errors[1] > 10 and errors[1] / errors[2] > 10
+    assert errors[2] < 1e-5
+
+
 def test_a_per_transition_q_is_wrong_on_irregular_stamps():
     """The trap the option removes: with intervals from 1 ms to 1 s, the Kalman filter
     with one Q (the exact Q_d of the mean interval) is not the exact filter, the CD-EKF is."""
@@ -180,7 +199,7 @@ def test_what_continuous_noise_refuses():
     with pytest.raises(ValueError, match="positive semi-definite"):
         estim.EKF(m, Qc=-1.0, **kw)
     with pytest.raises(ValueError, match="covariance form"):
-        estim.EKF(m, Qc=0.7, form="sqrt", **kw)
+        estim.UKF(m, Qc=0.7, form="sqrt", **kw)
     f = estim.EKF(m, Qc=0.7, **kw)
     with pytest.raises(ValueError, match="spectral density"):
         f.set_tuning(Q=1.0)

@@ -163,19 +163,18 @@ def _moments(model: Model, x: Sym, P: Sym, w: Sym, p: Sym, W: Sym, substeps: int
     """The continuous-discrete prediction over the interval of ``w`` (the moment equations
     of the extended filter, or with ``sigma = (points, Wm, Wc)`` of the sigma-point one;
     :mod:`estim.solvers.kalman.continuous`)."""
-    from estim.solvers.kalman.continuous import moment_step, sigma_moment_step
+    from estim.solvers.kalman.continuous import (
+        drift_jacobian,
+        interval,
+        moment_step,
+        sigma_moment_step,
+    )
 
     f = model.f_c
     assert f is not None  # (a continuous model, checked by the caller)
-    if model.variable_dt:
-        u_of, h = model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
-    else:
-        u_of, h = model.input_path(w), model.dt
+    u_of, h = interval(model, w)
     if sigma is None:
-        xs, us = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
-        ps = ca.SX.sym("p", model.p.size)
-        jac = ca.Function("f_x", [xs, us, ps], [ca.jacobian(f(xs, us, ps), xs)])
-        return moment_step(f, jac, x, P, u_of, p, W, h, substeps)
+        return moment_step(f, drift_jacobian(model), x, P, u_of, p, W, h, substeps)
     points, Wm, Wc = sigma
     xb, Pb, _ = sigma_moment_step(f, points, Wm, Wc, x, P, u_of, p, W, h, substeps)
     return xb, Pb

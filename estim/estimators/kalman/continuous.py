@@ -19,7 +19,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_covariance, as_int
-from estim.solvers.kalman.continuous import moment_step, sigma_moment_step, van_loan
+from estim.solvers.kalman.continuous import (
+    drift_jacobian,
+    interval,
+    moment_step,
+    sigma_moment_step,
+    van_loan,
+)
 
 __all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction",
            "unscented_smoother_prediction"]
@@ -31,7 +37,8 @@ DISCRETISATIONS = ("moments", "van-loan")
 
 
 def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
-                     substeps: object, form: str) -> tuple[Any, np.ndarray | None, int]:
+                     substeps: object, form: str, sqrt_built: bool = False
+                     ) -> tuple[Any, np.ndarray | None, int]:
     """``(the Q the estimator stores, Qc, substeps)``: ``Q`` itself, or with ``Qc`` the
     density :math:`W = L Q_c L^\\top` it enters the states with; checked (exactly one of
     the two, ``Qc`` on a continuous vector model, the covariance form)."""
@@ -51,27 +58,13 @@ def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
     if model.nz or not model.manifold.trivial:
         raise ValueError("Qc= is built for ordinary differential equations on vector states "
                          "(no algebraic states, quaternions or angles) for now: give Q=")
-    if form != "covariance":
-        raise ValueError("Qc= is built in the covariance form for now: use "
+    if form != "covariance" and not sqrt_built:
+        raise ValueError("Qc= is built in the UKF's covariance form for now: use "
                          "form='covariance', or a per-transition Q with form='sqrt'")
     L = np.eye(model.nx) if model.noise_input is None else model.noise_input
     Qc = as_covariance(Qc, L.shape[1], "Qc", definite=False)
     W = L @ Qc @ L.T
     return 0.5 * (W + W.T), Qc, substeps
-
-
-def _interval(model: Any, w: Any) -> tuple[Any, Any]:
-    """The input along the interval (a callable of its fraction, or held) and its length,
-    from the transition's input ``w`` (the interval its last entry with ``variable_dt``)."""
-    if model.variable_dt:
-        return model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
-    return model.input_path(w), model.dt
-
-
-def _jacobian(model: Any) -> ca.Function:
-    x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
-    p = ca.SX.sym("p", model.p.size)
-    return ca.Function("f_x", [x, u, p], [ca.jacobian(model.f_c(x, u, p), x)])
 
 
 def ekf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any]:
@@ -82,8 +75,8 @@ def ekf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[An
     the interval's start), :math:`\bar P = \Phi P \Phi^\top + Q_d(\Delta t)`
     (:func:`~estim.solvers.kalman.continuous.van_loan`: exact on a linear model)."""
     m = est.model
-    u_of, h = _interval(m, w)
-    jac = _jacobian(m)
+    u_of, h = interval(m, w)
+    jac = drift_jacobian(m)
     if getattr(est, "discretisation", "moments") == "van-loan":
         from estim._discretise import input_at
 
@@ -98,7 +91,7 @@ def ukf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[An
     equations with ``est``'s rule, the points drawn at every Runge-Kutta stage; and whether
     every stage's covariance was positive definite."""
     m = est.model
-    u_of, h = _interval(m, w)
+    u_of, h = interval(m, w)
     return sigma_moment_step(m.f_c, est._sigma_points, est._Wm, est._Wc, x, P, u_of, p, W,
                              h, est.substeps)
 

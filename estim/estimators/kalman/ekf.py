@@ -68,7 +68,8 @@ class EKF(FusedKalman):
         :math:`\dot m = f(m, u)`, :math:`\dot P = A P + P A^\top + L Q_c L^\top` over each
         interval by ``substeps`` Runge-Kutta steps (the continuous-discrete EKF;
         :mod:`estim.estimators.kalman.continuous`, docs/continuous_noise.md): the noise of
-        a transition is that of its interval, with irregular stamps too.
+        a transition is that of its interval, with irregular stamps too; in the
+        square-root form the factor's own moment equation.
     substeps : int
         Runge-Kutta steps per interval of the moment equations with ``Qc`` (default 4).
     discretisation : {"moments", "van-loan"}
@@ -161,7 +162,8 @@ class EKF(FusedKalman):
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
                  Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
                  discretisation: str = "moments"):
-        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form)
+        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form,
+                                                     sqrt_built=True)
         self.discretisation = as_choice(discretisation, DISCRETISATIONS, "discretisation")
         if self.discretisation != "moments" and self.Qc is None:
             raise ValueError("discretisation= carries a continuous noise (Qc=) over an "

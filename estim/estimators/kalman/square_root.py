@@ -64,6 +64,7 @@ from estim.estimators.manifold_steps import (
     sigma_offsets,
     transition_jacobian,
 )
+from estim.solvers.kalman.continuous import drift_jacobian, interval, sqrt_moment_step
 from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.triangular import (
     cholesky_downdate,
@@ -160,8 +161,13 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     s, x, S, u, y, tun, LQ, LR, p, mask, y_inf = est._symbols()
     uy = m.measurement_input(u)
     # (on a manifold the multiplicative form: derivatives along the retraction)
-    xb = m.F(x, u, p) if predict else x
-    Sb = tria(ca.horzcat(transition_jacobian(m, x, u, p, xb) @ S, LQ)) if predict else S
+    if predict and est.Qc is not None:  # the factor's moment equation over the interval
+        u_of, h = interval(m, u)
+        xb, Sb = sqrt_moment_step(m.f_c, drift_jacobian(m), x, S, u_of, p, LQ, h,
+                                  est.substeps)
+    else:
+        xb = m.F(x, u, p) if predict else x
+        Sb = tria(ca.horzcat(transition_jacobian(m, x, u, p, xb) @ S, LQ)) if predict else S
     C = ca.diag(mask) @ output_jacobian(m, xb, uy, p)
     e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
     LRm = _measurement_noise(LR, mask, est._diagonal["R"])

@@ -43,7 +43,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-__all__ = ["DOUBLINGS", "moment_step", "sigma_moment_step", "van_loan"]
+__all__ = ["DOUBLINGS", "drift_jacobian", "interval", "moment_step", "sigma_moment_step",
+           "sqrt_moment_step", "van_loan"]
 
 #: The squarings of :func:`van_loan`'s scaling: the exponent is taken of the matrix divided
 #: by :math:`2^{32}`, then doubled back; with the Taylor series of degree
@@ -133,6 +134,22 @@ def van_loan(A: Any, W: Any, dt: Any) -> tuple[Any, Any]:
     return Phi, 0.5 * (Qd + Qd.T)
 
 
+def interval(model: Any, w: Any) -> tuple[Any, Any]:
+    """The input along a transition's interval (a callable of its fraction, or held) and
+    the interval's length, from the transition's input ``w`` (the length its last entry
+    with ``variable_dt``, else the model's ``dt``)."""
+    if model.variable_dt:
+        return model.input_path(w[:w.numel() - 1]), w[w.numel() - 1]
+    return model.input_path(w), model.dt
+
+
+def drift_jacobian(model: Any) -> ca.Function:
+    """``(x, u, p) -> df/dx`` of a continuous model's right-hand side."""
+    x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
+    p = ca.SX.sym("p", model.p.size)
+    return ca.Function("f_x", [x, u, p], [ca.jacobian(model.f_c(x, u, p), x)])
+
+
 def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W: Any,
                 h: Any, substeps: int) -> tuple[Any, Any]:
     r"""The extended filter's prediction over an interval ``h``: :math:`\dot m = f(m)`,
@@ -149,6 +166,32 @@ def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W
         return ca.vertcat(f(m, u, p), ca.vec(Pdot))
 
     return _integrated(rhs, x, P, u_of, h, substeps)
+
+
+def sqrt_moment_step(f: Callable, jac: Callable, x: Any, S: Any, u_of: Any, p: Any,
+                     LW: Any, h: Any, substeps: int) -> tuple[Any, Any]:
+    r"""The extended filter's prediction in square-root form: the lower factor :math:`S`
+    of :math:`P = S S^\top` carried by :math:`\dot S = S\, \Phi(S^{-1} \dot P S^{-\top})`,
+    :math:`S^{-1}\dot P S^{-\top} = C + C^\top + B B^\top`, :math:`C = S^{-1} A S`,
+    :math:`B = S^{-1} L_W` (:math:`L_W L_W^\top = W`), where :math:`\Phi` keeps the lower
+    triangle and halves the diagonal: :math:`\dot S S^\top + S \dot S^\top = \dot P` and
+    :math:`S` stays lower triangular (Morf, Lévy & Kailath 1978; Särkkä 2007), by
+    ``substeps`` Runge-Kutta steps of the pair. Returns :math:`(m, S)` at the end."""
+    from estim._discretise import rk4_step
+    from estim.solvers.kalman.triangular import solve_lower
+
+    n = x.numel()
+    lower = ca.DM(np.tril(np.ones((n, n))) - 0.5 * np.eye(n))  # Phi's mask
+
+    def rhs(z, u, _):
+        m, F = z[:n], ca.reshape(z[n:], n, n)
+        A = jac(m, u, p)
+        C = solve_lower(F, A @ F)
+        B = solve_lower(F, LW)
+        return ca.vertcat(f(m, u, p), ca.vec(F @ ((C + C.T + B @ B.T) * lower)))
+
+    z = rk4_step(rhs, ca.vertcat(x, ca.vec(S)), u_of, None, h, substeps)
+    return z[:n], ca.reshape(z[n:], n, n)
 
 
 def sigma_moment_step(f: Callable, points: Callable, Wm: np.ndarray, Wc: np.ndarray,
