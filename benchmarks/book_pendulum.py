@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 import estim
+from estim.solvers.kalman.continuous import van_loan
 
 ROOT = Path(__file__).resolve().parent.parent
 BOOK = {"EKF": 0.16830859061153763, "ERTS": 0.057446202494837,
@@ -65,13 +66,8 @@ def car_track() -> None:
     """The book's car-tracking record (``car_track`` notebook): the Kalman filter and RTS
     smoother, the RMSE of the positions as the book computes it."""
     car = np.load(ROOT / "examples" / "data" / "book_car_track.npz")
-    dt = 0.1
-    A = np.array([[1, 0, dt, 0], [0, 1, 0, dt], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-    Q = np.array([[dt**3 / 3, 0, dt**2 / 2, 0], [0, dt**3 / 3, 0, dt**2 / 2],
-                  [dt**2 / 2, 0, dt, 0], [0, dt**2 / 2, 0, dt]])
-    H = np.eye(2, 4)
-    m = estim.Model(states=["x", "y", "vx", "vy"], outputs=["px", "py"],
-                    dynamics=lambda x, u, p: A @ x, output=lambda x, u, p: H @ x, name="car")
+    m = estim.models.constant_velocity(dt=0.1)  # the white acceleration's Q, q = 1:
+    Q = van_loan(np.eye(4, k=2), np.diag([0.0, 0.0, 1.0, 1.0]), 0.1)[1]
     ekf = estim.EKF(m, Q=Q, R=0.25 * np.eye(2), x0=[0.0, 0.0, 1.0, -1.0], P0=np.eye(4))
     Y = np.vstack([[np.nan, np.nan], car["Y"]])
 

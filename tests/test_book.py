@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import estim
+from estim.solvers.kalman.continuous import van_loan
 
 DATA = np.load(Path(__file__).parent.parent / "examples" / "data" / "book_pendulum.npz")
 DT, G = 0.01, 9.81
@@ -99,13 +100,8 @@ def test_the_books_car_tracking():
     (the square root of the mean over time of the summed squares): KF 0.4253824660526518,
     RTS 0.26497104638205465 (to 1e-12; they agree to the last digit)."""
     car = np.load(Path(__file__).parent.parent / "examples" / "data" / "book_car_track.npz")
-    dt = 0.1
-    A = np.array([[1, 0, dt, 0], [0, 1, 0, dt], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-    Q = np.array([[dt**3 / 3, 0, dt**2 / 2, 0], [0, dt**3 / 3, 0, dt**2 / 2],
-                  [dt**2 / 2, 0, dt, 0], [0, dt**2 / 2, 0, dt]])
-    H = np.eye(2, 4)
-    m = estim.Model(states=["x", "y", "vx", "vy"], outputs=["px", "py"],
-                    dynamics=lambda x, u, p: A @ x, output=lambda x, u, p: H @ x, name="car")
+    m = estim.models.constant_velocity(dt=0.1)  # the white acceleration's Q, q = 1:
+    Q = van_loan(np.eye(4, k=2), np.diag([0.0, 0.0, 1.0, 1.0]), 0.1)[1]
     ekf = estim.EKF(m, Q=Q, R=0.25 * np.eye(2), x0=[0.0, 0.0, 1.0, -1.0], P0=np.eye(4))
     Y = np.vstack([[np.nan, np.nan], car["Y"]])
 

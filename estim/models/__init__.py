@@ -6,6 +6,7 @@ rate constant.
 """
 
 from estim.models.batch_reactor import batch_reactor
+from estim.models.constant_velocity import constant_velocity
 from estim.models.localization import (
     martinelli_simple,
     odometry_circular,
@@ -26,7 +27,7 @@ from estim.models.sine_pendulum import sine_pendulum
 from estim.models.van_der_pol import van_der_pol
 from estim.models.vertical_channel import vertical_channel
 
-__all__ = ["batch_reactor", "lorenz", "martinelli_simple", "odometry_circular",
+__all__ = ["batch_reactor", "constant_velocity", "lorenz", "martinelli_simple", "odometry_circular",
            "odometry_noncircular", "pendulum", "quadrotor_ko2019", "runaway", "satellite",
            "satellite_rates", "sine_pendulum", "van_der_pol", "vertical_channel",
            "PDAttitudeController", "nadir_in_body", "reference_attitude"]

@@ -96,28 +96,40 @@ def ukf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[An
                              h, est.substeps)
 
 
+def _mapped_moments(est: Any, prediction, jacobian: bool = True) -> Any:
+    """``(X (k, n), P (k, n, n), Wt (k, nw)) -> (x_bar, P_bar, Phi)`` over ``k`` transitions
+    at once: ``prediction(est, x, P, w, p, W)``'s mean and covariance (symmetrised) and, with
+    ``jacobian``, the Jacobian of the mean by the state (else None), one mapped call."""
+    m = est.model
+    n = m.nx
+    x, w = ca.SX.sym("x", n), ca.SX.sym("w", m.nw)
+    Ps, Ws = ca.SX.sym("P", n, n), ca.SX.sym("W", n, n)
+    xb, Pb = prediction(est, x, Ps, w, ca.DM(m.p), Ws)[:2]
+    outs = [xb, ca.vec(Pb)] + ([ca.vec(ca.jacobian(xb, x))] if jacobian else [])
+    fun = ca.Function("cd_predict", [x, ca.vec(Ps), w, ca.vec(Ws)], outs)
+    Wq = est.Q.ravel(order="F")
+
+    def moments(X, P, Wt):
+        k = len(X)
+        out = fun.map(k)(X.T, P.transpose(0, 2, 1).reshape(k, n * n).T, Wt.T,
+                         np.repeat(Wq[:, None], k, axis=1))
+        Pb, *Phi = (np.asarray(o).T.reshape(k, n, n).transpose(0, 2, 1) for o in out[1:])
+        return (np.asarray(out[0]).T, 0.5 * (Pb + Pb.transpose(0, 2, 1)),
+                Phi[0] if Phi else None)
+
+    return moments
+
+
 def smoother_prediction(est: Any):
     r"""The continuous-discrete extended smoother's predictions of every transition at once:
     ``(X, P, Wt) -> (x_bar, P_bar, D)``, :math:`(\bar x, \bar P)` from the moment equations
     and :math:`D = P_k \Phi_k^\top`, :math:`\Phi_k` the Jacobian of the mean's flow over the
     interval (Särkkä & Svensson 2023, sec. 10.6)."""
-    m = est.model
-    n = m.nx
-    x, w = ca.SX.sym("x", n), ca.SX.sym("w", m.nw)
-    Ps, Ws = ca.SX.sym("P", n, n), ca.SX.sym("W", n, n)
-    xb, Pb = ekf_prediction(est, x, Ps, w, ca.DM(m.p), Ws)
-    fun = ca.Function("cd_predict", [x, ca.vec(Ps), w, ca.vec(Ws)],
-                      [xb, ca.vec(Pb), ca.vec(ca.jacobian(xb, x))])
-    Wq = est.Q.ravel(order="F")
+    moments = _mapped_moments(est, ekf_prediction)
 
     def predict(X, P, Wt):
-        k = len(X)
-        out = fun.map(k)(X.T, P.transpose(0, 2, 1).reshape(k, n * n).T, Wt.T,
-                         np.repeat(Wq[:, None], k, axis=1))
-        xb = np.asarray(out[0]).T
-        Pb = np.asarray(out[1]).T.reshape(k, n, n).transpose(0, 2, 1)
-        Phi = np.asarray(out[2]).T.reshape(k, n, n).transpose(0, 2, 1)
-        return xb, 0.5 * (Pb + Pb.transpose(0, 2, 1)), P @ Phi.transpose(0, 2, 1)
+        xb, Pb, Phi = moments(X, P, Wt)
+        return xb, Pb, P @ Phi.transpose(0, 2, 1)
 
     return predict
 
@@ -133,23 +145,16 @@ def unscented_smoother_prediction(est: Any):
     from estim.solvers.kalman.rts import transitions
 
     m = est.model
-    n = m.nx
-    x, w = ca.SX.sym("x", n), ca.SX.sym("w", m.nw)
-    Ps, Ws = ca.SX.sym("P", n, n), ca.SX.sym("W", n, n)
-    xb, Pb, _ = ukf_prediction(est, x, Ps, w, ca.DM(m.p), Ws)
-    fun = ca.Function("cd_sigma_predict", [x, ca.vec(Ps), w, ca.vec(Ws)], [xb, ca.vec(Pb)])
-    Wq = est.Q.ravel(order="F")
+    moments = _mapped_moments(est, ukf_prediction, jacobian=False)
 
     def predict(X, P, Wt):
-        k, ns = len(X), len(est._Wm)
-        out = fun.map(k)(X.T, P.transpose(0, 2, 1).reshape(k, n * n).T, Wt.T,
-                         np.repeat(Wq[:, None], k, axis=1))
-        Pb = np.asarray(out[1]).T.reshape(k, n, n).transpose(0, 2, 1)
+        k, ns, n = len(X), len(est._Wm), m.nx
+        xb, Pb, _ = moments(X, P, Wt)
         sig = est.sigma_points(X, P)  # (k, ns, n)
         Fs = transitions(m, sig.reshape(k * ns, n), np.repeat(Wt, ns, axis=0)
                          ).reshape(k, ns, n)
         fbar = np.einsum("i,kij->kj", est._Wm, Fs)
         D = np.einsum("i,kia,kib->kab", est._Wc, sig - X[:, None, :], Fs - fbar[:, None, :])
-        return np.asarray(out[0]).T, 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+        return xb, Pb, D
 
     return predict
