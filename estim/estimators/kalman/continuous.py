@@ -18,11 +18,12 @@ import casadi as ca
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_covariance, as_int
+from estim._validate import as_int
 from estim.solvers.kalman.continuous import (
     drift_jacobian,
     interval,
     moment_step,
+    noise_density,
     sigma_moment_step,
     van_loan,
 )
@@ -41,30 +42,14 @@ def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
                      ) -> tuple[Any, np.ndarray | None, int]:
     """``(the Q the estimator stores, Qc, substeps)``: ``Q`` itself, or with ``Qc`` the
     density :math:`W = L Q_c L^\\top` it enters the states with; checked (exactly one of
-    the two, ``Qc`` on a continuous vector model, the covariance form)."""
+    the two, ``Qc`` on a continuous vector model, the covariance form; see
+    :func:`~estim.solvers.kalman.continuous.noise_density`)."""
     substeps = as_int(substeps, "substeps", minimum=1)
-    if Qc is None:
-        if Q is None:  # (a missing required argument, as Python says it)
-            raise TypeError("missing the process noise: 'Q' (a covariance per transition) "
-                            "or, for a continuous model, 'Qc' (a spectral density per unit "
-                            "time)")
-        return Q, None, substeps
-    if Q is not None:
-        raise ValueError("give Q= (per transition) or Qc= (a spectral density, per unit "
-                         "time), not both")
-    if not model.continuous:
-        raise ValueError(f"Qc= is a spectral density per unit time: it needs a continuous "
-                         f"model (ode=); {model.name} is discrete: give a per-transition Q")
-    if model.nz or not model.manifold.trivial:
-        raise ValueError("Qc= is built for ordinary differential equations on vector states "
-                         "(no algebraic states, quaternions or angles) for now: give Q=")
-    if form != "covariance" and not sqrt_built:
+    Q, Qc = noise_density(model, Q, Qc)
+    if Qc is not None and form != "covariance" and not sqrt_built:
         raise ValueError("Qc= is built in the UKF's covariance form for now: use "
                          "form='covariance', or a per-transition Q with form='sqrt'")
-    L = np.eye(model.nx) if model.noise_input is None else model.noise_input
-    Qc = as_covariance(Qc, L.shape[1], "Qc", definite=False)
-    W = L @ Qc @ L.T
-    return 0.5 * (W + W.T), Qc, substeps
+    return Q, Qc, substeps
 
 
 def ekf_prediction(est: Any, x: Any, P: Any, w: Any, p: Any, W: Any) -> tuple[Any, Any]:

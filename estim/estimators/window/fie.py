@@ -19,8 +19,14 @@ from estim._validate import _numeric_array, as_inputs, as_intervals, as_record
 from estim.estimators.base import EstimationWarning, Estimator, StepInfo
 from estim.estimators.filtering import Estimates, stamped
 from estim.estimators.manifold_steps import unit_bounds
-from estim.estimators.window.noise import noise_solver, noise_weight, window_problem
+from estim.estimators.window.noise import (
+    check_tuning_noise,
+    noise_solver,
+    noise_weight,
+    window_problem,
+)
 from estim.model import Model
+from estim.solvers.kalman.continuous import noise_density
 from estim.solvers.least_squares.nlp import LeastSquaresNLP
 from estim.solvers.least_squares.options import (
     check_solver_options,
@@ -327,6 +333,12 @@ class FullInformation(Estimator):
         in the others: a constrained problem, the noise variables sized by the rank of
         ``Q``, solved by Ipopt or fatrop; see
         :class:`~estim.solvers.least_squares.nlp.SingularNoiseNLP`).
+    Qc : (nq, nq) array, optional
+        In place of ``Q``, for a continuous model: the spectral density of the noise
+        entering through the model's ``noise_input`` :math:`L`. Each transition is then
+        weighed by the inverse of the :math:`Q_d(\Delta t_k)` of its own interval (Van
+        Loan's, of the drift linearised at :math:`x_k`: exact on a linear model); the
+        noise must reach every state. See docs/continuous_noise.md.
     R : float, (ny,) or (ny, ny)
         Measurement-noise covariance.
     x0, P0 : optional
@@ -360,11 +372,14 @@ class FullInformation(Estimator):
     _manifold_aware = True  # with the Gauss-Newton solver
     _requires_P0 = False
 
-    def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike | None = None,
+    def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
+                 x0: ArrayLike | None = None,
                  P0: ArrayLike | None = None, lower: ArrayLike | None = None,
                  upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
-                 loss: str = "squared", f_scale: float | None = None, jit: bool = False):
+                 loss: str = "squared", f_scale: float | None = None, jit: bool = False,
+                 Qc: ArrayLike | None = None):
+        Q, self.Qc = noise_density(model, Q, Qc)
         solver_options, self.jit = jit_options(jit, solver_options)
         requested, solver = solver, resolve_solver(solver, solver_options)
         self._loss = as_loss(loss, f_scale)
@@ -377,7 +392,8 @@ class FullInformation(Estimator):
             x0[[g[0] for g in model.manifold.quaternions]] = 1.0
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         solver, self._rank = noise_solver(self.Q, requested, solver, model=model,
-                                          who="full-information estimation", loss=self._loss)
+                                          who="full-information estimation", loss=self._loss,
+                                          continuous=self.Qc is not None, x0=self.x0)
         solver_options = check_solver_options(solver, solver_options)
         self.lower, self.upper = self._bounds(lower, upper)
         unit_bounds(model, self.lower, self.upper)
@@ -393,7 +409,7 @@ class FullInformation(Estimator):
 
     def _check_tuning(self, new: dict) -> None:
         if "Q" in new:
-            noise_weight(self, new["Q"], self._rank)
+            check_tuning_noise(self, new["Q"], self._rank)
         if "P0" in new and not (self._x0_given or "x0" in new):
             raise ValueError("P0 was given without x0: the prior needs its mean x0")
 
@@ -418,7 +434,8 @@ class FullInformation(Estimator):
         if (N, full) not in self._nlps:
             self._nlps[N, full] = window_problem(
                 self.model, N, self.lower, self.upper, self.solver, self.solver_options,
-                self._rank, self._diagonal, self._loss, full=full)
+                self._rank, self._diagonal, self._loss, full=full,
+                continuous=self.Qc is not None)
         return self._nlps[N, full]
 
     # ------------------------------------------------------------------ batch

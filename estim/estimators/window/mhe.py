@@ -23,8 +23,14 @@ from estim.estimators.window.mhe_rti import (
     RTI_STARTUP_XTOL,
     RealTimeIteration,
 )
-from estim.estimators.window.noise import noise_solver, noise_weight, window_problem
+from estim.estimators.window.noise import (
+    check_new_q,
+    noise_solver,
+    noise_weight,
+    window_problem,
+)
 from estim.model import Model
+from estim.solvers.kalman.continuous import noise_density
 from estim.solvers.least_squares.options import (
     check_solver_options,
     jit_options,
@@ -88,6 +94,8 @@ class MHE(RealTimeIteration):
         singular, noise on some directions only (the dynamics exact in the others: a
         constrained window solved by Ipopt or fatrop, see
         :class:`~estim.solvers.least_squares.nlp.SingularNoiseNLP`).
+    Qc : (nq, nq) array, optional
+        In place of ``Q``: a continuous noise's density, as :class:`~estim.FullInformation`.
     R, x0, P0 :
         Measurement covariance, initial guess and its covariance. ``P0`` may
         be omitted with ``arrival_cost="none"``.
@@ -127,9 +135,8 @@ class MHE(RealTimeIteration):
         How many of the latest steps a late (out-of-sequence) measurement may
         belong to (0: none are kept). See :meth:`insert`.
     jit : bool
-        Compile the solver's functions to machine code (needs a C compiler; built once
-        per machine and cached), as the filters' ``jit=True``; the same as
-        ``solver_options={"jit": True}``.
+        Compiled code (a C compiler; built once per machine and cached), as the filters'
+        ``jit=True``; the same as ``solver_options={"jit": True}``.
     rti : bool
         Real-time iteration: once the window is full, one Gauss-Newton step per
         sample from the shifted previous window instead of a converged solve, split
@@ -137,12 +144,11 @@ class MHE(RealTimeIteration):
         before the measurement arrives) and the feedback in :meth:`step` (the new
         measurement's part, :math:`O(N n_x^2)`; see :mod:`estim.solvers.least_squares.rti`).
         Bounds by projection of the step. Needs the Gauss-Newton solver, the squared
-        loss and ``max_lag=0``. ``info.solve_time`` is the feedback's time (with the
-        preparation's when :meth:`step` prepared the window itself, as in
-        :func:`~estim.simulate`), ``info.extra["preparation_time"]`` the
-        preparation's; ``info.cost`` is the window's cost at the new estimate and the
-        status its consistency (``"suspect: ..."`` beyond the chi-square tail, as for the
-        converged MHE). A step that is not finite is solved to convergence instead.
+        loss, ``max_lag=0`` and a per-transition ``Q``. ``info.solve_time`` is the
+        feedback's time (with the preparation's when :meth:`step` prepared the window
+        itself), ``info.extra["preparation_time"]`` the preparation's; ``info.cost`` the
+        window's cost at the new estimate and the status its consistency, as for the
+        converged MHE. A step that is not finite is solved to convergence instead.
 
     Attributes
     ----------
@@ -170,12 +176,13 @@ class MHE(RealTimeIteration):
     name = "mhe"
     _manifold_aware = True  # with the Gauss-Newton solver, not the real-time iteration
 
-    def __init__(self, model: Model, *, horizon: int, Q: ArrayLike, R: ArrayLike,
+    def __init__(self, model: Model, *, horizon: int, R: ArrayLike, Q: ArrayLike | None = None,
                  x0: ArrayLike, P0: ArrayLike | None = None, arrival_cost: str = "filtering",
                  lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, max_lag: int = 0,
-                 rti: bool = False, jit: bool = False):
+                 rti: bool = False, jit: bool = False, Qc: ArrayLike | None = None):
+        Q, self.Qc = noise_density(model, Q, Qc)
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self.rti = as_bool(rti, "rti")
         self._loss = as_loss(loss, f_scale)
@@ -185,7 +192,8 @@ class MHE(RealTimeIteration):
         self.horizon = as_int(horizon, "horizon", minimum=1)
         solver_options, self.jit = jit_options(jit, solver_options)
         solver, self._rank = noise_solver(self.Q, solver, resolve_solver(solver, solver_options),
-                                          who="MHE", model=model, loss=self._loss, rti=self.rti)
+                                          who="MHE", model=model, loss=self._loss, rti=self.rti,
+                                          continuous=self.Qc is not None, x0=self.x0)
         solver_options = check_solver_options(solver, solver_options)
         self.arrival_cost = arrival_cost
         self.solver = solver
@@ -193,7 +201,8 @@ class MHE(RealTimeIteration):
         unit_bounds(model, self.lower, self.upper)
         self._diagonal = {"Q": is_diagonal(self.Q), "R": is_diagonal(self.R)}
         self._nlp = window_problem(model, self.horizon, self.lower, self.upper, solver,
-                                   solver_options or {}, self._rank, self._diagonal, self._loss)
+                                   solver_options or {}, self._rank, self._diagonal, self._loss,
+                                   continuous=self.Qc is not None)
         self._cov_step = FastFunction(self._build_cov_step())
         if self.rti:
             self._build_rti(solver, solver_options or {})
@@ -202,9 +211,7 @@ class MHE(RealTimeIteration):
         self._reset()
         self._warn_if_not_smooth()
 
-    def _check_tuning(self, new: dict) -> None:
-        if "Q" in new:
-            noise_weight(self, new["Q"], self._rank)
+    _check_tuning = check_new_q
 
     def _tuning_changed(self) -> None:
         if self.rti:

@@ -24,6 +24,7 @@ import numpy as np
 from estim._fast import FastFunction
 from estim.estimators.base import Estimator
 from estim.estimators.manifold_steps import output_jacobian, transition_jacobian
+from estim.solvers.kalman.continuous import discretised_noise
 from estim.solvers.least_squares.nlp import LeastSquaresNLP
 from estim.solvers.least_squares.solution import Solution
 
@@ -59,6 +60,8 @@ class MovingWindow(Estimator):
     _history: list[np.ndarray]
     _trusted: tuple[np.ndarray, np.ndarray | None]
     _past: deque
+    #: a continuous noise's spectral density (Q then holds L Qc L^T), or None
+    Qc: np.ndarray | None = None
 
     # ------------------------------------------------------------------ state
     def _reset(self) -> None:
@@ -83,7 +86,9 @@ class MovingWindow(Estimator):
 
     # ------------------------------------------------------------------ build
     def _build_cov_step(self) -> ca.Function:
-        """EKF covariance step at x: update with the measured rows, then predict."""
+        """EKF covariance step at x: update with the measured rows, then predict (with a
+        continuous noise, ``Q`` is its density and the prediction adds the transition's
+        :math:`Q_d(\\Delta t)` at x)."""
         m = self.model
         nx, nu, ny = m.ndx, m.nu, m.ny  # the covariance's size: the tangent space's
         x, u, up = ca.SX.sym("x", m.nx), ca.SX.sym("u", m.nw), ca.SX.sym("u_prev", nu)
@@ -99,7 +104,8 @@ class MovingWindow(Estimator):
         K = ca.solve(0.5 * (S + S.T), C @ P).T
         IKC = ca.DM.eye(nx) - K @ C
         Pu = IKC @ P @ IKC.T + K @ Rm @ K.T
-        Pn = A @ Pu @ A.T + Q
+        Qd = Q if getattr(self, "Qc", None) is None else discretised_noise(m, Q, x, u)
+        Pn = A @ Pu @ A.T + Qd
         return ca.Function("mhe_cov_step", [x, u, up, mask, ca.vec(P), ca.vec(Q), ca.vec(R)],
                            [ca.vec(0.5 * (Pn + Pn.T)), ca.vec(0.5 * (Pu + Pu.T))])
 

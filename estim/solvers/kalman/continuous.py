@@ -43,8 +43,8 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
-__all__ = ["DOUBLINGS", "drift_jacobian", "interval", "moment_step", "sigma_moment_step",
-           "sqrt_moment_step", "van_loan"]
+__all__ = ["DOUBLINGS", "discretised_noise", "drift_jacobian", "interval", "interval_weight",
+           "moment_step", "noise_density", "sigma_moment_step", "sqrt_moment_step", "van_loan"]
 
 #: The squarings of :func:`van_loan`'s scaling: the exponent is taken of the matrix divided
 #: by :math:`2^{32}`, then doubled back; with the Taylor series of degree
@@ -148,6 +148,64 @@ def drift_jacobian(model: Any) -> ca.Function:
     x, u = ca.SX.sym("x", model.nx), ca.SX.sym("u", model.nu)
     p = ca.SX.sym("p", model.p.size)
     return ca.Function("f_x", [x, u, p], [ca.jacobian(model.f_c(x, u, p), x)])
+
+
+def noise_density(model: Any, Q: Any, Qc: Any) -> tuple[Any, np.ndarray | None]:
+    """``(the Q an estimator stores, Qc)``: ``Q`` itself, or with ``Qc`` (a spectral density
+    per unit time) the density :math:`W = L Q_c L^\\top` it enters the states with, ``L``
+    the model's ``noise_input`` (the identity without one). Checked: exactly one of the
+    two, and ``Qc`` on a continuous model (``ode=``) on vector states."""
+    from estim._validate import as_covariance
+
+    if Qc is None:
+        if Q is None:  # (a missing required argument, as Python says it)
+            raise TypeError("missing the process noise: 'Q' (a covariance per transition) "
+                            "or, for a continuous model, 'Qc' (a spectral density per unit "
+                            "time)")
+        return Q, None
+    if Q is not None:
+        raise ValueError("give Q= (per transition) or Qc= (a spectral density, per unit "
+                         "time), not both")
+    if not model.continuous:
+        raise ValueError(f"Qc= is a spectral density per unit time: it needs a continuous "
+                         f"model (ode=); {model.name} is discrete: give a per-transition Q")
+    if model.nz or not model.manifold.trivial:
+        raise ValueError("Qc= is built for ordinary differential equations on vector states "
+                         "(no algebraic states, quaternions or angles) for now: give Q=")
+    L = np.eye(model.nx) if model.noise_input is None else model.noise_input
+    Qc = as_covariance(Qc, L.shape[1], "Qc", definite=False)
+    W = L @ Qc @ L.T
+    return 0.5 * (W + W.T), Qc
+
+
+def discretised_noise(model: Any, W: Any, x: Any, w: Any) -> Any:
+    r""":math:`Q_d(\Delta t)` of one transition: :func:`van_loan` of the drift linearised at
+    ``x`` (the input at the interval's start) with the density ``W`` over the interval of
+    the transition input ``w`` (see :func:`interval`); an interval that is not positive
+    (the unused slots of a window, whose input is a placeholder) is taken as 1. Exact on a
+    linear model; on a nonlinear one, the discretisation of the linearisation at the
+    estimate."""
+    from estim._discretise import input_at
+
+    u_of, h = interval(model, w)
+    if isinstance(h, ca.SX):
+        h = ca.if_else(h > 0, h, 1.0)
+    A = drift_jacobian(model)(x, input_at(u_of, 0.0), ca.DM(model.p))
+    return van_loan(A, W, h)[1]
+
+
+def interval_weight(model: Any, W: Any, x: Any, w: Any) -> Any:
+    r"""The weight factor :math:`M` of a transition's defect
+    :math:`x_{k+1} - F(x_k, u_k)` under a continuous noise of density ``W``
+    (:math:`L Q_c L^\top`): :math:`M = C^{-1}`, :math:`C C^\top = Q_d(\Delta t_k)`
+    (:func:`discretised_noise` at ``x``), so that :math:`\|M d\|^2 = d^\top Q_d^{-1} d`,
+    the windowed estimators' process term with the noise of each transition's own
+    interval. Expressions of ``x`` and ``w`` (``(nx, nx)``); not finite where
+    :math:`Q_d` is not definite (a noise input that does not reach every state)."""
+    from estim.solvers.kalman.triangular import cholesky, solve_lower
+
+    n = x.numel()
+    return solve_lower(cholesky(discretised_noise(model, W, x, w)), ca.SX.eye(n))
 
 
 def moment_step(f: Callable, jac: Callable, x: Any, P: Any, u_of: Any, p: Any, W: Any,

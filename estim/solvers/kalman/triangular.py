@@ -24,7 +24,7 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-__all__ = ["cholesky_downdate", "psd_factor", "solve_lower", "tria", "tria_numpy"]
+__all__ = ["cholesky", "cholesky_downdate", "psd_factor", "solve_lower", "tria", "tria_numpy"]
 
 
 def tria(A: ca.SX) -> ca.SX:
@@ -100,6 +100,19 @@ def cholesky_downdate(L: ca.SX, v: ca.SX) -> ca.SX:
             L[k + 1:, k] = col
             v[k + 1:] = c * v[k + 1:] - s * col
     return L
+
+
+def cholesky(A: ca.SX) -> ca.SX:
+    r"""The lower-triangular :math:`L` with :math:`L L^\top = A` of a symmetric positive
+    definite ``A`` ``(n, n)``, as expressions (Cholesky–Banachiewicz, row by row); not
+    finite where ``A`` is not definite."""
+    n = A.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i + 1):
+            acc = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))
+            L[i][j] = ca.sqrt(acc) if i == j else acc / L[j][j]
+    return ca.vertcat(*[ca.horzcat(*row) for row in L]) if n else ca.SX(0, 0)
 
 
 def solve_lower(L: ca.SX, B: ca.SX, transpose: bool = False) -> ca.SX:

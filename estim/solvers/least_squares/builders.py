@@ -72,12 +72,13 @@ def _difference(model: Model, x, x_to):
 
 
 def build_eliminated(model: Model, N: int, solver: str, options: dict, p, Y, U, Up, part, a,
-                     xbar, W0, WQd, pm) -> ca.Function:
+                     xbar, W0, weight, pm) -> ca.Function:
     """The NLP solver (``"ipopt"`` or ``"sqp"``) of the eliminated form over the states of
     ``N`` slots (on a manifold, their tangent steps from the chart centres
     ``part["ref"]``: :func:`charted`), the user's ``options`` merged over the defaults;
     ``p`` is the parameter symbol and the others its parts (see
-    :class:`~estim.solvers.least_squares.nlp.LeastSquaresNLP`)."""
+    :class:`~estim.solvers.least_squares.nlp.LeastSquaresNLP`), ``weight(j)`` the process
+    term's weight of transition ``j``."""
     nx, ny = model.nx, model.ny
     Z = ca.SX.sym("X", nx, N)
     X = charted(model, Z, ca.reshape(part["ref"], nx, N) if "ref" in part else None)
@@ -88,7 +89,7 @@ def build_eliminated(model: Model, N: int, solver: str, options: dict, p, Y, U, 
     for j in range(N - 1):
         om = part["omega"][j]
         xn = model.F(X[j], U[:, j], pm)
-        res.append(om * (WQd @ _difference(model, xn, X[j + 1]))
+        res.append(om * (weight(j) @ _difference(model, xn, X[j + 1]))
                    + (1 - om) * _difference(model, X[j], X[j + 1]))
     for j in range(N):
         Wy = ca.reshape(part["wy"][j * ny * ny:(j + 1) * ny * ny], ny, ny)
@@ -112,7 +113,7 @@ def build_eliminated(model: Model, N: int, solver: str, options: dict, p, Y, U, 
 
 
 def build_fatrop(model: Model, N: int, lbx: np.ndarray, ubx: np.ndarray, options: dict, p, Y, U,
-                 Up, part, a, xbar, W0, WQd, pm) -> tuple[ca.Function, FatropLayout]:
+                 Up, part, a, xbar, W0, weight, pm) -> tuple[ca.Function, FatropLayout]:
     """Multiple-shooting form with process noise as controls, for fatrop.
 
     Stage k has variables ``(x_k, w_k)``; the gap constraint is
@@ -136,7 +137,7 @@ def build_fatrop(model: Model, N: int, lbx: np.ndarray, ubx: np.ndarray, options
         if k < N - 1:
             variables.append(ws[k])
             om = part["omega"][k]
-            cost += om * ca.sumsqr(WQd @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
+            cost += om * ca.sumsqr(weight(k) @ ws[k]) + (1 - om) * ca.sumsqr(ws[k])
             G = om * m.F(xs[k], U[:, k], pm) + (1 - om) * xs[k]
             if M.euclidean_states:
                 g.append(xs[k + 1] - (G + ws[k]))

@@ -88,7 +88,7 @@ class Chunked:
         """``chunk_length(n)``: the chunk length for ``n`` alike slots."""
         self.gn, self.st = gn, gn._stages
         m, N = gn.model, gn.N
-        self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, m.nw, N
+        self.nx, self.nu, self.ny, self.nw, self.N = m.nx, m.nu, m.ny, gn.u_width, N
         if gn.full and N > 2:
             # the first and last slots alone (the arrival term, the missing link): the
             # chunks between are alike, one function for all of them

@@ -145,7 +145,7 @@ def full_record_constants(N: int) -> tuple[ca.DM, ca.DM]:
 
 
 class StructuredGaussNewton(Globalised):
-    """Compiled Gauss-Newton iteration for the windowed problem.
+    r"""Compiled Gauss-Newton iteration for the windowed problem.
 
     Parameters
     ----------
@@ -184,6 +184,10 @@ class StructuredGaussNewton(Globalised):
     full : bool
         Every slot holds data and the arrival term is on the first: the window
         bookkeeping parameters are constants in the graph.
+    interval_weights : bool
+        Each transition's parameters ``u`` carry its own process weight after its input
+        (``nw + nx**2`` per slot, the weight column-major: a continuous noise's
+        :math:`Q_d(\Delta t_j)^{-1/2}`) in place of the shared ``wq``.
 
     Notes
     -----
@@ -196,7 +200,8 @@ class StructuredGaussNewton(Globalised):
                  slices: dict, n_params: int, max_iter: int = 50, xtol: float = 1e-8,
                  ftol: float = FTOL,
                  newton: bool = False, jit: bool = False, mode: str = "auto",
-                 diagonal_Q: bool = False, diagonal_R: bool = False, full: bool = False):
+                 diagonal_Q: bool = False, diagonal_R: bool = False, full: bool = False,
+                 interval_weights: bool = False):
         if mode not in ("auto", "unrolled", "mapped"):
             raise ValueError(f"mode must be 'auto', 'unrolled' or 'mapped', got {mode!r}")
         self.model, self.N = model, N
@@ -211,7 +216,9 @@ class StructuredGaussNewton(Globalised):
         self.max_iter, self.xtol, self.ftol = int(max_iter), float(xtol), float(ftol)
         self.newton, self.jit = bool(newton), bool(jit)
         self.full = bool(full)
-        self._stages = StageFunctions(model, diagonal_Q, diagonal_R)
+        self._stages = StageFunctions(model, diagonal_Q, diagonal_R, interval_weights)
+        #: the width of a transition's parameters in ``u``
+        self.u_width = self._stages.nw
         self._tangent = self._stages.tangent
         if self._tangent:  # the line search's moves, built once
             self._retract, self._local = map(FastFunction, model.manifold.window_moves(N))
@@ -330,7 +337,7 @@ class StructuredGaussNewton(Globalised):
         # complete data: one measurement weight for every slot (passed once, shared)
         WY = part["wr"] if complete else ca.reshape(part["wy"], ny * ny, N)
         q = {"Y": ca.reshape(part["y"], ny, N), "WY": WY, "WQ": part["wq"],
-             "U": ca.reshape(part["u"], m.nw, N), "Up": ca.reshape(part["up"], nu, N),
+             "U": ca.reshape(part["u"], self.u_width, N), "Up": ca.reshape(part["up"], nu, N),
              "xbar": part["xbar"], "W0": part["w0"], "A0": ca.vec(W0.T @ W0)}
         if self.full:  # constants that fold away
             q["a"], q["omega"] = full_record_constants(N)

@@ -74,7 +74,7 @@ from estim.solvers.least_squares.gauss_newton import StructuredGaussNewton, full
 from estim.solvers.least_squares.options import (
     SOLVERS,
 )
-from estim.solvers.least_squares.reweighting import Reweighted
+from estim.solvers.least_squares.reweighting import Relinearised, Reweighted, weight_map
 from estim.solvers.least_squares.robust import RobustLoss
 from estim.solvers.least_squares.solution import Solution
 from estim.solvers.weights import measurement_weights, noise_factor
@@ -85,7 +85,7 @@ __all__ = ["SINGULAR_SOLVERS", "LeastSquaresNLP", "SingularNoiseNLP"]
 SINGULAR_SOLVERS = ("ipopt", "fatrop")
 
 
-class LeastSquaresNLP(Reweighted):
+class LeastSquaresNLP(Reweighted, Relinearised):
     """Build-once, solve-many windowed estimation problem (see module docstring).
 
     Parameters
@@ -109,11 +109,16 @@ class LeastSquaresNLP(Reweighted):
     loss : RobustLoss, optional
         A robust measurement cost, minimised by reweighted solves (see
         :mod:`estim.solvers.least_squares.robust`); least squares if omitted.
+    process_weight : callable, optional
+        ``(model, W, x, u) -> M``: each transition's own weight in place of :math:`W_Q`,
+        from the ``WQ`` of :meth:`solve` read as ``W`` (a continuous noise; see
+        :class:`~estim.solvers.least_squares.reweighting.Relinearised`).
     """
 
     def __init__(self, model: Model, N: int, lower: np.ndarray, upper: np.ndarray,
                  solver: str, options: dict, diagonal_Q: bool = False,
-                 diagonal_R: bool = False, full: bool = False, loss: RobustLoss | None = None):
+                 diagonal_R: bool = False, full: bool = False, loss: RobustLoss | None = None,
+                 process_weight=None):
         if solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.model, self.N, self.solver_name = model, N, solver
@@ -122,7 +127,9 @@ class LeastSquaresNLP(Reweighted):
         self.ubx = np.tile(upper, N)
         self.bounded = bool(np.isfinite(self.lbx).any() or np.isfinite(self.ubx).any())
         # parameter layout
-        sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * model.nw, "up": N * nu,
+        self._weight_map = weight_map(model, N, process_weight)  # (None: one wq)
+        uw = model.nw + (0 if process_weight is None else nx * nx)
+        sizes = {"y": N * ny, "wy": N * ny * ny, "u": N * uw, "up": N * nu,
                  "omega": max(N - 1, 0), "a": N, "xbar": nx, "w0": nx * nx, "wq": nx * nx,
                  "wr": ny * ny}
         #: the NLP solvers on a manifold: their variables are tangent steps from chart
@@ -144,7 +151,7 @@ class LeastSquaresNLP(Reweighted):
         self.full = bool(full)
         self.gn = StructuredGaussNewton(model, N, self.lbx, self.ubx, self._slices, self.np,
                                         diagonal_Q=diagonal_Q, diagonal_R=diagonal_R,
-                                        full=full, **gn_opts)
+                                        full=full, interval_weights=uw > model.nw, **gn_opts)
         #: (W_R, its weights tiled over the slots)
         self._wy_complete: tuple[np.ndarray, np.ndarray] | None = None
         self.loss = loss
@@ -158,23 +165,27 @@ class LeastSquaresNLP(Reweighted):
         p = ca.SX.sym("p", self.np)
         part: dict[str, ca.SX | ca.DM] = {k: p[s] for k, s in self._slices.items()}
         Y = ca.reshape(part["y"], ny, N)
-        U = ca.reshape(part["u"], model.nw, N)  # transitions' inputs
+        Uw = ca.reshape(part["u"], uw, N)  # transitions' inputs (and weights)
+        U, WQd = Uw[:model.nw, :], ca.reshape(part["wq"], nx, nx)
         Up = ca.reshape(part["up"], nu, N)
         a: ca.SX | ca.DM = part["a"]
         xbar = part["xbar"]
         W0 = ca.reshape(part["w0"], nx, nx)
-        WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]]) if diagonal_Q else \
-            ca.reshape(part["wq"], nx, nx)
+        if diagonal_Q:
+            WQd = ca.diag(part["wq"][[i * nx + i for i in range(nx)]])
+
+        def weight(j):  # transition j's: shared, or its own after its input
+            return WQd if uw == model.nw else ca.reshape(Uw[model.nw:, j], nx, nx)
         pm = ca.DM(model.p)
         if self.full:  # every slot active, arrival on the first: constants, not parameters
             a, part["omega"] = full_record_constants(N)
         if solver == "fatrop":
             self._solver, self._fatrop = build_fatrop(model, N, self.lbx, self.ubx, options, p,
-                                                      Y, U, Up, part, a, xbar, W0, WQd, pm)
+                                                      Y, U, Up, part, a, xbar, W0, weight, pm)
             self.reset()
             return
         self._solver = build_eliminated(model, N, solver, options, p, Y, U, Up, part, a, xbar,
-                                        W0, WQd, pm)
+                                        W0, weight, pm)
         self.reset()
 
     def _chart_bounds(self, centres: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -212,7 +223,7 @@ class LeastSquaresNLP(Reweighted):
             if self._wy_complete is None or not np.array_equal(self._wy_complete[0], WR):
                 self._wy_complete = (WR.copy(), np.tile(WR.ravel(order="F"), N))
             p[s["wy"]] = self._wy_complete[1]
-            p[s["u"]] = U.ravel()
+            self._set_inputs(p, U)
             p[s["up"]] = Uprev.ravel()
             p[s["omega"]] = 1.0
             p[s["a"]] = 0.0
@@ -229,7 +240,7 @@ class LeastSquaresNLP(Reweighted):
             U, Uprev = U.copy(), Uprev.copy()  # (stale ones may make it non-finite, and
             U[:s0] = U[s0] if n > 1 else 0.0  # the zero weights of these slots cannot
             Uprev[:s0] = Uprev[s0]             # undo that: 0 * NaN is NaN)
-        p[s["u"]] = U.ravel()
+        self._set_inputs(p, U)
         p[s["up"]] = Uprev.ravel()
         omega = np.zeros(max(N - 1, 0))
         omega[s0:] = 1.0
@@ -254,9 +265,10 @@ class LeastSquaresNLP(Reweighted):
         if self.full and n != self.N:
             raise ValueError(f"this problem is built for full records (n = {self.N}), got n = {n}")
         p = self.parameters(Y, U, Uprev, n, xbar, W0, WQ, WR, R)
-        if self.loss is None:
-            return self._solve(X0, p, Y, n, W0 is not None, robust)
-        return self._solve_reweighted(X0, p, Y, n, W0 is not None, robust)
+        solve = self._solve if self.loss is None else self._solve_reweighted
+        if self._weight_map is None:
+            return solve(X0, p, Y, n, W0 is not None, robust)
+        return self._relinearised(solve, X0, p, Y, n, W0 is not None, robust)
 
     def _solve(self, X0, p, Y, n, arrival: bool, robust: bool, same_window: bool = False
                ) -> Solution:

@@ -9,6 +9,12 @@ point (Holland and Welsch, "Robust regression using iteratively reweighted
 least-squares", Commun. Statist. A6(9), 1977). The structured Gauss-Newton solver
 reweights at every accepted iterate; the NLP solvers solve each weighted problem and
 reweight at its solution until no weight moves by more than :data:`IRLS_WTOL`.
+
+**Process weights linearised at the estimate** (:class:`Relinearised`): with a continuous
+noise each transition has its own weight :math:`M_j`, :math:`M_j^\top M_j =
+Q_d(\Delta t_j)^{-1}`, from the drift linearised at :math:`x_j`. The weights are
+parameters: evaluated at the start, then at each solution and solved again until they
+settle (:data:`RELINEARISED`), the same fixed point as the robust weights'.
 """
 
 from __future__ import annotations
@@ -27,12 +33,20 @@ if TYPE_CHECKING:
     from estim.solvers.least_squares.gauss_newton import StructuredGaussNewton
     from estim.solvers.least_squares.robust import RobustLoss
 
-__all__ = ["IRLS_MAX", "IRLS_WTOL", "Reweighted"]
+__all__ = ["IRLS_MAX", "IRLS_WTOL", "RELINEARISATIONS", "RELINEARISED", "Relinearised",
+           "Reweighted", "weight_map"]
 
 #: A robust fit's reweighted solves stop when no weight moves by more than
 #: ``IRLS_WTOL`` between two of them, or after ``IRLS_MAX`` solves.
 IRLS_WTOL = 1e-6
 IRLS_MAX = 100
+#: How many times at most a solve with each transition's own weight is repeated with the
+#: weights linearised at its solution
+RELINEARISATIONS = 4
+#: the change of a transition's weight (relative to its largest entry) below which the
+#: weights have settled: the estimate then moves by about as much of its defects'
+#: standard deviations, far below its own
+RELINEARISED = 1e-4
 
 
 class Reweighted:
@@ -143,3 +157,66 @@ class Reweighted:
         sol.outliers, sol.outlier_cost = int(far.sum()), float(rho[far].sum())
         self.weights = loss.weight(r)
         return sol
+
+
+def weight_map(model: Model, N: int, process_weight) -> ca.Function | None:
+    """``(X (nx, N), U (nw, N), vec W) -> (nx**2, N)``: each transition's weight factor
+    ``process_weight(model, W, x_j, u_j)``, column-major (None without one)."""
+    if process_weight is None:
+        return None
+    nx = model.nx
+    x, w, W = ca.SX.sym("x", nx), ca.SX.sym("w", model.nw), ca.SX.sym("W", nx * nx)
+    M = process_weight(model, ca.reshape(W, nx, nx), x, w)
+    return ca.Function("weights", [x, w, W], [ca.vec(M)]).map(N)
+
+
+class Relinearised:
+    """Each transition's own process weight in the windowed problem (a mixin of
+    :class:`~estim.solvers.least_squares.nlp.LeastSquaresNLP`; see the module): the weights
+    follow each transition's input in the parameter ``u``, from :attr:`_weight_map`
+    (None: one shared ``wq``)."""
+
+    model: Model
+    N: int
+    _slices: dict[str, slice]
+    _weight_map: ca.Function | None
+
+    def _relinearised(self, solve, X0, p, Y, n, arrival: bool, robust: bool) -> Solution:
+        """``solve`` (the least-squares or the robust one) with each transition's weight
+        linearised at the start ``X0``, then at the solution until the weights settle
+        (:data:`RELINEARISATIONS` re-solves at most); the iterations and times summed."""
+        self._linearised(p, np.asarray(X0, float).reshape(self.N, -1))
+        sol = solve(X0, p, Y, n, arrival, robust)
+        iterations, elapsed = sol.iterations, sol.solve_time
+        for _ in range(RELINEARISATIONS):
+            if not (sol.usable and np.isfinite(sol.X).all()) or not self._linearised(p, sol.X):
+                break
+            sol = solve(sol.X, p, Y, n, arrival, robust)
+            iterations, elapsed = iterations + sol.iterations, elapsed + sol.solve_time
+        sol.iterations, sol.solve_time = iterations, elapsed
+        return sol
+
+    def _set_inputs(self, p: np.ndarray, U: np.ndarray) -> None:
+        """The transitions' inputs ``U (N, nw)`` into ``p`` (before their weights, with
+        a continuous noise)."""
+        m, u = self.model, p[self._slices["u"]]
+        if self._weight_map is None:
+            u[:] = U.ravel()
+        else:
+            u.reshape(self.N, -1)[:, :m.nw] = U
+
+    def _linearised(self, p: np.ndarray, X: np.ndarray) -> bool:
+        """Each transition's weight at the states ``X (N, nx)`` into ``p`` (where it is
+        finite); whether any changed by more than :data:`RELINEARISED` of its largest entry."""
+        m = self.model
+        assert self._weight_map is not None  # (called only with the weights in u)
+        u = p[self._slices["u"]].reshape(self.N, -1)
+        M = np.asarray(self._weight_map(X.T, u[:, :m.nw].T, p[self._slices["wq"]])).T
+        ok = np.isfinite(M).all(axis=1)
+        old = u[:, m.nw:]
+        gap = np.abs(M[ok] - old[ok]).max(axis=1, initial=0.0)
+        changed = bool((gap > RELINEARISED * np.abs(old[ok]).max(axis=1, initial=0.0)).any())
+        old[ok] = M[ok]
+        if not ok.all() and not np.isfinite(old).all():  # a first start not finite
+            old[~ok] = 0.0
+        return changed

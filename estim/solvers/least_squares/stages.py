@@ -45,16 +45,21 @@ class StageFunctions:
     the diagonal blocks of :math:`H^{-1}`; :meth:`fused`: one slot of the forward pass.
     """
 
-    def __init__(self, model: Model, diagonal_Q: bool = False, diagonal_R: bool = False):
+    def __init__(self, model: Model, diagonal_Q: bool = False, diagonal_R: bool = False,
+                 interval_weights: bool = False):
         nx, nu, ny = model.nx, model.nu, model.ny
         pm, eye = ca.DM(model.p), ca.DM.eye(nx)
         x, xb = ca.SX.sym("x", nx), ca.SX.sym("xb", nx)
         y, wy = ca.SX.sym("y", ny), ca.SX.sym("wy", ny * ny)
-        u, up = ca.SX.sym("u", model.nw), ca.SX.sym("up", nu)  # transition, measurement
+        # the transition's parameters: its input, and with interval_weights its own
+        # weight factor after it (column-major), in place of the shared wq
+        width = model.nw + (nx * nx if interval_weights else 0)
+        u, up = ca.SX.sym("u", width), ca.SX.sym("up", nu)  # transition, measurement
+        uF = u[:model.nw]
         a, om, wq = ca.SX.sym("a"), ca.SX.sym("omega"), ca.SX.sym("wq", nx * nx)
         xbar, w0, a0 = ca.SX.sym("xbar", nx), ca.SX.sym("w0", nx * nx), ca.SX.sym("A0", nx * nx)
         W0, A0 = ca.reshape(w0, nx, nx), ca.reshape(a0, nx, nx)  # A0 = W0^T W0, hoisted
-        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, model.nw
+        self.nx, self.nu, self.ny, self.nw = nx, nu, ny, width
         self._fused: dict[tuple, ca.Function] = {}
         self._elimination()
         #: the states move on a manifold: steps in the padded tangent space
@@ -84,9 +89,13 @@ class StageFunctions:
         self.meas_cost = ca.Function("meas_cost", margs, [c])
         # process term between slots, weighted by W_Q (a parameter: tuning is data; a
         # diagonal weight is a row scaling)
-        A = om * model.F_x(x, u, pm) + (1 - om) * eye
-        G = om * model.F(x, u, pm) + (1 - om) * x
-        if diagonal_Q:
+        A = om * model.F_x(x, uF, pm) + (1 - om) * eye
+        G = om * model.F(x, uF, pm) + (1 - om) * x
+        if interval_weights:  # each transition's own weight (a continuous noise)
+            M = om * ca.reshape(u[model.nw:], nx, nx) + (1 - om) * eye
+            rw = M @ (xb - G)
+            Ja, Jb = -M @ A, M
+        elif diagonal_Q:
             mv = om * wq[[i * nx + i for i in range(nx)]] + (1 - om)
             rw = mv * (xb - G)
             Ja, Jb = -(mv @ ca.DM.ones(1, nx)) * A, ca.diag(mv)
@@ -105,7 +114,7 @@ class StageFunctions:
         # x_{k+1} + alpha d_{k+1} - G(x_k) - alpha A d_k (see StructuredGaussNewton.solve)
         xp, d, dn, alpha = (ca.SX.sym("xp", nx), ca.SX.sym("d", nx), ca.SX.sym("dn", nx),
                             ca.SX.sym("alpha"))
-        Gp = om * model.F(xp, u, pm) + (1 - om) * xp
+        Gp = om * model.F(xp, uF, pm) + (1 - om) * xp
         self.roll = ca.Function("roll", [xp, x, d, xb, dn, u, om, alpha],
                                 [Gp + (xb + alpha * dn - G - alpha * ca.jtimes(G, x, d))])
     def _elimination(self) -> None:
