@@ -272,8 +272,8 @@ def test_the_exported_filter_takes_the_interval(kind, tmp_path):
 
 
 def square_wiener_velocity() -> estim.Model:
-    """The Wiener velocity with the identity noise input (Qc = diag(0, q)): the likelihood
-    of a continuous noise takes a square one."""
+    """The Wiener velocity with the identity noise input (Qc = diag(0, q)), the same
+    noise as ``wiener_velocity()``'s one column with density q."""
     return estim.Model(states=["p", "v"], outputs=["y"],
                        ode=lambda x, u, p: ca.vertcat(x[1], 0), output=lambda x, u, p: x[0],
                        variable_dt=True, dt=0.1)
@@ -299,16 +299,21 @@ def test_the_likelihood_of_a_continuous_noise_is_the_exact_one(estimator):
     got = estim.tuning.log_likelihood(square_wiener_velocity(), Y, Qc=np.diag([0.0, Q_DENSITY]),
                                       R=R_VAR, x0=x0, P0=P0, t=t, estimator=estimator)
     assert got == pytest.approx(ll, abs=1e-10)
+    # the noise input's one column: Qc is (1, 1)
+    got = estim.tuning.log_likelihood(wiener_velocity(), Y, Qc=Q_DENSITY, R=R_VAR, x0=x0,
+                                      P0=P0, t=t, estimator=estimator)
+    assert got == pytest.approx(ll, abs=1e-10)
     with pytest.raises(ValueError, match="one of them"):
         estim.tuning.log_likelihood(square_wiener_velocity(), Y, Q=1.0, Qc=1.0, R=R_VAR, t=t)
-    with pytest.raises(ValueError, match="square noise_input"):
-        estim.tuning.log_likelihood(wiener_velocity(), Y, Qc=1.0, R=R_VAR, t=t)
+    with pytest.raises(ValueError, match=r"Qc must be .*\(1, 1\)"):
+        estim.tuning.log_likelihood(wiener_velocity(), Y, Qc=np.eye(2), R=R_VAR, t=t)
 
 
 def test_maximum_likelihood_recovers_a_spectral_density():
     """On 1500 irregular samples the density q (0.7) and R (0.05) are recovered within
     2.5 standard errors (measured: 0.824 +- 0.087 and 0.0519 +- 0.0021), the position's
-    zero density at its boundary."""
+    zero density at its boundary with the square noise input; with the model's one
+    column the same estimates without a boundary."""
     t, _, Y = irregular_record(1500, seed=5)
     res = estim.tuning.maximum_likelihood(
         square_wiener_velocity(), Y, t=t, continuous=True, Q0=np.diag([1e-8, 0.3]), R0=0.1,
@@ -317,6 +322,16 @@ def test_maximum_likelihood_recovers_a_spectral_density():
     assert abs(res.R[0, 0] - R_VAR) < 2.5 * res.stderr["R"][0, 0]
     assert res.status.startswith("boundary: Q[0,0]")
     assert res.details["noise"].startswith("continuous")
+    # through the noise input's one column: the density alone, the same optimum, no
+    # boundary (and the default start, a hundredth of the prior seen through L, reaches it)
+    for Q0 in (0.3, None):
+        one = estim.tuning.maximum_likelihood(
+            wiener_velocity(), Y, t=t, continuous=True, Q0=Q0, R0=0.1, x0=[0.0, 1.0],
+            P0=np.diag([1.0, 2.0]), starts=1)
+        assert one.status == "ok" and one.Q.shape == (1, 1)
+        assert one.Q[0, 0] == pytest.approx(res.Q[1, 1], rel=1e-4)
+        assert one.stderr["Q"][0, 0] == pytest.approx(res.stderr["Q"][1, 1], rel=1e-3)
+        assert one.R[0, 0] == pytest.approx(res.R[0, 0], rel=1e-4)
 
 
 @pytest.mark.parametrize("solver", ["auto", "sqp"])

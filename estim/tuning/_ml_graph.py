@@ -46,6 +46,14 @@ DIFFUSE_VARIANCE = 1e6
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 
+def noise_dim(model: Model, kind: str) -> int:
+    """The size of the likelihood's process-noise matrix: the columns of the model's
+    ``noise_input`` with a continuous noise (``kind`` ``"ekf@4"``), else ``nx``."""
+    if "@" in kind and model.noise_input is not None:
+        return int(model.noise_input.shape[1])
+    return model.nx
+
+
 def _cholesky(S: Sym) -> list[list[Sym]]:
     """Lower Cholesky factor of a small symbolic matrix, as rows of scalar expressions."""
     n = S.shape[0]
@@ -78,19 +86,22 @@ def _filter_step(model: Model, kind: str, predict: bool, ukf: tuple
     r"""One step of the filter with the covariances and parameters as symbols:
     ``(s, w, y, mask, q, r, p) -> (s_new, term, whitened)``.
 
-    ``s = [x; vec P]``, ``q = vec Q``, ``r = vec R``; ``mask`` is 1 where ``y`` is measured
-    (``y`` holds 0 elsewhere); ``term`` is :math:`\frac12(\log\det S + e^\top S^{-1} e +
-    m \log 2\pi)` and ``whitened`` :math:`L^{-1} e` (:math:`LL^\top = S`).
+    ``s = [x; vec P]``, ``q = vec Q`` (with a continuous noise ``vec Qc``, ``(nq, nq)``
+    for the ``nq`` columns of the model's ``noise_input``), ``r = vec R``; ``mask`` is 1
+    where ``y`` is measured (``y`` holds 0 elsewhere); ``term`` is
+    :math:`\frac12(\log\det S + e^\top S^{-1} e + m \log 2\pi)` and ``whitened``
+    :math:`L^{-1} e` (:math:`LL^\top = S`).
     """
     kind, _, sub = kind.partition("@")  # "ekf@4": a continuous noise, 4 sub-steps
     substeps = int(sub) if sub else None
     sym: type[Sym] = ca.MX if model.integrator == "cvodes" and not substeps else ca.SX
     nx, ny, nw, npar = model.nx, model.ny, model.nw, model.p.size
+    nq = noise_dim(model, f"{kind}@" if substeps else kind)
     s = sym.sym("s", nx + nx * nx)
     w, y, mask = sym.sym("w", nw), sym.sym("y", ny), sym.sym("mask", ny)
-    q, r, p = sym.sym("q", nx * nx), sym.sym("r", ny * ny), sym.sym("p", npar)
+    q, r, p = sym.sym("q", nq * nq), sym.sym("r", ny * ny), sym.sym("p", npar)
     x, P = s[:nx], ca.reshape(s[nx:], nx, nx)
-    Q, R = ca.reshape(q, nx, nx), ca.reshape(r, ny, ny)
+    Q, R = ca.reshape(q, nq, nq), ca.reshape(r, ny, ny)
     uy = model.measurement_input(w)
     D = ca.diag(mask)
     if substeps:  # q is the spectral density Qc: W = L Qc L^T, the moments integrated
@@ -196,7 +207,8 @@ def _core(model: Model, kind: str, T: int, ukf: tuple) -> ca.Function:
     nx, ny, nw, npar = model.nx, model.ny, model.nw, model.p.size
     first = _filter_step(model, kind, False, ukf)
     scan = _scan(_filter_step(model, kind, True, ukf), T - 1)
-    q, r, p = ca.MX.sym("q", nx * nx), ca.MX.sym("r", ny * ny), ca.MX.sym("p", npar)
+    nq = noise_dim(model, kind)
+    q, r, p = ca.MX.sym("q", nq * nq), ca.MX.sym("r", ny * ny), ca.MX.sym("p", npar)
     x0, P0 = ca.MX.sym("x0", nx), ca.MX.sym("P0", nx * nx)
     Y, M = ca.MX.sym("Y", ny, T), ca.MX.sym("M", ny, T)
     W, wt = ca.MX.sym("W", nw, T), ca.MX.sym("wt", 1, T)

@@ -113,7 +113,7 @@ class _Parametrisation:
 
     def __init__(self, model: Model, structures: dict, Q0: np.ndarray, R0: np.ndarray,
                  spec: dict[str, float]):
-        nx, ny = model.nx, model.ny
+        nx, ny = Q0.shape[0], model.ny  # nx: the size of Q (of Qc, nq, with a noise input)
         self.structures = structures
         self.names = list(spec)
         index = [model.param_names.index(k) for k in spec]

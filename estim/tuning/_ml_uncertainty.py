@@ -28,10 +28,10 @@ from estim.tuning._ml_parametrisation import _Parametrisation
 
 @dataclass
 class _Estimates:
-    r"""``Q (nx, nx)``, ``R (ny, ny)`` and the estimated ``params`` with their
-    ``stderr`` (as :class:`~estim.tuning.TuningResult` holds them), the covariance
-    ``cov_theta`` of :math:`\hat\theta` (NaN when the Hessian is not positive
-    definite), the Newton ``decrement``, ``success`` and the ``status``."""
+    r"""``Q (nx, nx)`` (``Qc (nq, nq)`` with a continuous noise), ``R (ny, ny)`` and
+    the estimated ``params`` with their ``stderr`` (as :class:`~estim.tuning.TuningResult`
+    holds them), the covariance ``cov_theta`` of :math:`\hat\theta` (NaN when the
+    Hessian is not positive definite), the Newton ``decrement``, ``success`` and the ``status``."""
 
     Q: np.ndarray
     R: np.ndarray

@@ -105,7 +105,8 @@ class TuningResult:
     method : str
         ``"als"`` or ``"maximum likelihood"``.
     Q : (nx, nx) array
-        Process-noise covariance.
+        Process-noise covariance (with ``continuous=True`` the spectral density
+        :math:`Q_c`, ``(nq, nq)`` for a noise input of ``nq`` columns).
     R : (ny, ny) array
         Measurement-noise covariance.
     params : dict of str -> float

@@ -34,7 +34,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_bool, as_choice, as_covariance, as_float, as_int, as_seed
 from estim.estimators.kalman.ukf import POINTS
 from estim.model import Model
-from estim.tuning._ml_graph import DIFFUSE_VARIANCE, _core, _Record
+from estim.tuning._ml_graph import DIFFUSE_VARIANCE, _core, _Record, noise_dim
 from estim.tuning._ml_optimiser import _check_method, _Objective, _optimise
 from estim.tuning._ml_parametrisation import (
     STRUCTURES,
@@ -93,9 +93,9 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         ``"julier"``, ``"cubature"``, ``"gauss-hermite"`` of ``order``).
     Qc, substeps :
         Instead of ``Q``, on a continuous model: the spectral density of a
-        continuous-time noise (as the filters' ``Qc=``; the model's ``noise_input``
-        square), the moment equations integrated by ``substeps`` Runge-Kutta steps per
-        interval (docs/continuous_noise.md).
+        continuous-time noise (as the filters' ``Qc=``, ``(nq, nq)`` for the ``nq``
+        columns of the model's ``noise_input``), the moment equations integrated by
+        ``substeps`` Runge-Kutta steps per interval (docs/continuous_noise.md).
     t : (T,) array, optional
         Sample times, for a model built with ``variable_dt=True``.
 
@@ -117,8 +117,8 @@ def log_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     if Qc is not None:
         kind = _continuous_kind(model, kind, substeps)
     rec = _Record(model, Y, U, x0, P0, burn, t)
-    Qm = as_covariance(Q if Qc is None else Qc, model.nx, "Q" if Qc is None else "Qc",
-                       definite=False)
+    Qm = as_covariance(Q if Qc is None else Qc, noise_dim(model, kind),
+                       "Q" if Qc is None else "Qc", definite=False)
     Rm = as_covariance(R, model.ny, "R", definite=True)
     p = model.p.copy()
     for k, v in _params_spec(model, params or {}).items():
@@ -135,9 +135,6 @@ def _continuous_kind(model: Model, kind: str, substeps: object) -> str:
     if not model.continuous or model.nz or not model.manifold.trivial:
         raise ValueError("a continuous noise (Qc) needs a continuous model (ode=) on vector "
                          "states without algebraic equations")
-    if model.noise_input is not None and model.noise_input.shape[1] != model.nx:
-        raise ValueError(f"the likelihood of a continuous noise takes a square noise_input "
-                         f"for now ({model.nx} columns), got {model.noise_input.shape[1]}")
     return f"{kind}@{substeps}"
 
 
@@ -269,7 +266,8 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     continuous, substeps :
         Estimate the spectral density :math:`Q_c` of a continuous-time noise instead of a
         per-transition ``Q`` (``Q0`` then starts it, and the result's ``Q`` is
-        :math:`Q_c`; the model's ``noise_input`` square), the filter's moment equations
+        :math:`Q_c`, ``(nq, nq)`` for the ``nq`` columns of the model's ``noise_input``: a
+        density per noise channel), the filter's moment equations
         integrated by ``substeps`` Runge-Kutta steps per interval (docs/continuous_noise.md).
     t : (T,) array, optional
         Sample times, for a model built with ``variable_dt=True`` (irregular stamps).
@@ -324,9 +322,12 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     if R0 is None:
         var = np.array([np.nanvar(rec.Y[i][rec.measured[:, i]]) for i in range(model.ny)])
         R0 = np.maximum(0.5 * var, 1e-12)
-    if Q0 is None:
-        Q0 = 1e-2 * np.diag(rec.P0)
-    Q0m = as_covariance(Q0, model.nx, "Q0", definite=False)
+    nq = noise_dim(model, kind)
+    if Q0 is None:  # a hundredth of the prior's variance, seen through the noise input
+        L = model.noise_input if "@" in kind else None
+        G = np.eye(nq) if L is None else np.linalg.pinv(L)
+        Q0 = 1e-2 * np.diag(np.diag(G @ rec.P0 @ G.T))
+    Q0m = as_covariance(Q0, nq, "Q0", definite=False)
     R0m = as_covariance(R0, model.ny, "R0", definite=True)
     if structures["Q"] == "fixed" and structures["R"] == "fixed" and not spec:
         raise ValueError("nothing to estimate: structure holds Q and R fixed and params is "
@@ -345,7 +346,7 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     compile_time = time.perf_counter() - t0
 
     opt = _optimise(obj, par, f0, starts, seed, spread, method, tol, max_iter, param_spread)
-    est = _estimates(par, opt, tol, model.nx, model.ny)
+    est = _estimates(par, opt, tol, nq, model.ny)
     eps = obj.whitened(opt.theta)
     eps[~rec.measured] = np.nan
     eps[:rec.burn] = np.nan
