@@ -315,11 +315,6 @@ def test_what_export_refuses(tmp_path):
         codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=5), tmp_path)
     with pytest.raises(ValueError, match="horizon"):
         codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=1, rti=True), tmp_path)
-    variable = estim.Model(states=["a"], outputs=["a"], ode=lambda x, u, p: -x,
-                           output=lambda x, u, p: x, dt=0.1, variable_dt=True)
-    with pytest.raises(ValueError, match="variable_dt"):
-        codegen.export(estim.MHE(variable, Q=1.0, R=1.0, x0=[0.0], P0=1.0, horizon=5,
-                                 rti=True), tmp_path)
     with pytest.raises(TypeError, match="estimator"):
         codegen.export(estim.FullInformation(sc.model, **sc.tuning), tmp_path)
     paths = codegen.export(estim.MHE(sc.model, **sc.tuning, horizon=5, rti=True),
@@ -386,3 +381,100 @@ int main(void) {{
     log = estim.replay(est, Y, warn=False)
     assert x_last == log.x_hat[-1, 0]
     assert 0 < feed_best <= feed_median < 1e6 and 0 < prep_best <= prep_median < 1e6
+
+
+def _forced_van_der_pol_stamps(n: int = 60, seed: int = 4):
+    """A forced van der Pol oscillator with ``variable_dt=True`` and a sampled input
+    (``hold="foh"``), intervals log-uniform in [0.02, 0.3] s: ``(model, t, Y, U)``
+    (``U[k]`` the input at sample ``k``)."""
+    model = estim.Model(
+        states=["x1", "x2"], outputs=["x1"], inputs=["u"],
+        ode=lambda x, u, p: ca.vertcat(x[1], (1 - x[0] ** 2) * x[1] - x[0] + u[0]),
+        output=lambda x, u, p: x[0], dt=0.1, variable_dt=True, hold="foh",
+        name="forced_vdp")
+    rng = np.random.default_rng(seed)
+    dts = np.exp(rng.uniform(np.log(0.02), np.log(0.3), n - 1))
+    t = np.concatenate([[0.0], np.cumsum(dts)])
+    U = np.sin(0.7 * t)[:, None]
+    x, X = np.array([1.0, 0.0]), []
+    for k in range(n):
+        if k:
+            w = model.transition(U[k - 1], U[k], dts[k - 1])
+            x = np.asarray(model.F(x, w, model.p)).ravel() + rng.normal(0.0, 0.02, 2)
+        X.append(x)
+    Y = np.array(X)[:, :1] + rng.normal(0.0, 0.05, (n, 1))
+    return model, t, Y, U
+
+
+def test_a_variable_dt_mhe_is_exported_with_the_interval(tmp_path):
+    """``variable_dt`` in the MHE's C export: ``prepare(e, u, dt)`` and ``step(e, y, u,
+    dt, x_hat, P)`` on a forced van der Pol with sampled inputs and intervals from 20 ms to
+    0.3 s are Python's ``MHE(rti=True)`` with ``prepare(u, dt=)`` and ``step(y, u, dt=)``
+    to 1e-12 (with and without prepare); a dt not positive and finite is refused (-1,
+    nothing changed), a dt other than the prepared one too (-3); the example program
+    reads the stamps from the record's first column."""
+    model, t, Y, U = _forced_van_der_pol_stamps()
+    dts = np.diff(t)
+    est = estim.MHE(model, horizon=6, Q=np.diag([4e-4, 4e-4]), R=0.0025, x0=[0.8, 0.1],
+                    P0=0.1, rti=True)
+    codegen.export(est, tmp_path, name="vdt")
+    lib = ctypes.CDLL(str(build(tmp_path, "vdt")))
+    d = ctypes.POINTER(ctypes.c_double)
+    lib.vdt_step.argtypes = [ctypes.c_void_p, d, d, ctypes.c_double, d, d]
+    lib.vdt_prepare.argtypes = [ctypes.c_void_p, d, ctypes.c_double]
+    lib.vdt_size.restype = ctypes.c_size_t
+    memory = np.zeros(int(lib.vdt_size()) // 8 + 1)
+    e = ctypes.c_void_p(memory.ctypes.data)
+
+    def ptr(a):
+        return np.ascontiguousarray(a, dtype=float).ctypes.data_as(d)
+
+    for prepare in (False, True):
+        est.reset()
+        assert lib.vdt_init(e) == 0
+        xs, Ps, codes, want_x, want_P, want = [], [], [], [], [], []
+        for k, y in enumerate(Y):
+            u, dt = U[k], float(dts[k - 1]) if k else 0.0
+            if k == 20:  # refused intervals and a mismatch: nothing changes
+                before = memory.copy()
+                x, P = np.empty(2), np.empty(4)
+                for bad in (0.0, -dt, np.nan, np.inf):
+                    assert lib.vdt_step(e, ptr(y), ptr(u), bad, ptr(x), ptr(P)) == -1
+                    assert lib.vdt_prepare(e, ptr(u), bad) == -1
+                assert lib.vdt_prepare(e, ptr(u), dt) == 0
+                assert lib.vdt_step(e, ptr(y), ptr(u), 2 * dt, ptr(x), ptr(P)) == -3
+                if not prepare:
+                    memory[:] = before
+            if prepare and k:
+                assert lib.vdt_prepare(e, ptr(u), dt) == 0
+                est.prepare(u, dt=dt)
+            x, P = np.empty(2), np.empty(4)
+            xa, Pa = np.ascontiguousarray(x), np.ascontiguousarray(P)
+            codes.append(lib.vdt_step(e, ptr(y), ptr(u), dt, xa.ctypes.data_as(d),
+                                      Pa.ctypes.data_as(d)))
+            xs.append(xa.copy())
+            Ps.append(Pa.reshape(2, 2, order="F").copy())
+            want_x.append(est.step(y, u, dt=dt if k else None))
+            want_P.append(est.info.P)
+            want.append(_code(est.info.status))
+        assert codes == want
+        print(f"prepare={prepare}: statuses {sorted(set(codes))}, largest difference "
+              f"{np.abs(np.array(xs) - np.array(want_x)).max():.3g}, "
+              f"{np.abs(np.array(Ps) - np.array(want_P)).max():.3g}")
+        assert np.abs(np.array(xs) - np.array(want_x)).max() <= TOL
+        assert np.abs(np.array(Ps) - np.array(want_P)).max() <= TOL
+    # the stamps matter: the same record read as uniform is another estimate
+    assert np.abs(np.array(want_x) - estim.replay(est, Y, U, warn=False).x_hat).max() > 1e-3
+    if shutil.which("make") is None:
+        return
+    run = subprocess.run(["make", f"CC={compiler()[0]}", "example"], cwd=tmp_path,
+                         capture_output=True, text=True, check=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    rows = ["t,x1,u"] + [f"{a!r},{b!r},{c!r}" for a, b, c in zip(
+        t.tolist(), Y[:, 0].tolist(), U[:, 0].tolist(), strict=True)]
+    (tmp_path / "record.csv").write_text("\n".join(rows) + "\n")
+    subprocess.run([str(tmp_path / "vdt_example"), "record.csv", "estimates.csv"],
+                   cwd=tmp_path, check=True)
+    out = np.loadtxt(tmp_path / "estimates.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert out[:, 0].astype(int).tolist() == want
+    assert np.abs(out[:, 1:3] - np.array(want_x)).max() <= TOL

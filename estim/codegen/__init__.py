@@ -78,6 +78,11 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
 
     NaN in ``y`` marks a missing output, as in Python. For a model with sampled
     inputs (``hold="foh"``) the driver keeps the previous input, as ``step`` does.
+    For a model with ``variable_dt=True`` the step takes the interval since the
+    previous sample after ``u`` (``<name>_step(f, y, u, dt, x_hat, P)``, and the
+    MHE's ``<name>_prepare(e, u, dt)``; a ``dt`` not positive and finite is refused
+    with -1), and the example program reads the time stamp from the record's first
+    column.
 
     A filter with ``form="sqrt"`` is exported in its square-root form: the filter
     state is :math:`s = [x; \operatorname{vec}(S)]`, :math:`P = S S^\top`, the step
@@ -129,10 +134,9 @@ def export(estimator: EKF | UKF | MHE, directory: str | Path, *, name: str | Non
         ``estimator`` is not an :class:`~estim.EKF`, :class:`~estim.UKF` or
         :class:`~estim.MHE`.
     ValueError
-        An invalid ``name``; a model with ``variable_dt=True`` (the interval of each
-        step would be an argument of the C step: not supported) or integrated by
-        CVODES (``integrator="cvodes"``, which needs the CasADi runtime); an MHE
-        without ``rti=True`` or with ``horizon=1``.
+        An invalid ``name``; a model integrated by CVODES (``integrator="cvodes"``,
+        which needs the CasADi runtime); an MHE without ``rti=True`` or with
+        ``horizon=1``.
     FileExistsError
         A file to write exists and ``overwrite`` is False.
     """
@@ -192,4 +196,4 @@ def _exportable(estimator: object) -> None:
     if isinstance(estimator, MHE):
         mhe.check(estimator)
     else:
-        check_model(estimator.model, variable_dt=True)
+        check_model(estimator.model)

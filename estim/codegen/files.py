@@ -58,21 +58,16 @@ def cflags(optimize: str) -> str:
     return CFLAGS.replace("-O2", OPTIMIZE[optimize])
 
 
-def check_model(m: Model, variable_dt: bool = False) -> None:
-    """Refuse a model whose step CasADi's code generator cannot write as plain C (with
-    the model's fixed ``dt``, unless the export takes ``variable_dt``: the Kalman
-    filters' ``step(y, u, dt)``).
+def check_model(m: Model) -> None:
+    """Refuse a model whose step CasADi's code generator cannot write as plain C (a
+    ``variable_dt`` model is exported with the interval an argument of the drivers'
+    ``step(y, u, dt)``).
 
     Raises
     ------
     ValueError
-        ``variable_dt=True`` where the export has no interval argument (the MHE),
-        integration by CVODES (which needs the CasADi runtime) or algebraic states.
+        Integration by CVODES (which needs the CasADi runtime) or algebraic states.
     """
-    if m.variable_dt and not variable_dt:
-        raise ValueError(f"{m.name} has variable_dt=True: the exported MHE takes the "
-                         f"model's fixed dt only (the EKF and UKF exports take dt); build "
-                         f"the model without variable_dt to export it")
     if getattr(m, "integrator", None) == "cvodes":
         raise ValueError(f"{m.name} is integrated by CVODES, which needs the CasADi "
                          f"runtime: build the model with integrator='rk4' to export")

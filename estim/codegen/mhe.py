@@ -127,6 +127,10 @@ def layout(estimator: MHE, sizes: Mapping[str, int]) -> tuple[str, int, dict[str
         ("mask_old", ny, ""), ("Pn", nd * nd, ""), ("Pu", nd * nd, ""), ("pred", nx, ""),
         ("xbar_new", nx, ""), ("w", sizes["w"], "CasADi's work array"),
     ]
+    if m.variable_dt:  # the interval, an argument of prepare and step
+        at = fields.index(("u_prepared", nu, "the input given to prepare")) + 1
+        fields[at:at] = [("dt_in", 1, "the interval of the arriving sample"),
+                         ("dt_prepared", 1, "the interval given to prepare")]
     if not m.manifold.euclidean_states:  # the moves' work: the steps, the tangent ones
         fields[-1:-1] = [("step", window, ""), ("tangent", N * nd, "")]
     lines, doubles = [], 0
