@@ -38,17 +38,13 @@ DISCRETISATIONS = ("moments", "van-loan")
 
 
 def continuous_noise(model: Any, Q: ArrayLike | None, Qc: ArrayLike | None,
-                     substeps: object, form: str, sqrt_built: bool = False
-                     ) -> tuple[Any, np.ndarray | None, int]:
+                     substeps: object) -> tuple[Any, np.ndarray | None, int]:
     """``(the Q the estimator stores, Qc, substeps)``: ``Q`` itself, or with ``Qc`` the
     density :math:`W = L Q_c L^\\top` it enters the states with; checked (exactly one of
-    the two, ``Qc`` on a continuous vector model, the covariance form; see
+    the two, ``Qc`` on a continuous vector model; see
     :func:`~estim.solvers.kalman.continuous.noise_density`)."""
     substeps = as_int(substeps, "substeps", minimum=1)
     Q, Qc = noise_density(model, Q, Qc)
-    if Qc is not None and form != "covariance" and not sqrt_built:
-        raise ValueError("Qc= is built in the UKF's covariance form for now: use "
-                         "form='covariance', or a per-transition Q with form='sqrt'")
     return Q, Qc, substeps
 
 

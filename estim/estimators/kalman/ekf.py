@@ -162,8 +162,7 @@ class EKF(FusedKalman):
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
                  Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
                  discretisation: str = "moments"):
-        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form,
-                                                     sqrt_built=True)
+        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         self.discretisation = as_choice(discretisation, DISCRETISATIONS, "discretisation")
         if self.discretisation != "moments" and self.Qc is None:
             raise ValueError("discretisation= carries a continuous noise (Qc=) over an "

@@ -64,7 +64,12 @@ from estim.estimators.manifold_steps import (
     sigma_offsets,
     transition_jacobian,
 )
-from estim.solvers.kalman.continuous import drift_jacobian, interval, sqrt_moment_step
+from estim.solvers.kalman.continuous import (
+    drift_jacobian,
+    interval,
+    sqrt_moment_step,
+    sqrt_sigma_moment_step,
+)
 from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.triangular import (
     cholesky_downdate,
@@ -238,7 +243,12 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
         return sum((float(w) * v for w, v in zip(Wm, points, strict=True)),
                    ca.SX.zeros(points[0].numel()))
 
-    if predict:
+    if predict and est.Qc is not None:  # the factor's sigma-point moment equations
+        u_of, h = interval(m, u)
+        xb, Sb = sqrt_sigma_moment_step(m.f_c, offsets, Wm, Wc, x, S, u_of, p, LQ, h,
+                                        est.substeps)
+        ok_mean = finite(ca.vertcat(xb, ca.vec(Sb)))
+    elif predict:
         FX = [m.F(v, u, p) for v in sigma(x, offsets(S))]
         if M.euclidean_states:
             xb = mean(FX)

@@ -157,7 +157,7 @@ class UKF(FusedKalman):
                  gate: float | None = None, form: str = "covariance", jit: bool = False,
                  order: int = 3, iterations: int = 1, damping: str | None = None,
                  tol: float = 1e-4, Qc: ArrayLike | None = None, substeps: int = SUBSTEPS):
-        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps, form)
+        Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
         self.gate = self._gate(gate)

@@ -44,7 +44,8 @@ import casadi as ca
 import numpy as np
 
 __all__ = ["DOUBLINGS", "discretised_noise", "drift_jacobian", "interval", "interval_weight",
-           "moment_step", "noise_density", "sigma_moment_step", "sqrt_moment_step", "van_loan"]
+           "moment_step", "noise_density", "sigma_moment_step", "sqrt_moment_step",
+           "sqrt_sigma_moment_step", "van_loan"]
 
 #: The squarings of :func:`van_loan`'s scaling: the exponent is taken of the matrix divided
 #: by :math:`2^{32}`, then doubled back; with the Taylor series of degree
@@ -247,6 +248,42 @@ def sqrt_moment_step(f: Callable, jac: Callable, x: Any, S: Any, u_of: Any, p: A
         C = solve_lower(F, A @ F)
         B = solve_lower(F, LW)
         return ca.vertcat(f(m, u, p), ca.vec(F @ ((C + C.T + B @ B.T) * lower)))
+
+    z = rk4_step(rhs, ca.vertcat(x, ca.vec(S)), u_of, None, h, substeps)
+    return z[:n], ca.reshape(z[n:], n, n)
+
+
+def sqrt_sigma_moment_step(f: Callable, offsets: Callable, Wm: np.ndarray, Wc: np.ndarray,
+                           x: Any, S: Any, u_of: Any, p: Any, LW: Any, h: Any,
+                           substeps: int) -> tuple[Any, Any]:
+    r"""The sigma-point filter's prediction in square-root form: the points
+    :math:`\mathcal X_i = m + d_i`, their offsets ``offsets(S) -> list`` drawn from the
+    lower factor :math:`S` itself (no Cholesky factorisation), and
+    :math:`\dot S = S\, \Phi(S^{-1} \dot P S^{-\top})` with the sigma-point
+    :math:`\dot P = C + C^\top + W`,
+    :math:`C = \sum_i W^c_i (\mathcal X_i - m)(f_i - \bar f)^\top`, so that
+    :math:`S^{-1}\dot P S^{-\top} = K + K^\top + B B^\top`,
+    :math:`K = S^{-1} C S^{-\top}`, :math:`B = S^{-1} L_W` (:math:`\Phi` as in
+    :func:`sqrt_moment_step`; Särkkä 2007, sec. V), by ``substeps`` Runge-Kutta steps of
+    the pair. Negative weights (fifth-degree rules) enter :math:`C` as they are: no
+    downdate is needed. Returns :math:`(m, S)` at the end, :math:`S` lower triangular."""
+    from estim._discretise import rk4_step
+    from estim.solvers.kalman.triangular import solve_lower
+
+    n = x.numel()
+    lower = ca.DM(np.tril(np.ones((n, n))) - 0.5 * np.eye(n))  # Phi's mask
+
+    def rhs(z, u, _):
+        m, F = z[:n], ca.reshape(z[n:], n, n)
+        offs = offsets(F)
+        fs = [f(m + d, u, p) for d in offs]
+        fbar = sum((float(w) * v for w, v in zip(Wm, fs, strict=True)), ca.SX.zeros(n))
+        C = sum((float(w) * (d @ (g - fbar).T) for w, d, g in zip(Wc, offs, fs,
+                                                                  strict=True)),
+                ca.SX.zeros(n, n))
+        K = solve_lower(F, solve_lower(F, C).T).T
+        B = solve_lower(F, LW)
+        return ca.vertcat(fbar, ca.vec(F @ ((K + K.T + B @ B.T) * lower)))
 
     z = rk4_step(rhs, ca.vertcat(x, ca.vec(S)), u_of, None, h, substeps)
     return z[:n], ca.reshape(z[n:], n, n)
