@@ -28,8 +28,8 @@ from estim.solvers.kalman.continuous import (
     van_loan,
 )
 
-__all__ = ["continuous_noise", "ekf_prediction", "smoother_prediction", "ukf_prediction",
-           "unscented_smoother_prediction"]
+__all__ = ["continuous_noise", "ekf_prediction", "sigma_moments", "smoother_prediction",
+           "ukf_prediction", "unscented_smoother_prediction"]
 
 #: Runge-Kutta sub-steps of the moment equations per interval, by default.
 SUBSTEPS = 4
@@ -115,6 +115,12 @@ def smoother_prediction(est: Any):
     return predict
 
 
+def sigma_moments(est: Any):
+    """``(X, P, Wt) -> (x_bar, P_bar, None)``: the sigma-point moment equations of every
+    transition at once (:func:`ukf_prediction`, one mapped call)."""
+    return _mapped_moments(est, ukf_prediction, jacobian=False)
+
+
 def unscented_smoother_prediction(est: Any):
     r"""The continuous-discrete unscented smoother's predictions of every transition:
     ``(X, P, Wt) -> (x_bar, P_bar, D)``, :math:`(\bar x, \bar P)` from the sigma-point
@@ -126,7 +132,7 @@ def unscented_smoother_prediction(est: Any):
     from estim.solvers.kalman.rts import transitions
 
     m = est.model
-    moments = _mapped_moments(est, ukf_prediction, jacobian=False)
+    moments = sigma_moments(est)
 
     def predict(X, P, Wt):
         k, ns, n = len(X), len(est._Wm), m.nx

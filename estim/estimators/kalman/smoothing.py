@@ -169,12 +169,11 @@ def smoothing_passes(estimator, iterations: int | None) -> int:
     passes = estimator.iterations if iterations is None else \
         as_int(iterations, "iterations", minimum=1)
     if passes > 1 and (estimator.clip or estimator.gate is not None or estimator._sqrt
-                       or not estimator.model.manifold.trivial
-                       or getattr(estimator, "Qc", None) is not None):
+                       or not estimator.model.manifold.trivial):
         raise ValueError(f"iterations={passes}: the iterated smoother's passes are "
                          f"unconstrained, use every measurement and vector states: not "
                          f"with clip=True, a gate, the square-root form, quaternion or "
-                         f"angle states, or Qc=")
+                         f"angle states")
     return passes
 
 
@@ -193,9 +192,12 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
     :math:`\bar x_k`, the prior :math:`(x_0, P_0)` on the first sample. Each pass is a
     Gauss-Newton step on the whole record's MAP problem, so the fixed point is
     :meth:`FullInformation.fit <estim.FullInformation.fit>`'s optimum (with the same
-    prior), the covariances its Laplace covariances. Stops early when no mean moved by
-    more than ``tol`` relative to its size; ``iterations`` and ``converged`` say how it
-    ended.
+    prior), the covariances its Laplace covariances. With a continuous noise (``Qc=``)
+    the noise of transition :math:`k` is :math:`Q_d(\Delta t_k)` of the drift linearised
+    at :math:`\bar x_k` (:func:`~estim.solvers.kalman.continuous.discretised_noise`),
+    the weights of ``FullInformation(Qc=...)``, whose optimum is then the fixed point.
+    Stops early when no mean moved by more than ``tol`` relative to its size;
+    ``iterations`` and ``converged`` say how it ended.
 
     References
     ----------
@@ -211,8 +213,13 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
     out = (m.H.map(T), m.H_x.map(T))
     Qs = np.broadcast_to(estimator.Q, (max(T - 1, 0), nx, nx))
     Rs = np.broadcast_to(estimator.R, (T, m.ny, m.ny))
+    continuous = getattr(estimator, "Qc", None) is not None
+    noise = _interval_noise(estimator, T - 1) if continuous and T > 1 else None
 
     def linearise(Xs, Ps):  # the Jacobians and the affine terms at the trajectory
+        nonlocal Qs
+        if noise is not None:  # each interval's Q_d at the trajectory
+            Qs = noise(Xs[:-1], W)
         FX = transitions(m, Xs[:-1], W) if T > 1 else np.empty((0, nx))
         A = transitions(m, Xs[:-1], W, jacobian=True) if T > 1 else np.empty((0, nx, nx))
         HX = np.asarray(out[0](Xs.T, Uy.T, pm)).T
@@ -241,7 +248,16 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     :math:`\Lambda_k = \Phi_k - A_k \bar P_k A_k^\top` from the sigma-point mean
     :math:`\bar f_k`, cross-covariance :math:`\Psi_k` and covariance :math:`\Phi_k` of
     :math:`f` (the same for :math:`h`), then the posteriors are the smoothed ones. Stops
-    early when no mean moved by more than ``tol`` relative to its size."""
+    early when no mean moved by more than ``tol`` relative to its size.
+
+    With a continuous noise (``Qc=``) the transition over an interval is that of the
+    stochastic differential equation: :math:`A_k` from the cross-covariance of the
+    noise-free flow (the model's ``F``) at the sigma points, as the continuous-discrete
+    unscented smoother takes it, and the mean and covariance of :math:`x_{k+1}` from the
+    sigma-point moment equations started at :math:`N(\bar x_k, \bar P_k)`:
+    :math:`a_k = \bar m_k - A_k \bar x_k`, :math:`Q_k + \Lambda_k = \bar P^{+}_k -
+    A_k \bar P_k A_k^\top` (on a linear model :math:`A_k = e^{A\Delta t_k}` and this is
+    the exact :math:`Q_d(\Delta t_k)`)."""
     m = estimator.model
     Y, steps, W = record(m, Y, U, t)
     T, nx, ny = Y.shape[0], m.nx, m.ny
@@ -251,6 +267,11 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     H_map, F_map = m.H.map(T * ns), m.F.map(max(T - 1, 1) * ns)
     Wr = np.repeat(W, ns, axis=0).T  # the transitions' inputs at each sigma point
     pm = ca.DM(m.p)
+    moments = None
+    if estimator.Qc is not None:
+        from estim.estimators.kalman.continuous import sigma_moments
+
+        moments = sigma_moments(estimator)
 
     def regression(sig, X, P, out):
         """``(A, a, Lambda)`` of the outputs ``out (n, ns, d)`` at the points ``sig``."""
@@ -272,10 +293,31 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
             Fs = np.asarray(F_map(sig[:-1].reshape((T - 1) * ns, nx).T, Wr, pm)).T.reshape(
                 T - 1, ns, nx)
             A, a, Lam = regression(sig[:-1], Xs[:-1], Ps[:-1], Fs)
+            if moments is not None:  # the SDE's moments over each interval
+                mean, cov, _ = moments(Xs[:-1], Ps[:-1], W)
+                a = mean - np.einsum("kab,kb->ka", A, Xs[:-1])
+                Lam = cov - A @ Ps[:-1] @ A.transpose(0, 2, 1) - estimator.Q
         return A, a, Lam + estimator.Q, H, b, Om + estimator.R
 
     return _passes(estimator, first, Y, first.x_filtered, first.P_filtered, iterations, tol,
                    linearise)
+
+
+def _interval_noise(estimator, n: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    r"""``(X (n, nx), W (n, nw)) -> Q_d (n, nx, nx)``: each transition's
+    :math:`Q_d(\Delta t_k)` of the drift linearised at ``X[k]`` under the estimator's
+    density :math:`L Q_c L^\top` (one mapped CasADi call)."""
+    from estim.solvers.kalman.continuous import discretised_noise
+
+    m, nx = estimator.model, estimator.model.nx
+    x, w = ca.SX.sym("x", nx), ca.SX.sym("w", m.nw)
+    fun = ca.Function("q_d", [x, w], [ca.vec(discretised_noise(m, ca.DM(estimator.Q), x,
+                                                                w))]).map(n)
+
+    def noise(X, W):
+        return np.asarray(fun(X.T, W.T)).T.reshape(n, nx, nx).transpose(0, 2, 1)
+
+    return noise
 
 
 def _passes(estimator, first: SmoothResult, Y: np.ndarray, Xs: np.ndarray, Ps: np.ndarray,
