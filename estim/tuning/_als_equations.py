@@ -48,21 +48,27 @@ def _lti_coef(Abar: np.ndarray, D: np.ndarray, C: np.ndarray, QB: list[np.ndarra
     return coef
 
 
-def _ltv_states(Abar: np.ndarray, D: np.ndarray, QB: list[np.ndarray], RB: list[np.ndarray],
-                k_hi: int) -> np.ndarray:
+def _ltv_states(Abar: np.ndarray, D: np.ndarray, QB: list[np.ndarray] | np.ndarray,
+                RB: list[np.ndarray], k_hi: int) -> np.ndarray:
     """``P[k, i]``: the prediction-error covariance at sample ``k`` per unit of parameter
-    ``i``, from zero at sample 0 (``k <= k_hi``; ``D[k] = A_k K_k``)."""
+    ``i``, from zero at sample 0 (``k <= k_hi``; ``D[k] = A_k K_k``). ``QB``: the
+    process noise's basis, the same for every transition (a list of ``(nx, nx)``) or
+    per transition (``(T-1, nq, nx, nx)``: a continuous noise over each interval)."""
     nx = Abar.shape[1]
-    n = len(QB) + len(RB)
+    Qs = np.asarray(QB)
+    per_step = Qs.ndim == 4
+    nq = Qs.shape[1] if per_step else len(QB)
+    n = nq + len(RB)
     P = np.zeros((k_hi + 1, n, nx, nx))
-    Qs = np.asarray(QB).reshape(len(QB), nx, nx)
+    if not per_step:
+        Qs = Qs.reshape(nq, nx, nx)
     Rb = np.asarray(RB)
     for k in range(k_hi):
         Ak = Abar[k]
         nxt = Ak @ P[k] @ Ak.T
-        nxt[:len(QB)] += Qs
+        nxt[:nq] += Qs[k] if per_step else Qs
         if len(RB):
-            nxt[len(QB):] += D[k] @ Rb @ D[k].T
+            nxt[nq:] += D[k] @ Rb @ D[k].T
         P[k + 1] = nxt
     return P
 
@@ -110,18 +116,20 @@ def _stack(M: np.ndarray, rows: list[tuple[int, int, int]]) -> np.ndarray:
     return np.stack([M[j, ..., a, b] for j, a, b in rows])
 
 
-def _design(filt: _Filter, QB: list[np.ndarray], RB: list[np.ndarray], lags: int,
-            k_lo: int, k_hi: int, T: int) -> tuple[np.ndarray, np.ndarray, int]:
+def _design(filt: _Filter, QB: list[np.ndarray] | np.ndarray, RB: list[np.ndarray],
+            lags: int, k_lo: int, k_hi: int, T: int) -> tuple[np.ndarray, np.ndarray, int]:
     """The autocovariances per unit of each parameter: ``coef (lags, n, ny, ny)`` at the
     stacked lags, ``coef_all`` at lags ``0..M+lags`` for Bartlett's formula, and ``M``,
     the lags where the autocovariances have vanished (to :math:`10^{-6}`, from
-    ``2 lags`` to 400, and within the record)."""
+    ``2 lags`` to 400, and within the record). ``QB`` per transition (an array
+    ``(T-1, nq, nx, nx)``) takes the time-varying equations."""
     nx = filt.run.C.shape[-1]
     rho = filt.rho
     M = int(np.clip(np.ceil(np.log(1e-6) / np.log(rho)) if 0 < rho < 1 else 1,
                     2 * lags, 400))
     lti = filt.invariant
     if lti is not None:
+        assert isinstance(QB, list)  # (a constant basis: uniform samples)
         D0 = lti.A @ lti.L
         coef_all = _lti_coef(lti.Abar, D0, lti.C, QB, RB, M + lags + 1)
         return coef_all[:lags], coef_all, M

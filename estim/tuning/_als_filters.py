@@ -34,13 +34,15 @@ if TYPE_CHECKING:
 @dataclass
 class _Run:
     """A filter's run over a record of ``T`` samples: innovations ``e (T, ny)``, gains
-    ``K (T, nx, ny)``, Jacobians ``A (T-1, nx, nx)`` and ``C (T, ny, nx)``, and the
-    innovation covariances ``S (T, ny, ny)`` of an EKF (None for a constant gain)."""
+    ``K (T, nx, ny)``, Jacobians ``A (T-1, nx, nx)`` and ``C (T, ny, nx)``, the
+    estimates ``xh (T, nx)``, and the innovation covariances ``S (T, ny, ny)`` of an
+    EKF (None for a constant gain)."""
 
     e: np.ndarray
     K: np.ndarray
     A: np.ndarray
     C: np.ndarray
+    xh: np.ndarray
     S: np.ndarray | None = None
 
 
@@ -68,15 +70,17 @@ class _Filter:
     invariant: _Invariant | None
 
 
-def _inputs(model: Model, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``W[k]``: the input of the transition into sample ``k`` (row 0 unused), and
+def _inputs(model: Model, U: np.ndarray, dts: np.ndarray | None = None
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``W[k]``: the input of the transition into sample ``k`` (row 0 unused; with
+    ``variable_dt`` the interval ``dts[k-1]`` last, default the model's ``dt``), and
     ``Uh[k]``: the input ``h`` sees at sample ``k``, with :func:`estim.replay`'s
     conventions."""
     T, nu = U.shape
     prev = np.vstack([np.zeros((1, nu)), U[:-1]])
-    if model.sampled:
-        return np.hstack([prev, U]), U.copy()
-    return prev, prev
+    Uh = U.copy() if model.sampled else prev
+    steps = np.full(T, model.dt) if dts is None else np.concatenate([[model.dt], dts])
+    return model.transitions(prev, U if model.sampled else prev, steps), Uh
 
 
 def _mapped(fun: ca.Function, n: int, *args: np.ndarray) -> np.ndarray:
@@ -100,28 +104,36 @@ def _jacobians(model: Model, xh: np.ndarray, xb: np.ndarray, W: np.ndarray,
 
 
 def _ekf_run(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: np.ndarray,
-             ekf: EKF) -> _Run:
-    """Replay an :class:`~estim.EKF` and rebuild, per sample, its prediction, innovation,
-    innovation covariance, gain and Jacobians (the EKF's own equations)."""
+             ekf: EKF, t: np.ndarray | None = None) -> _Run:
+    """Replay an :class:`~estim.EKF` (at the times ``t`` of a ``variable_dt`` model) and
+    rebuild, per sample, its prediction, innovation, innovation covariance, gain and
+    Jacobians (the EKF's own equations; with ``Qc=`` its moment equations, and ``A`` the
+    Jacobian of the mean's flow over each interval)."""
     from estim.simulate import replay
 
-    log = replay(ekf, Y, U, warn=False)
+    log = replay(ekf, Y, U, t=t, warn=False)
     T, nx = log.x_hat.shape
     xh, P = log.x_hat, log.P
     p = np.tile(model.p, (T, 1))
     xb = np.empty_like(xh)
     xb[0] = ekf.x0
-    if T > 1:
-        xb[1:] = _mapped(model.F, T - 1, xh[:-1], W[1:], p[:-1])[:, :, 0]
-    A, C = _jacobians(model, xh, xb, W, Uh)
     Pb = np.empty_like(P)
     Pb[0] = ekf.P0
-    Pb[1:] = A @ P[:-1] @ A.transpose(0, 2, 1) + ekf.Q
+    if ekf.Qc is not None and T > 1:  # the continuous-discrete prediction
+        from estim.estimators.kalman.continuous import ekf_moments
+
+        xb[1:], Pb[1:], A = ekf_moments(ekf)(xh[:-1], P[:-1], W[1:])
+        C = _mapped(model.H_x, T, xb, Uh, p)
+    else:
+        if T > 1:
+            xb[1:] = _mapped(model.F, T - 1, xh[:-1], W[1:], p[:-1])[:, :, 0]
+        A, C = _jacobians(model, xh, xb, W, Uh)
+        Pb[1:] = A @ P[:-1] @ A.transpose(0, 2, 1) + ekf.Q
     e = Y - _mapped(model.H, T, xb, Uh, p)[:, :, 0]
     S = C @ Pb @ C.transpose(0, 2, 1) + ekf.R
     S = 0.5 * (S + S.transpose(0, 2, 1))
     K = np.linalg.solve(S, C @ Pb).transpose(0, 2, 1)
-    return _Run(e=e, K=K, A=A, C=C, S=S)
+    return _Run(e=e, K=K, A=A, C=C, xh=xh, S=S)
 
 
 def _fixed_run(model: Model, Y: np.ndarray, W: np.ndarray, Uh: np.ndarray, L: np.ndarray,
@@ -148,7 +160,7 @@ def _fixed_run(model: Model, Y: np.ndarray, W: np.ndarray, Uh: np.ndarray, L: np
                              f"(non-finite prediction); give a stabilising gain")
     A, C = _jacobians(model, xh, xb, W, Uh)
     K = np.broadcast_to(L, (T,) + L.shape)
-    return _Run(e=e, K=K, A=A, C=C)
+    return _Run(e=e, K=K, A=A, C=C, xh=xh)
 
 
 def _affine_run(model: Model, Y: np.ndarray, W: np.ndarray, Uh: np.ndarray, L: np.ndarray,
@@ -172,7 +184,7 @@ def _affine_run(model: Model, Y: np.ndarray, W: np.ndarray, Uh: np.ndarray, L: n
     e = Y - xb @ C0.T - c
     K = np.broadcast_to(L, (T,) + L.shape)
     return _Run(e=e, K=K, A=np.broadcast_to(A0, (max(T - 1, 0), nx, nx)),
-                C=np.broadcast_to(C0, (T,) + C0.shape))
+                C=np.broadcast_to(C0, (T,) + C0.shape), xh=xb + e @ L.T)
 
 
 def _is_linear(model: Model, W: np.ndarray, Uh: np.ndarray, x0: np.ndarray) -> bool:
@@ -197,13 +209,15 @@ def _is_linear(model: Model, W: np.ndarray, Uh: np.ndarray, x0: np.ndarray) -> b
 
 def _run_filter(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: np.ndarray,
                 ekf: EKF | None, L: np.ndarray | None, x0: np.ndarray, P0: np.ndarray,
-                Q0: np.ndarray, R0: np.ndarray, linear: bool) -> _Filter:
+                Q0: np.ndarray, R0: np.ndarray, linear: bool, Qc0: np.ndarray | None = None,
+                t: np.ndarray | None = None) -> _Filter:
     """The filter of :func:`~estim.tuning.als` run over the record.
 
     A linear model without an EKF: the constant gain ``L`` or, when None, the
     steady-state Kalman gain of ``(Q0, R0)`` (it must stabilise the filter). Otherwise
     the constant gain ``L`` on the nonlinear model, or ``ekf``, or an EKF with
-    ``Q0, R0, x0, P0``.
+    ``Q0, R0, x0, P0`` (with a continuous noise ``Qc0``: ``EKF(Qc=Qc0)`` at the times
+    ``t``).
     """
     from estim.estimators.kalman.ekf import EKF
 
@@ -237,10 +251,11 @@ def _run_filter(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: n
     else:
         what = "EKF (its own tuning)" if ekf is not None else "EKF of (Q0, R0)"
         if ekf is None:
-            ekf = EKF(model, Q=Q0, R=R0, x0=x0, P0=P0)
+            ekf = EKF(model, Q=Q0, R=R0, x0=x0, P0=P0) if Qc0 is None else \
+                EKF(model, Qc=Qc0, R=R0, x0=x0, P0=P0)
         assert ekf.P0 is not None  # an EKF always has its prior covariance
         P0 = ekf.P0
-        run = _ekf_run(model, Y, U, W, Uh, ekf)
+        run = _ekf_run(model, Y, U, W, Uh, ekf, t)
     I_ = np.eye(nx)
     Abar_t = run.A @ (I_ - run.K[:-1] @ run.C[:-1])
     rho = float(np.median(np.max(np.abs(np.linalg.eigvals(Abar_t)), axis=1))) \
@@ -249,11 +264,13 @@ def _run_filter(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: n
 
 
 def _whitened(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: np.ndarray,
-              filt: _Filter, Q: np.ndarray, R: np.ndarray, x0: np.ndarray) -> np.ndarray:
+              filt: _Filter, Q: np.ndarray, R: np.ndarray, x0: np.ndarray,
+              Qc: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
     r"""The whitened innovations :math:`L_k^{-1} e_k` (:math:`L_k L_k^\top = S_k`)
     ``(T, ny)`` of a filter with the estimates ``Q, R``: the steady-state Kalman filter
     of a linear model (when it exists and is stable), else an EKF from ``x0`` and the
-    filter's ``P0``. ``R`` is raised to a positive definite matrix first."""
+    filter's ``P0`` (``EKF(Qc=Qc)`` at the times ``t`` with a continuous noise). ``R`` is
+    raised to a positive definite matrix first."""
     from estim.estimators.kalman.ekf import EKF
 
     nx, ny = model.nx, model.ny
@@ -277,7 +294,9 @@ def _whitened(model: Model, Y: np.ndarray, U: np.ndarray, W: np.ndarray, Uh: np.
                 return np.linalg.solve(np.linalg.cholesky(Sk), chk.e.T).T
         except (np.linalg.LinAlgError, ValueError):
             pass
-    chk = _ekf_run(model, Y, U, W, Uh, EKF(model, Q=Q, R=Rf, x0=x0, P0=filt.P0))
+    ekf = EKF(model, Q=Q, R=Rf, x0=x0, P0=filt.P0) if Qc is None else \
+        EKF(model, Qc=Qc, R=Rf, x0=x0, P0=filt.P0)
+    chk = _ekf_run(model, Y, U, W, Uh, ekf, t)
     assert chk.S is not None  # an EKF's run has its innovation covariances
     Ls = np.linalg.cholesky(chk.S)
     return np.linalg.solve(Ls, chk.e[..., None])[..., 0]

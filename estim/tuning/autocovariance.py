@@ -28,8 +28,24 @@ from collections.abc import Mapping
 import numpy as np
 from numpy.typing import ArrayLike
 
-from estim._validate import as_choice, as_covariance, as_inputs, as_int, as_record, as_vector
+from estim._validate import (
+    as_bool,
+    as_choice,
+    as_covariance,
+    as_inputs,
+    as_int,
+    as_intervals,
+    as_record,
+    as_vector,
+)
 from estim.model import Model
+from estim.tuning._als_continuous import (
+    check_options,
+    densities,
+    discretised,
+    interval_bases,
+    start_density,
+)
 from estim.tuning._als_equations import _design, _rows, _stack
 from estim.tuning._als_filters import _inputs, _is_linear, _run_filter, _whitened
 from estim.tuning._als_solve import _fit
@@ -44,10 +60,14 @@ WEIGHTINGS = ("identity", "optimal")
 DEFAULT_ALS_LAGS = 15
 
 
-def _floored(M: np.ndarray) -> np.ndarray:
+def _floored(M: np.ndarray, previous: np.ndarray) -> np.ndarray:
     """``M`` with its eigenvalues raised to a millionth of its mean variance (positive
-    definite, for the filter of the next ALS pass)."""
-    floor = 1e-6 * max(float(np.trace(M)) / len(M), 1e-300)
+    definite, for the filter of the next ALS pass); an ``M`` of zero (every variance at
+    its boundary) to a hundredth of the ``previous`` filter's, where a zero would give
+    that filter a degenerate gain."""
+    own = float(np.trace(M)) / len(M)
+    floor = 1e-6 * own if own > 0 else 1e-2 * float(np.trace(previous)) / len(previous)
+    floor = max(floor, 1e-300)
     lam, V = np.linalg.eigh(0.5 * (M + M.T))
     return (V * np.maximum(lam, floor)) @ V.T
 
@@ -74,7 +94,8 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         P0: ArrayLike | None = None, lags: int = DEFAULT_ALS_LAGS,
         structure: str | Mapping | ArrayLike = "diagonal", G: ArrayLike | None = None,
         weighting: str = "identity", burn_in: int | None = None,
-        iterations: int = 1) -> TuningResult:
+        iterations: int = 1, continuous: bool = False,
+        t: ArrayLike | None = None) -> TuningResult:
     r"""Autocovariance least squares: estimate ``Q`` and ``R`` from a record.
 
     A filter with a stable gain runs over the record; the sample autocovariances of its
@@ -108,10 +129,21 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     Rawlings 2011), an approximation for a nonlinear model that is good while the
     estimation errors are small compared with the model's curvature.
 
+    With ``continuous=True`` the estimate is the spectral density :math:`Q_c` of a
+    continuous-time noise entering through the model's ``noise_input`` :math:`L`: the
+    noise of the transition over :math:`\Delta t_k` is Van Loan's
+    :math:`Q_k = \int_0^{\Delta t_k} e^{A_k\tau} L Q_c L^\top e^{A_k^\top\tau} d\tau`
+    (:math:`A_k` the drift's Jacobian at the filter's estimate), linear in the entries of
+    :math:`Q_c`, so each basis matrix of its structure becomes a basis per transition and
+    the equations stay linear; the default filter is ``EKF(Qc=...)``. A uniform record of
+    a linear model is the time-invariant ALS with the discretised basis; irregular time
+    stamps (``t``, a model with ``variable_dt=True``) take the time-varying equations,
+    the autocovariances averaged over the samples as for a nonlinear model.
+
     Parameters
     ----------
     model : Model
-        The model of the record (uniform samples; ``variable_dt`` is refused).
+        The model of the record (with ``variable_dt=True``, the times ``t``).
     Y : (T, ny) array
         Measurements; every output at every sample (no NaN).
     U : (T, nu) or (T-1, nu) array, optional
@@ -151,6 +183,13 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         Samples left out at the start, where the filter forgets its initial guess.
         Default: the samples the error dynamics take to decay to 1e-3
         (:math:`\rho(\bar A)^{k} \le 10^{-3}`, from ``lags`` to ``T/4``).
+    continuous : bool
+        Estimate the spectral density :math:`Q_c` (``(nq, nq)`` for the ``nq`` columns
+        of the model's ``noise_input``; ``Q0`` then starts it, default
+        :math:`\operatorname{diag}(L^+ Q_0 L^{+\top})/\overline{\Delta t}` of the
+        default per-transition ``Q0``). Not with ``G``.
+    t : (T,) array, optional
+        Sample times, for a model built with ``variable_dt=True``.
     iterations : int
         With ``gain=None``: run ALS this many times, each with the filter of the
         previous estimates (``Q0, R0`` for the first). ALS is consistent for any stable
@@ -161,7 +200,8 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     Returns
     -------
     TuningResult
-        ``method="als"``; ``Q (nx, nx)``, ``R (ny, ny)``; ``status`` "ok", or
+        ``method="als"``; ``Q (nx, nx)`` (:math:`Q_c` ``(nq, nq)`` with
+        ``continuous=True``), ``R (ny, ny)``; ``status`` "ok", or
         "poorly determined: ..." naming the variances whose standard error exceeds ten
         times the largest variance of their matrix (the record hardly tells them apart);
         ``stderr["Q"]``, ``stderr["R"]`` (NaN for entries held at zero by the
@@ -176,7 +216,8 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         (``{"Q", "R"}`` of the unconstrained least squares), ``theta`` and
         ``theta_cov``, ``autocovariance`` :math:`\hat C_j` ``(N, ny, ny)``,
         ``equations`` the unweighted :math:`(\mathcal A, \hat b)`, ``Q0`` and
-        ``R0`` of the default filter, ``iterations``, ``Q_w`` with ``G``, and with the
+        ``R0`` of the default filter, ``iterations``, ``noise`` (per transition or
+        continuous), ``Q_w`` with ``G``, and with the
         optimal weight ``overidentification``: ``(statistic, dof, p_value)`` of
         :math:`n\,r^\top \hat S^{-1} r \sim \chi^2` (a small p-value says the model does
         not explain the autocovariances).
@@ -220,24 +261,35 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
 
         def once(Q: ArrayLike | None, R: ArrayLike | None) -> TuningResult:
             return als(model, Y, U, Q0=Q, R0=R, x0=x0, P0=P0, lags=lags, structure=structure,
-                       G=G, weighting=weighting, burn_in=burn_in)
+                       G=G, weighting=weighting, burn_in=burn_in, continuous=continuous,
+                       t=t)
 
         res = once(Q0, R0)
         for _ in range(iterations - 1):
-            res = once(_floored(res.Q), _floored(res.R))
+            res = once(_floored(res.Q, res.details["Qc0" if continuous else "Q0"]),
+                       _floored(res.R, res.details["R0"]))
         res.details["iterations"] = iterations
         return res
-    if model.variable_dt:
-        raise ValueError("model: als needs uniform samples; this model was built with "
-                         "variable_dt=True")
+    continuous = as_bool(continuous, "continuous")
+    if continuous:
+        check_options(model, G)
     nx, ny = model.nx, model.ny
     Y = as_record(Y, ny, "Y", missing=False, names=model.output_names, what="outputs")
     T = Y.shape[0]
+    dts = as_intervals(t, T, model)
+    times = None if t is None else np.asarray(t, dtype=float)
+    if not continuous and dts is not None and np.ptp(dts) > 1e-9 * dts.max():
+        raise ValueError(f"t: the intervals run from {dts.min():g} to {dts.max():g}; one "
+                         f"per-transition Q cannot be the noise of all of them: estimate "
+                         f"the spectral density with continuous=True (a model with "
+                         f"noise_input=)")
     U = as_inputs(U, T, model, "U")
     lags = as_int(lags, "lags", minimum=1)
     weighting = as_choice(weighting, WEIGHTINGS, "weighting")
     burn_in = as_int(burn_in, "burn_in", minimum=0, allow_none=True)
-    if G is None:
+    if continuous:  # the structure is Qc's: (nq, nq)
+        Gm = np.eye(nx if model.noise_input is None else model.noise_input.shape[1])
+    elif G is None:
         Gm = np.eye(nx)
     else:
         Gm = np.asarray(G, dtype=float)
@@ -246,7 +298,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         if Gm.ndim != 2 or Gm.shape[0] != nx or not np.isfinite(Gm).all():
             raise ValueError(f"G must be a finite ({nx}, ng) array, got shape {Gm.shape}")
     qblock, rblock = _structures(structure, Gm.shape[1], ny)
-    W, Uh = _inputs(model, U)
+    W, Uh = _inputs(model, U, dts)
 
     # ---- the filter
     from estim.estimators.kalman.ekf import EKF
@@ -274,17 +326,25 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         R0 = np.diag(np.maximum(np.var(np.diff(Y, axis=0), axis=0) / 2 if T > 2 else
                                 np.ones(ny), 1e-12))
     R0m = as_covariance(R0, ny, "R0")
-    if Q0 is None:
+    Qc0 = None
+    if Q0 is None and continuous:  # its effect on the outputs a tenth of R0's
+        Q0 = start_density(model, R0m, x0v, Uh[0], W[min(1, T - 1)] if dts is None else
+                           np.median(W[1:], axis=0))
+    elif Q0 is None:
         Cp = np.linalg.pinv(np.asarray(model.H_x(x0v, Uh[0], model.p).full()))
         q = 0.1 * np.diag(Cp @ R0m @ Cp.T)
         Q0 = np.diag(np.maximum(q, 1e-3 * max(q.max(), 1e-12)))
-    Q0m = as_covariance(Q0, nx, "Q0", definite=False)
+    if continuous:  # Q0 starts Qc; the steady-state gain takes its Q_d
+        Qc0 = as_covariance(Q0, Gm.shape[0], "Q0", definite=False)
+        Q0m = discretised(model, Qc0, x0v, W[min(1, T - 1)])
+    else:
+        Q0m = as_covariance(Q0, nx, "Q0", definite=False)
     constant = [model.output_names[i] for i in range(ny) if np.ptp(Y[:, i]) == 0]
     if len(constant) == ny:
         raise ValueError(f"Y is constant in every output {constant}: its autocovariances "
                          f"hold no information about Q and R")
     try:
-        filt = _run_filter(model, Y, U, W, Uh, ekf, L, x0v, P0m, Q0m, R0m, linear)
+        filt = _run_filter(model, Y, U, W, Uh, ekf, L, x0v, P0m, Q0m, R0m, linear, Qc0, times)
         rho = filt.rho
 
         # ---- burn-in and samples
@@ -302,9 +362,14 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         b = _stack(Chat, rows)
 
         # ---- the design and the least squares
-        QB = _qbasis(qblock, Gm)
+        QB: list[np.ndarray] | np.ndarray = _qbasis(qblock, Gm)
+        if continuous:  # each free entry's Q_d: one basis, or one per interval
+            dens = densities(model, list(qblock.basis))
+            QB = list(interval_bases(model, dens, x0v[None], W[min(1, T - 1)][None])[0]) \
+                if filt.invariant is not None else interval_bases(model, dens,
+                                                                  filt.run.xh[:-1], W[1:])
         RB = list(rblock.basis)
-        nq = len(QB)
+        nq = len(qblock.basis)
         coef, coef_all, M = _design(filt, QB, RB, lags, k_lo, k_hi, T)
         A_als = _stack(coef, rows)  # (rows, params)
         _identifiable(A_als, lags)
@@ -330,14 +395,22 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         Qu, Ru, _ = mats(fit.theta_u)
 
         # ---- the check: a filter with the estimates, after the burn-in
-        check = innovation_check(_whitened(model, Y, U, W, Uh, filt, Qh, Rh, x0v)[burn_in:])
+        if continuous:  # the check's filter: EKF(Qc=), or the stationary one of its Q_d
+            check = innovation_check(_whitened(
+                model, Y, U, W, Uh, filt, discretised(model, Qh, x0v, W[min(1, T - 1)]), Rh,
+                x0v, Qh, times)[burn_in:])
+        else:
+            check = innovation_check(_whitened(model, Y, U, W, Uh, filt, Qh, Rh,
+                                               x0v)[burn_in:])
 
         details = {"lags": lags, "weighting": weighting, "burn_in": burn_in, "samples": n,
                    "linearization": "time-invariant" if filt.invariant else "time-varying",
                    "gain": filt.what, "spectral_radius": rho, "constraint_active": fit.active,
                    "unconstrained": {"Q": Qu, "R": Ru}, "theta": theta, "theta_cov": cov,
                    "autocovariance": Chat, "equations": (A_als, b), "Q0": Q0m, "R0": R0m,
-                   "iterations": 1}
+                   "iterations": 1, "Qc0": Qc0,
+                   "noise": "continuous (Q is the spectral density Qc)" if continuous else
+                   "per transition"}
         if G is not None:
             details["Q_w"] = Qw
         if weighting == "optimal":

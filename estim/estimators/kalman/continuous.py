@@ -28,8 +28,8 @@ from estim.solvers.kalman.continuous import (
     van_loan,
 )
 
-__all__ = ["continuous_noise", "ekf_prediction", "sigma_moments", "smoother_prediction",
-           "ukf_prediction", "unscented_smoother_prediction"]
+__all__ = ["continuous_noise", "ekf_moments", "ekf_prediction", "sigma_moments",
+           "smoother_prediction", "ukf_prediction", "unscented_smoother_prediction"]
 
 #: Runge-Kutta sub-steps of the moment equations per interval, by default.
 SUBSTEPS = 4
@@ -106,13 +106,20 @@ def smoother_prediction(est: Any):
     ``(X, P, Wt) -> (x_bar, P_bar, D)``, :math:`(\bar x, \bar P)` from the moment equations
     and :math:`D = P_k \Phi_k^\top`, :math:`\Phi_k` the Jacobian of the mean's flow over the
     interval (Särkkä & Svensson 2023, sec. 10.6)."""
-    moments = _mapped_moments(est, ekf_prediction)
+    moments = ekf_moments(est)
 
     def predict(X, P, Wt):
         xb, Pb, Phi = moments(X, P, Wt)
         return xb, Pb, P @ Phi.transpose(0, 2, 1)
 
     return predict
+
+
+def ekf_moments(est: Any):
+    """``(X, P, Wt) -> (x_bar, P_bar, Phi)``: the continuous-discrete EKF's predictions of
+    every transition at once (:func:`ekf_prediction`) and the Jacobians of their means by
+    the state, one mapped call."""
+    return _mapped_moments(est, ekf_prediction)
 
 
 def sigma_moments(est: Any):
