@@ -406,17 +406,20 @@ def _forced_van_der_pol_stamps(n: int = 60, seed: int = 4):
     return model, t, Y, U
 
 
-def test_a_variable_dt_mhe_is_exported_with_the_interval(tmp_path):
+@pytest.mark.parametrize("noise", ["Q", "Qc"])
+def test_a_variable_dt_mhe_is_exported_with_the_interval(tmp_path, noise):
     """``variable_dt`` in the MHE's C export: ``prepare(e, u, dt)`` and ``step(e, y, u,
     dt, x_hat, P)`` on a forced van der Pol with sampled inputs and intervals from 20 ms to
     0.3 s are Python's ``MHE(rti=True)`` with ``prepare(u, dt=)`` and ``step(y, u, dt=)``
-    to 1e-12 (with and without prepare); a dt not positive and finite is refused (-1,
-    nothing changed), a dt other than the prepared one too (-3); the example program
-    reads the stamps from the record's first column."""
+    to 1e-12 (with and without prepare), with a per-transition ``Q`` and with a
+    continuous noise (``Qc=``: each transition's weight from the density inside the
+    generated preparation); a dt not positive and finite is refused (-1, nothing
+    changed), a dt other than the prepared one too (-3); the example program reads the
+    stamps from the record's first column."""
     model, t, Y, U = _forced_van_der_pol_stamps()
     dts = np.diff(t)
-    est = estim.MHE(model, horizon=6, Q=np.diag([4e-4, 4e-4]), R=0.0025, x0=[0.8, 0.1],
-                    P0=0.1, rti=True)
+    tuning = {"Q": np.diag([4e-4, 4e-4])} if noise == "Q" else {"Qc": np.diag([4e-3, 4e-3])}
+    est = estim.MHE(model, horizon=6, **tuning, R=0.0025, x0=[0.8, 0.1], P0=0.1, rti=True)
     codegen.export(est, tmp_path, name="vdt")
     lib = ctypes.CDLL(str(build(tmp_path, "vdt")))
     d = ctypes.POINTER(ctypes.c_double)

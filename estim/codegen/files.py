@@ -30,7 +30,7 @@ import functools
 from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import casadi as ca
 import numpy as np
@@ -209,8 +209,9 @@ def c_array(a: ArrayLike) -> str:
 
 
 def renamed(fun: ca.Function, name: str, names_in: list[str] | None = None) -> ca.Function:
-    """``fun`` (an SX Function) under another name, every output dense."""
-    args = fun.sx_in()
+    """``fun`` under another name, every output dense (an MX Function stays one, so
+    that the Functions it calls are generated once)."""
+    args: Any = fun.mx_in() if fun.is_a("MXFunction") else fun.sx_in()
     return ca.Function(name, args, [ca.densify(o) for o in fun.call(args)],
                        names_in or fun.name_in(), fun.name_out())
 

@@ -72,7 +72,8 @@ def functions(estimator: MHE, name: str) -> list[ca.Function]:
     from estim.solvers.least_squares import rti
 
     m = estimator.model
-    prepare, feedback, cost = rti.build(m, estimator.horizon)
+    prepare, feedback, cost = rti.build(m, estimator.horizon,
+                                        continuous=estimator.Qc is not None)
     funs = [renamed(prepare, f"{name}_prepare_window"),
             renamed(feedback, f"{name}_feedback_window"),
             renamed(cost, f"{name}_window_cost"),
@@ -168,7 +169,8 @@ def values(estimator: MHE, fields: str) -> dict[str, str]:
     m = estimator.model
     nx, M = m.nx, m.manifold
     P0 = estimator.P0 if estimator.P0 is not None else np.zeros((m.ndx, m.ndx))
-    Qinv = np.linalg.inv(estimator.Q)
+    # Q^-1, or a continuous noise's density L Qc L^T (the window's weights made from it)
+    Qinv = np.linalg.inv(estimator.Q) if estimator.Qc is None else estimator.Q
     return {"Q": c_array(estimator.Q),
             "QINV": c_array(Qinv if M.euclidean_states else M.padded_matrix(Qinv)),
             "SLOTS": "{" + ", ".join(map(str, M.slots)) + "}",

@@ -214,8 +214,8 @@ class MHE(RealTimeIteration):
     _check_tuning = check_new_q
 
     def _tuning_changed(self) -> None:
-        if self.rti:
-            Qinv = np.linalg.inv(self.Q)
+        if self.rti:  # Q^-1, or a continuous noise's density (weights made from it)
+            Qinv = np.linalg.inv(self.Q) if self.Qc is None else self.Q
             M = self.model.manifold
             self._rti_Qinv[:] = (Qinv if M.euclidean_states else
                                  M.padded_matrix(Qinv)).ravel(order="F")

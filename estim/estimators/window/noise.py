@@ -42,10 +42,6 @@ def noise_solver(Q: np.ndarray, requested: str, resolved: str, *, who: str, mode
     :func:`check_reach`) whatever its rank."""
     if continuous:
         check_reach(model, Q, np.zeros(model.nx) if x0 is None else x0)
-        if rti:
-            raise ValueError(f"Qc= (a continuous noise) weighs each transition by the "
-                             f"noise of its interval, which the real-time iteration "
-                             f"(rti=True) of {who} does not carry yet: use rti=False")
         return resolved, None
     rank = noise_rank(Q)
     if rank is None:

@@ -63,7 +63,31 @@ from estim.model import Model
 RIDGE = 1e-10
 
 
-def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
+def _weighed(model: Model, N: int, core: ca.Function) -> ca.Function:
+    r"""``core`` (whose ``Qinv`` input holds the transitions' weights :math:`Q_d(\Delta
+    t_k)^{-1}`, one column each) with the density :math:`L Q_c L^\top` in that input
+    instead: the weights made by one Function of a transition mapped over the window
+    (:func:`~estim.solvers.kalman.continuous.interval_weight` at the window's
+    :math:`x_k`), which generated code then holds once, not once per transition."""
+    from estim.solvers.kalman.continuous import interval_weight
+
+    nx = model.nx
+    x, w, D = ca.SX.sym("x", nx), ca.SX.sym("w", model.nw), ca.SX.sym("D", nx, nx)
+    M = interval_weight(model, D, x, w)
+    weight = ca.Function("mhe_rti_interval_weight", [x, w, D], [ca.vec(M.T @ M)])
+    args = [ca.MX.sym(core.name_in(i), core.sparsity_in(i)) for i in range(core.n_in())]
+    names = [core.name_in(i) for i in range(core.n_in())]
+    i_q, i_x, i_u = names.index("Qinv"), names.index("X"), names.index("U")
+    args[i_q] = ca.MX.sym("Qinv", nx, nx)
+    inner = list(args)
+    inner[i_q] = weight.map(N - 1)(args[i_x][:, :N - 1], args[i_u], ca.repmat(args[i_q], 1,
+                                                                             N - 1))
+    return ca.Function(core.name(), args, core.call(inner), names,
+                       [core.name_out(i) for i in range(core.n_out())])
+
+
+def build(model: Model, N: int, continuous: bool = False
+          ) -> tuple[ca.Function, ca.Function, ca.Function]:
     r"""The preparation, feedback and cost Functions of a window of ``N`` slots.
 
     ``prepare(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R, free) -> (S0, g0,
@@ -85,6 +109,13 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
 
     ``cost(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R, y, mask_y) -> cost``:
     half the window's weighted sum of squares, the newest measurement ``y`` included.
+
+    ``continuous``: ``Qinv`` is the density :math:`L Q_c L^\top` of a continuous noise,
+    and transition ``k`` is weighed by :math:`Q_d(\Delta t_k)^{-1}` of the drift
+    linearised at the window's :math:`x_k`
+    (:func:`~estim.solvers.kalman.continuous.interval_weight`), held constant in the
+    Gauss-Newton step (the weights of the converged windows, re-linearised at each
+    preparation).
     """
     nx, ny, nu, nw = model.nx, model.ny, model.nu, model.nw
     p = ca.DM(model.p)
@@ -98,6 +129,11 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     Qinv, R = ca.SX.sym("Qinv", nx, nx), ca.SX.sym("R", ny, ny)
     eye = ca.DM.eye(nx)
     P0inv = arrival * ca.solve(Pbar, eye)
+    # with a continuous noise the transitions' weights are inputs of the core Functions
+    # here, made from the density by one Function mapped over the window (below)
+    Wk = ca.SX.sym("Wk", nx * nx, N - 1) if continuous else None
+    weights = [om[k] * (ca.reshape(Wk[:, k], nx, nx) if Wk is not None else Qinv)
+               + (1 - om[k]) * eye for k in range(N - 1)]
     tangent = _TangentTerms(model) if not model.manifold.euclidean_states else None
     if tangent is None:
         Hd = [a[k] * P0inv + RIDGE * eye for k in range(N)]
@@ -111,7 +147,7 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     Hoff = []
     for k in range(N - 1):
         x, xn = X[:, k], X[:, k + 1]
-        W = om[k] * Qinv + (1 - om[k]) * eye
+        W = weights[k]
         if tangent is None:
             A = model.F_x(x, U[:, k], p)
             e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x)
@@ -151,7 +187,7 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
     xN, upN = X[:, N - 1], Up[:, N - 1]
     hN, CN = _measurement(model, tangent, xN, upN, p)
     names = ["X", "Y", "mask", "U", "Up", "a", "om", "xbar", "Pbar", "arrival", "Qinv", "R"]
-    inputs = [X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R]
+    inputs = [X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv if Wk is None else Wk, R]
     prepare = ca.Function(
         "mhe_rti_prepare", inputs + [free],
         [0.5 * (S + S.T), gt, CN, hN,
@@ -173,9 +209,11 @@ def build(model: Model, N: int) -> tuple[ca.Function, ca.Function, ca.Function]:
             x, xn = X[:, k], X[:, k + 1]
             e = om[k] * (xn - model.F(x, U[:, k], p)) + (1 - om[k]) * (xn - x) \
                 if tangent is None else tangent.transition(x, xn, U[:, k], om[k])[0]
-            terms.append(ca.dot(e, (om[k] * Qinv + (1 - om[k]) * eye) @ e))
+            terms.append(ca.dot(e, weights[k] @ e))
     cost = ca.Function("mhe_rti_cost", inputs + [yN, mN],
                        [0.5 * ca.sum1(ca.vertcat(*terms))], names + ["y", "mask_y"], ["cost"])
+    if continuous:
+        prepare, cost = _weighed(model, N, prepare), _weighed(model, N, cost)
     # feedback
     S0s, g0s = ca.SX.sym("S0", nx, nx), ca.SX.sym("g0", nx)
     Cs, hs = ca.SX.sym("C", ny, nx), ca.SX.sym("h", ny)
