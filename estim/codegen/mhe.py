@@ -72,8 +72,11 @@ def functions(estimator: MHE, name: str) -> list[ca.Function]:
     from estim.solvers.least_squares import rti
 
     m = estimator.model
-    prepare, feedback, cost = rti.build(m, estimator.horizon,
-                                        continuous=estimator.Qc is not None)
+    from estim.solvers.kalman.continuous import interval_weight
+
+    prepare, feedback, cost = rti.build(
+        m, estimator.horizon, process_weight=interval_weight if estimator.Qc is not None
+        else None)
     funs = [renamed(prepare, f"{name}_prepare_window"),
             renamed(feedback, f"{name}_feedback_window"),
             renamed(cost, f"{name}_window_cost"),

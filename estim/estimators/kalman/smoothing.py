@@ -232,8 +232,8 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
 
 
 def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLike | None,
-                         t: ArrayLike | None, iterations: int, tol: float = 1e-12
-                         ) -> SmoothResult:
+                         t: ArrayLike | None, iterations: int, tol: float = 1e-12,
+                         moments: Predictor | None = None) -> SmoothResult:
     r"""The iterated posterior linearisation smoother (IPLS; García-Fernández, Svensson
     & Särkkä 2017) of a sigma-point filter: from the filter's estimates
     (``first.x_filtered``, ``first.P_filtered``), up to ``iterations`` passes, each the
@@ -250,7 +250,9 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     :math:`f` (the same for :math:`h`), then the posteriors are the smoothed ones. Stops
     early when no mean moved by more than ``tol`` relative to its size.
 
-    With a continuous noise (``Qc=``) the transition over an interval is that of the
+    With a continuous noise (``Qc=``; ``moments`` the filter's sigma-point moment
+    equations of every transition, ``(X, P, W) -> (mean, covariance, _)``) the transition
+    over an interval is that of the
     stochastic differential equation: :math:`A_k` from the cross-covariance of the
     noise-free flow (the model's ``F``) at the sigma points, as the continuous-discrete
     unscented smoother takes it, and the mean and covariance of :math:`x_{k+1}` from the
@@ -267,11 +269,6 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
     H_map, F_map = m.H.map(T * ns), m.F.map(max(T - 1, 1) * ns)
     Wr = np.repeat(W, ns, axis=0).T  # the transitions' inputs at each sigma point
     pm = ca.DM(m.p)
-    moments = None
-    if estimator.Qc is not None:
-        from estim.estimators.kalman.continuous import sigma_moments
-
-        moments = sigma_moments(estimator)
 
     def regression(sig, X, P, out):
         """``(A, a, Lambda)`` of the outputs ``out (n, ns, d)`` at the points ``sig``."""

@@ -14,6 +14,7 @@ from estim.estimators.base import EstimationWarning
 from estim.estimators.kalman.continuous import (
     SUBSTEPS,
     continuous_noise,
+    sigma_moments,
     ukf_prediction,
     unscented_smoother_prediction,
 )
@@ -318,7 +319,9 @@ class UKF(FusedKalman):
             _unscented_prediction(self)  # (the moment equations over each interval)
         first = rts(self, Y, U, t, predict,
                     self.model.clip if self.clip else None)
-        return first if passes == 1 else posterior_linearised(self, first, Y, U, t, passes)
+        return first if passes == 1 else posterior_linearised(
+            self, first, Y, U, t, passes,
+            moments=sigma_moments(self) if self.Qc is not None else None)
 
     @property
     def x(self) -> np.ndarray:

@@ -27,6 +27,7 @@ from estim.consistency import consistency_status
 from estim.estimators.base import StepInfo
 from estim.estimators.window.mhe_window import MovingWindow
 from estim.model import Model
+from estim.solvers.kalman.continuous import interval_weight
 from estim.solvers.least_squares.robust import RobustLoss
 
 #: While the window fills, the real-time iteration's projected Gauss-Newton steps stop
@@ -116,7 +117,8 @@ class RealTimeIteration(MovingWindow):
             raise ValueError("rti=True does not keep the states that max_lag needs: "
                              "give max_lag=0")
         m, N = self.model, self.horizon
-        prepare, feedback, cost = rti.build(m, N, continuous=self.Qc is not None)
+        prepare, feedback, cost = rti.build(
+            m, N, process_weight=interval_weight if self.Qc is not None else None)
         if options.get("jit"):
             prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
         # the tuning where every phase reads it (set by _tuning_changed), the feedback's

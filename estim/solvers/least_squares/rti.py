@@ -53,6 +53,7 @@ moving horizon state and parameter estimation", Comput. Chem. Eng. 35(1), 2011.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import casadi as ca
@@ -63,17 +64,17 @@ from estim.model import Model
 RIDGE = 1e-10
 
 
-def _weighed(model: Model, N: int, core: ca.Function) -> ca.Function:
+def _weighed(model: Model, N: int, core: ca.Function, process_weight: Callable
+             ) -> ca.Function:
     r"""``core`` (whose ``Qinv`` input holds the transitions' weights :math:`Q_d(\Delta
     t_k)^{-1}`, one column each) with the density :math:`L Q_c L^\top` in that input
     instead: the weights made by one Function of a transition mapped over the window
-    (:func:`~estim.solvers.kalman.continuous.interval_weight` at the window's
+    (``process_weight(model, W, x, w) -> M``, :math:`M^\top M = Q_d^{-1}`:
+    :func:`~estim.solvers.kalman.continuous.interval_weight` at the window's
     :math:`x_k`), which generated code then holds once, not once per transition."""
-    from estim.solvers.kalman.continuous import interval_weight
-
     nx = model.nx
     x, w, D = ca.SX.sym("x", nx), ca.SX.sym("w", model.nw), ca.SX.sym("D", nx, nx)
-    M = interval_weight(model, D, x, w)
+    M = process_weight(model, D, x, w)
     weight = ca.Function("mhe_rti_interval_weight", [x, w, D], [ca.vec(M.T @ M)])
     args = [ca.MX.sym(core.name_in(i), core.sparsity_in(i)) for i in range(core.n_in())]
     names = [core.name_in(i) for i in range(core.n_in())]
@@ -86,7 +87,7 @@ def _weighed(model: Model, N: int, core: ca.Function) -> ca.Function:
                        [core.name_out(i) for i in range(core.n_out())])
 
 
-def build(model: Model, N: int, continuous: bool = False
+def build(model: Model, N: int, process_weight: Callable | None = None
           ) -> tuple[ca.Function, ca.Function, ca.Function]:
     r"""The preparation, feedback and cost Functions of a window of ``N`` slots.
 
@@ -110,8 +111,9 @@ def build(model: Model, N: int, continuous: bool = False
     ``cost(X, Y, mask, U, Up, a, om, xbar, Pbar, arrival, Qinv, R, y, mask_y) -> cost``:
     half the window's weighted sum of squares, the newest measurement ``y`` included.
 
-    ``continuous``: ``Qinv`` is the density :math:`L Q_c L^\top` of a continuous noise,
-    and transition ``k`` is weighed by :math:`Q_d(\Delta t_k)^{-1}` of the drift
+    ``process_weight`` (a continuous noise): ``Qinv`` is the density :math:`L Q_c
+    L^\top`, and transition ``k`` is weighed by :math:`M^\top M` from
+    ``process_weight(model, Qinv, x_k, u_k)``, :math:`Q_d(\Delta t_k)^{-1}` of the drift
     linearised at the window's :math:`x_k`
     (:func:`~estim.solvers.kalman.continuous.interval_weight`), held constant in the
     Gauss-Newton step (the weights of the converged windows, re-linearised at each
@@ -131,7 +133,7 @@ def build(model: Model, N: int, continuous: bool = False
     P0inv = arrival * ca.solve(Pbar, eye)
     # with a continuous noise the transitions' weights are inputs of the core Functions
     # here, made from the density by one Function mapped over the window (below)
-    Wk = ca.SX.sym("Wk", nx * nx, N - 1) if continuous else None
+    Wk = ca.SX.sym("Wk", nx * nx, N - 1) if process_weight is not None else None
     weights = [om[k] * (ca.reshape(Wk[:, k], nx, nx) if Wk is not None else Qinv)
                + (1 - om[k]) * eye for k in range(N - 1)]
     tangent = _TangentTerms(model) if not model.manifold.euclidean_states else None
@@ -212,8 +214,9 @@ def build(model: Model, N: int, continuous: bool = False
             terms.append(ca.dot(e, weights[k] @ e))
     cost = ca.Function("mhe_rti_cost", inputs + [yN, mN],
                        [0.5 * ca.sum1(ca.vertcat(*terms))], names + ["y", "mask_y"], ["cost"])
-    if continuous:
-        prepare, cost = _weighed(model, N, prepare), _weighed(model, N, cost)
+    if process_weight is not None:
+        prepare, cost = (_weighed(model, N, prepare, process_weight),
+                         _weighed(model, N, cost, process_weight))
     # feedback
     S0s, g0s = ca.SX.sym("S0", nx, nx), ca.SX.sym("g0", nx)
     Cs, hs = ca.SX.sym("C", ny, nx), ca.SX.sym("h", ny)
