@@ -117,8 +117,7 @@ class RealTimeIteration(MovingWindow):
             raise ValueError("rti=True does not keep the states that max_lag needs: "
                              "give max_lag=0")
         m, N = self.model, self.horizon
-        prepare, feedback, cost = rti.build(
-            m, N, process_weight=interval_weight if self.Qc is not None else None)
+        prepare, feedback, cost = rti.build(m, N, interval_weight if self.Qc is not None else None)
         if options.get("jit"):
             prepare, feedback, cost = jitted(prepare), jitted(feedback), jitted(cost)
         # the tuning where every phase reads it (set by _tuning_changed), the feedback's
