@@ -15,6 +15,7 @@ from estim.estimators.kalman.continuous import (
     smoother_prediction,
 )
 from estim.estimators.kalman.fused import FusedKalman
+from estim.estimators.kalman.heavy_tails import check_noise, student_t_update
 from estim.estimators.kalman.iterated_updates import check_iterated, ekf_update
 from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts, smoothing_passes
 from estim.estimators.kalman.square_root import check_form, covariances, ekf_step
@@ -77,6 +78,11 @@ class EKF(FusedKalman):
         the exact discretisation of the linearisation at the estimate,
         :math:`\bar P = \Phi P \Phi^\top + Q_d(\Delta t)` (Van Loan; exact on a linear
         model whatever ``substeps``), the mean by the model's ``F``.
+    noise, dof :
+        ``"gaussian"`` (default), or ``"student-t"`` with ``dof`` (above 2) degrees of
+        freedom and scale ``R``: the variational update that inflates the noise of a
+        measurement in the tails (:mod:`~estim.estimators.kalman.heavy_tails`; a ``dof`` of
+        5 to 10, docs/heavy_tails.md). Covariance form, vector states, ``iterations=1``.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
@@ -161,7 +167,8 @@ class EKF(FusedKalman):
                  gate: float | None = None, form: str = "covariance", jit: bool = False,
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
                  Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
-                 discretisation: str = "moments"):
+                 discretisation: str = "moments", noise: str = "gaussian",
+                 dof: float | None = None):
         Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         self.discretisation = as_choice(discretisation, DISCRETISATIONS, "discretisation")
         if self.discretisation != "moments" and self.Qc is None:
@@ -176,6 +183,7 @@ class EKF(FusedKalman):
             raise ValueError(f"iterations={self.iterations}: the iterated EKF is built in the "
                              f"covariance form on vector states; use form='covariance' "
                              f"(and a model without quaternions or angles), or iterations=1")
+        self.noise, self.dof = check_noise(noise, dof, self)
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
@@ -207,6 +215,10 @@ class EKF(FusedKalman):
         if self.iterations > 1:  # Gauss-Newton on the update, plain or damped
             xh, Ph, S, converged = ekf_update(m, xb, Pb, y, mask, Rm, uy, p, self.iterations,
                                               self.damping, self.tol)
+        elif self.dof is not None:  # the variational Student-t update
+            C = D @ m.H_x(xb, uy, p)
+            xh, Ph, S, _ = student_t_update(xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, R, mask,
+                                            self.dof)
         else:
             C = D @ m.H_x(xb, uy, p)
             S = C @ Pb @ C.T + Rm

@@ -3,6 +3,7 @@ r"""Unscented Kalman filter, fused into one compiled call per step."""
 from __future__ import annotations
 
 import warnings
+from typing import Any
 
 import casadi as ca
 import numpy as np
@@ -19,6 +20,7 @@ from estim.estimators.kalman.continuous import (
     unscented_smoother_prediction,
 )
 from estim.estimators.kalman.fused import FusedKalman
+from estim.estimators.kalman.heavy_tails import check_noise, student_t_update
 from estim.estimators.kalman.iterated_updates import check_iterated, posterior_linearised_update
 from estim.estimators.kalman.smoothing import (
     SmoothResult,
@@ -38,6 +40,18 @@ POINTS = ("merwe", "julier", "cubature", "cubature5", "gauss-hermite")
 
 #: Gauss-Hermite rules with more points than this are warned about (p^n grows fast)
 MANY_POINTS = 10_000
+
+
+def _symbolic_sigma_points(ukf: Any, x: Any, P: Any) -> tuple[list, ca.SX]:
+    """A UKF's sigma points of ``(x, P)`` (columns) and whether ``P`` has a Cholesky
+    factor (positive definite)."""
+    L, definite = _cholesky(ukf._scale * P)
+    if ukf._unit is not None:  # a rule given by its unit points: x + L xi
+        return [x + L @ ca.DM(xi) for xi in ukf._unit.T], definite
+    n = x.numel()
+    offsets = [L[:, k] for k in range(n)]  # the rows of the upper factor L^T
+    centre = [] if ukf.points == "cubature" else [x]
+    return centre + [x + d for d in offsets] + [x - d for d in offsets], definite
 
 
 class UKF(FusedKalman):
@@ -87,6 +101,9 @@ class UKF(FusedKalman):
         Instead of ``Q``, on a continuous model: a continuous-time noise's spectral density
         (as for :class:`~estim.EKF`); the prediction integrates the sigma-point moment
         equations (Särkkä 2007) by ``substeps`` Runge-Kutta steps.
+    noise, dof :
+        ``"student-t"`` with ``dof`` (above 2): as for :class:`~estim.EKF`, linearised by
+        the sigma points' statistical linear regression.
     points : {"merwe", "julier", "cubature", "cubature5", "gauss-hermite"}
         Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
         :math:`2n_x` equally weighted points of the cubature Kalman filter, the
@@ -157,7 +174,8 @@ class UKF(FusedKalman):
                  beta: float = 2.0, kappa: float = 0.0, clip: bool = False,
                  gate: float | None = None, form: str = "covariance", jit: bool = False,
                  order: int = 3, iterations: int = 1, damping: str | None = None,
-                 tol: float = 1e-4, Qc: ArrayLike | None = None, substeps: int = SUBSTEPS):
+                 tol: float = 1e-4, Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
+                 noise: str = "gaussian", dof: float | None = None):
         Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
@@ -179,22 +197,14 @@ class UKF(FusedKalman):
                              f"linearisation is built in the covariance form on vector "
                              f"states; use form='covariance', or iterations=1")
         self._update_iterations = self.iterations if self.iterations > 1 else 0
+        self.noise, self.dof = check_noise(noise, dof, self)
         #: the spread, the weights, and the unit points (nx, N) of a rule given by its
         #: points or None (merwe, julier, cubature: the rows of the factor of c P)
         self._scale, self._Wm, self._Wc, self._unit = _rule(self, model)
         self.jit = as_bool(jit, "jit")
         self._compile()
 
-    def _sigma_points(self, x, P) -> tuple[list, ca.SX]:
-        """The sigma points of ``(x, P)`` (columns) and whether ``P`` has a Cholesky
-        factor (positive definite)."""
-        L, definite = _cholesky(self._scale * P)
-        if self._unit is not None:  # a rule given by its unit points: x + L xi
-            return [x + L @ ca.DM(xi) for xi in self._unit.T], definite
-        n = x.numel()
-        offsets = [L[:, k] for k in range(n)]  # the rows of the upper factor L^T
-        centre = [] if self.points == "cubature" else [x]
-        return centre + [x + d for d in offsets] + [x - d for d in offsets], definite
+    _sigma_points = _symbolic_sigma_points
 
     def _build(self, predict: bool) -> ca.Function:
         if self._sqrt:
@@ -237,6 +247,9 @@ class UKF(FusedKalman):
         Ph = Pb - K @ S @ K.T
         Ph = 0.5 * (Ph + Ph.T)
         converged = None
+        if self.dof is not None:  # the variational Student-t update
+            xh, Ph, S, _ = student_t_update(xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), R, mask,
+                                            self.dof)
         if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
             xh, Ph, posterior, converged = posterior_linearised_update(
                 self, xb, Pb, xh, Ph, y, mask, D @ R @ D + ca.diag(1 - mask), uy, p,
