@@ -93,7 +93,7 @@ def run(seeds: int, share: float, scale: float, repeats: int) -> None:
             times[name].append((time.perf_counter() - t0) / len(y))
     base = np.array(times["EKF"])
     print(f"# Van der Pol, {seeds} seeds x {sc.n_steps} steps, outliers: {share:.0%} of the "
-          f"output values with noise std {scale:g} (instead of 1)\n")
+          f"samples with noise std {scale:g} (instead of 1)\n")
     print("| filter | RMSE median | RMSE mean [range] | NEES/n median | step cost / EKF "
           "(median [range]) |")
     print("|---|---|---|---|---|")
