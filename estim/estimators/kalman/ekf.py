@@ -321,7 +321,7 @@ class EKF(FusedKalman):
         """Current covariance (a view of the filter state; a new array, ``S S^T``, in the
         square-root form)."""
         nx = self.model.nx
-        P = self._s[nx:].reshape(nx, nx, order="F")
+        P = self._s[nx:self._nP].reshape(nx, nx, order="F")
         return covariances(P) if self._sqrt else P
 
     def _failure_texts(self, flags) -> tuple[str, str]:

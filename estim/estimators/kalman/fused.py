@@ -46,6 +46,44 @@ from estim.solvers.kalman.kalman import fused_function, step_symbols
 from estim.solvers.weights import is_diagonal
 
 
+def _recover(self, flags, s_prior):
+    """A fused filter's failed update (its ``_recover``): keep the prediction of a
+    trusted estimate, or re-anchor on the last trusted estimate with ``P + P0`` and
+    update with this measurement (an adaptive filter's noise statistics as they were)."""
+    why = overflowing(self.model, self._y)
+    kept, what = (f"failed: {why}; kept the prediction", why) if why else \
+        self._failure_texts(flags)
+    where = after_failure(self.model, self._s[:self._nx], s_prior[:self._nx], self._u)
+    if self._trusted:
+        self._s_trusted[:] = self._s
+    if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
+        self._s[:] = s_prior
+        status = kept
+    else:
+        nx, nP = self.model.nx, self._nP
+        if self._sqrt:  # the factor of S S^T + P0
+            x = self._anchor(self._s_trusted[:nx])[0]
+            self._s[nx:nP] = with_P0(self._s_trusted[nx:nP], self._P0_data, True)
+        else:
+            nd = self.model.ndx
+            x, P = self._anchor(self._s_trusted[:nx],
+                                self._s_trusted[nx:nP].reshape(nd, nd, order="F"))
+            assert P is not None  # (a covariance given, a covariance returned)
+            self._s[nx:nP] = P.ravel(order="F")
+        self._s[:nx] = x
+        s_new, _, flags, _ = self._update.evaluate()
+        if flags[1]:
+            self._s[:] = s_new
+        status = (f"failed: {what}; re-anchored on the last trusted estimate "
+                  f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
+    self._trusted = False
+    nx = self.model.nx
+    return self._s[:nx].copy(), StepInfo(status=status + where, success=False,
+                                         P=covariance(self._s[nx:self._nP], self.model.ndx,
+                                                      self._sqrt))
+
+
+
 class FusedKalman(Estimator):
     """Step, reset and recovery of a filter compiled into one call per step.
 
@@ -71,6 +109,8 @@ class FusedKalman(Estimator):
     damping: str | None = None
     Qc: np.ndarray | None = None
     substeps = 4
+    #: entries of the filter state after ``[x; vec P]``: an adaptive filter's statistics
+    _n_adapt = 0
 
     def _build(self, predict: bool) -> ca.Function:
         """The step's Function: ``(s, u, y, tuning) -> (s_new, innovation, flags,
@@ -83,7 +123,8 @@ class FusedKalman(Estimator):
         (first: update only; later: predict and update), then tuning and reset."""
         m = self.model
         nx, nd = m.nx, m.ndx  # stored states, tangent directions (P is nd x nd)
-        self._s = np.zeros(nx + nd * nd)
+        self._nP = nx + nd * nd  # the filter state: [x; vec P; adaptive statistics]
+        self._s = np.zeros(self._nP + self._n_adapt)
         self._u = np.zeros(m.nw)  # the transition's input (both ends if sampled)
         self._y = np.zeros(m.ny)
         self._tun = np.zeros(nd * nd + m.ny ** 2)
@@ -92,7 +133,7 @@ class FusedKalman(Estimator):
             self, [self._s, self._u, self._y, self._tun])
         # views of the buffers the hot path writes and reads: the covariance (or its
         # factor) in the filter state, and the transition input's parts (see _step)
-        self._P_view = self._s[nx:].reshape(nd, nd, order="F")
+        self._P_view = self._s[nx:self._nP].reshape(nd, nd, order="F")
         nu = m.nu
         self._u_now = self._u[nu:2 * nu] if m.sampled else self._u[:nu]
         self._u_prev = self._u[:nu] if m.sampled else None
@@ -103,7 +144,7 @@ class FusedKalman(Estimator):
 
     def _symbols(self):
         """The symbols of a step (:func:`estim.solvers.kalman.kalman.step_symbols`)."""
-        return step_symbols(self.model, self._diagonal)
+        return step_symbols(self.model, self._diagonal, self._n_adapt)
 
     def _fused_function(self, name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf,
                         ok_mean, mask, s_prior, converged=None) -> ca.Function:
@@ -128,7 +169,8 @@ class FusedKalman(Estimator):
     def _reset(self) -> None:
         nx = self.model.nx
         self._s[:nx] = self.x0
-        self._s[nx:] = self._P0_data = P0_data(self.P0, self._sqrt)  # a reset may change P0
+        self._s[nx:self._nP] = self._P0_data = P0_data(self.P0, self._sqrt)  # (P0 may change)
+        self._s[self._nP:] = self._adapt_start()
         # the anchor of a failed step: the state after the last step reported "ok" (the
         # prior at first), in _s while every step is ok, else saved in _s_trusted
         self._s_trusted = self._s.copy()
@@ -154,14 +196,15 @@ class FusedKalman(Estimator):
             return self._recover(flag_array, s_prior)
         nx = self._nx
         suspect = flags[6] or flags[7] or (self.damping is not None and not flags[8])
-        trace = 0.0 if suspect else state_trace(s_new, nx, self._diagonal_stride, self._sqrt)
+        trace = 0.0 if suspect else state_trace(s_new[:self._nP], nx, self._diagonal_stride,
+                                                self._sqrt)
         untrusted = suspect or trace > self._blown  # (blown up: the filter lost the state)
         if untrusted and self._trusted:
             self._s_trusted[:] = self._s
         self._trusted = not untrusted
         if flags[7]:  # gated: the prediction, with P0 added
             self._s[:] = s_prior
-            self._s[nx:] = with_P0(self._s[nx:], self._P0_data, self._sqrt)
+            self._s[nx:self._nP] = with_P0(self._s[nx:self._nP], self._P0_data, self._sqrt)
         else:
             np.copyto(self._s, s_new)
         info = StepInfo._fast(P=reported(self._P_view, self._sqrt), innovation=e.copy(),
@@ -176,9 +219,15 @@ class FusedKalman(Estimator):
             info.__dict__["status"] = blown_up(trace)
         return self._s[:nx].copy(), info
 
+    _recover = _recover
+
     def _failure_texts(self, flags) -> tuple[str, str]:
         """``(the kept-prediction status, what failed)`` of a failed step."""
         raise NotImplementedError
+
+    def _adapt_start(self) -> np.ndarray:
+        """The adaptive statistics at a reset (none: a filter that does not adapt)."""
+        return np.zeros(self._n_adapt)
 
     def _consistency(self, nis: float, dof: int, rejected: bool, converged: bool = True
                      ) -> str:
@@ -190,41 +239,6 @@ class FusedKalman(Estimator):
             return consistency_status(nis, dof)
         return (f"rejected: NIS {nis:.3g} beyond the {self.gate:g} tail of chi2({dof}); "
                 f"kept the prediction with P + P0")
-
-    def _recover(self, flags, s_prior):
-        """A failed update: keep the prediction of a trusted estimate, or re-anchor on
-        the last trusted estimate with ``P + P0`` and update with this measurement."""
-        why = overflowing(self.model, self._y)
-        kept, what = (f"failed: {why}; kept the prediction", why) if why else \
-            self._failure_texts(flags)
-        where = after_failure(self.model, self._s[:self._nx], s_prior[:self._nx], self._u)
-        if self._trusted:
-            self._s_trusted[:] = self._s
-        if flags[2] and self._trusted:  # the prediction is usable: it is the estimate
-            self._s[:] = s_prior
-            status = kept
-        else:
-            nx = self.model.nx
-            if self._sqrt:  # the factor of S S^T + P0
-                x = self._anchor(self._s_trusted[:nx])[0]
-                self._s[nx:] = with_P0(self._s_trusted[nx:], self._P0_data, True)
-            else:
-                nd = self.model.ndx
-                x, P = self._anchor(self._s_trusted[:nx],
-                                    self._s_trusted[nx:].reshape(nd, nd, order="F"))
-                assert P is not None  # (a covariance given, a covariance returned)
-                self._s[nx:] = P.ravel(order="F")
-            self._s[:nx] = x
-            s_new, _, flags, _ = self._update.evaluate()
-            if flags[1]:
-                self._s[:] = s_new
-            status = (f"failed: {what}; re-anchored on the last trusted estimate "
-                      f"with P + P0" + ("" if flags[1] else " (no update: non-finite)"))
-        self._trusted = False
-        nx = self.model.nx
-        return self._s[:nx].copy(), StepInfo(status=status + where, success=False,
-                                             P=covariance(self._s[nx:], self.model.ndx,
-                                                          self._sqrt))
 
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
                t: ArrayLike | None = None) -> FilterResult:
@@ -280,7 +294,7 @@ class FusedKalman(Estimator):
         n = int(failed[0]) if failed.size else T  # the samples filtered in the graph
         X, P = np.empty((T, nx)), np.full((T, nd, nd), np.nan)
         X[:n] = S[:nx, :n].T
-        P[:n] = S[nx:, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major
+        P[:n] = S[nx:self._nP, :n].T.reshape(n, nd, nd).transpose(0, 2, 1)  # column-major
         if self._sqrt:
             P[:n] = reported(P[:n], True)
         innovation, nis = np.full((T, ny), np.nan), np.full(T, np.nan)

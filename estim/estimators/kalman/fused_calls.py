@@ -99,7 +99,8 @@ def record_call(est: FusedKalman, T: int, expand: bool = True, first: bool = Tru
 
     def make(inlined: bool) -> ca.Function:
         return record_function(f"{est.name}_record", est.model, est._build, T,
-                               expand=inlined, sqrt=est._sqrt, first=first)
+                               expand=inlined, sqrt=est._sqrt, first=first,
+                               extra=est._n_adapt)
 
     fun: FastFunction | None = None
     if est.jit and expand:
@@ -198,7 +199,7 @@ class SeedFilter:
         output."""
         est = self.est
         n, T, nx, nd = len(Sx), self.T, est.model.nx, est.model.ndx
-        P = Sx[:, :, nx:].reshape(n, T, nd, nd).transpose(0, 1, 3, 2)  # column-major
+        P = Sx[:, :, nx:nx + nd * nd].reshape(n, T, nd, nd).transpose(0, 1, 3, 2)
         if est._sqrt:
             P = reported(P, True)
         failed = (F[:, :, 1] == 0).any(axis=1)

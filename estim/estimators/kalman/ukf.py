@@ -344,7 +344,7 @@ class UKF(FusedKalman):
     @property
     def P(self) -> np.ndarray:
         """Current covariance."""
-        return covariance(self._s[self.model.nx:], self.model.nx, self._sqrt)
+        return covariance(self._s[self.model.nx:self._nP], self.model.nx, self._sqrt)
 
     def _failure_texts(self, flags) -> tuple[str, str]:
         return ("failed: update non-finite or its covariance not positive definite; "

@@ -61,15 +61,16 @@ def matrix(v, n: int, diagonal: bool):
     return ca.diag(v[[i * n + i for i in range(n)]]) if diagonal else ca.reshape(v, n, n)
 
 
-def step_symbols(model: Model, diagonal: dict[str, bool]) -> tuple:
+def step_symbols(model: Model, diagonal: dict[str, bool], extra: int = 0) -> tuple:
     """The symbols of a step: ``s, x, P, u, y, tuning``, the ``Q, R`` read from the
     tuning (diagonal only where ``diagonal["Q"]``/``diagonal["R"]``), the parameters
     ``p``, the mask of measured outputs (0 for NaN and for ±inf) and the count of ±inf in
-    ``y``."""
+    ``y``. ``extra``: entries of the filter state after ``[x; vec P]`` (an adaptive
+    filter's noise statistics, ``s[nx + nd^2:]``)."""
     m = model
     nx, ny, nd = m.nx, m.ny, m.ndx  # P, Q in the tangent space (nd = nx for vectors)
-    s = ca.SX.sym("s", nx + nd * nd)
-    x, P = s[:nx], ca.reshape(s[nx:], nd, nd)
+    s = ca.SX.sym("s", nx + nd * nd + extra)
+    x, P = s[:nx], ca.reshape(s[nx:nx + nd * nd], nd, nd)
     u = ca.SX.sym("u", m.nw)
     y = ca.SX.sym("y", ny)
     tun = ca.SX.sym("tuning", nd * nd + ny * ny)  # the tuning is data (set_tuning)
@@ -105,8 +106,8 @@ def fused_function(name: str, inputs: list, s_new, e, nis, ok, ok_prior, y_inf, 
 
 
 def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Function], T: int,
-                    expand: bool = True, sqrt: bool = False, first: bool = True
-                    ) -> ca.Function:
+                    expand: bool = True, sqrt: bool = False, first: bool = True,
+                    extra: int = 0) -> ca.Function:
     """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step ``build(predict)`` over
     ``T`` samples (the first an update only; not ``first``: every one a prediction and
     an update, a record continued from the filter state ``s0``), the filter state,
@@ -118,27 +119,30 @@ def record_function(prefix: str, model: Model, build: Callable[[bool], ca.Functi
     Scanned in blocks of about :math:`\\sqrt T` steps (:func:`estim._scan.blocked_scan`);
     not ``expand``: the step is called in loops instead of inlined (the form to compile
     to C). The Functions are named ``{prefix}_first``, ``{prefix}_step`` and
-    ``{prefix}_{T}`` (not ``first``: ``{prefix}_then_{T}``)."""
+    ``{prefix}_{T}`` (not ``first``: ``{prefix}_then_{T}``). ``extra``: entries of the
+    filter state after ``[x; vec P]`` (see :func:`step_symbols`), kept by a gated step."""
     m = model
     nx, ny, nw, nd = m.nx, m.ny, m.nw, m.ndx
+    nP = nx + nd * nd
 
     def scanned(predict: bool) -> ca.Function:
-        s, w = ca.SX.sym("s", nx + nd * nd), ca.SX.sym("w", nw)
+        s, w = ca.SX.sym("s", nP + extra), ca.SX.sym("w", nw)
         y, tun = ca.SX.sym("y", ny), ca.SX.sym("tuning", nd * nd + ny * ny)
         P0 = ca.SX.sym("P0", nd * nd)
         s_new, e, flags, s_prior = build(predict)(s, w, y, tun)
         if sqrt:
-            factor = tria(ca.horzcat(ca.reshape(s_prior[nx:], nd, nd), ca.reshape(P0, nd, nd)))
-            gated = ca.vertcat(s_prior[:nx], ca.vec(factor))
+            factor = tria(ca.horzcat(ca.reshape(s_prior[nx:nP], nd, nd),
+                                     ca.reshape(P0, nd, nd)))
+            gated = ca.vertcat(s_prior[:nx], ca.vec(factor), s_prior[nP:])
         else:
-            gated = s_prior + ca.vertcat(ca.SX(nx, 1), P0)
+            gated = s_prior + ca.vertcat(ca.SX(nx, 1), P0, ca.SX(extra, 1))
         s_next = ca.if_else(flags[7], gated, s_new)
         return ca.Function(f"{prefix}_" + ("step" if predict else "first"),
                            [s, w, y, tun, P0], [s_next, s_next, e, flags],
                            ["s", "w", "y", "tuning", "P0"],
                            ["s_next", "s_out", "innovation", "flags"])
 
-    s0 = ca.MX.sym("s0", nx + nd * nd)
+    s0 = ca.MX.sym("s0", nP + extra)
     Y, W = ca.MX.sym("Y", ny, T), ca.MX.sym("W", nw, T)
     tun, P0 = ca.MX.sym("tuning", nd * nd + ny * ny), ca.MX.sym("P0", nd * nd)
     name = f"{prefix}_{T}"
