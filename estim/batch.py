@@ -276,7 +276,7 @@ def run_batches(scenario: Scenario, filters: dict[str, FusedKalman], seeds: list
         runs = {name: SeedFilter(est, plant.u_step, S) for name, est in filters.items()}
         building.result()
     x_end, X, Y = np.empty((S, nx)), np.empty((S, T, nx)), np.empty((S, T, ny))
-    states = {name: np.empty((S, T, nx + nx * nx)) for name in filters}
+    states = {name: np.empty((S, T, est._s.size)) for name, est in filters.items()}
     flags = {name: np.empty((S, T, NFLAGS)) for name in filters}
     scores = {name: _Scores(S, nx) for name in filters}
     outs: dict[str, list[dict]] = {name: [] for name in filters}

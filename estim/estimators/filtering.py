@@ -148,6 +148,10 @@ class FilterResult(Estimates):
     converged : (T,) bool array or None
         For a filter whose update iterates (``iterations`` > 1): whether each sample's
         update converged (:mod:`estim.estimators.kalman.iterated_updates`); None otherwise.
+    R : (T, ny, ny) array or None
+        For an adaptive filter (``adapt="R"``): the measurement noise covariance it has
+        learnt after each sample (:mod:`estim.estimators.kalman.adaptive`); None
+        otherwise.
     t, state_names, manifold :
         Sample times, state names and the states' manifold (see :class:`Estimates`).
     """
@@ -159,3 +163,4 @@ class FilterResult(Estimates):
     status: tuple[str, ...]
     success: bool
     converged: np.ndarray | None = None
+    R: np.ndarray | None = None

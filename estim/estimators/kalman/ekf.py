@@ -7,6 +7,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._validate import as_bool, as_choice, as_int
+from estim.estimators.kalman.adaptive import (
+    adapted,
+    check_adapt,
+    noise_update,
+    predicted_statistics,
+    start_statistics,
+)
 from estim.estimators.kalman.continuous import (
     DISCRETISATIONS,
     SUBSTEPS,
@@ -15,7 +22,7 @@ from estim.estimators.kalman.continuous import (
     smoother_prediction,
 )
 from estim.estimators.kalman.fused import FusedKalman
-from estim.estimators.kalman.heavy_tails import check_noise, student_t_update
+from estim.estimators.kalman.heavy_tails import check_noise
 from estim.estimators.kalman.iterated_updates import check_iterated, ekf_update
 from estim.estimators.kalman.smoothing import SmoothResult, iterated, rts, smoothing_passes
 from estim.estimators.kalman.square_root import check_form, covariances, ekf_step
@@ -83,6 +90,11 @@ class EKF(FusedKalman):
         freedom and scale ``R``: the variational update that inflates the noise of a
         measurement in the tails (:mod:`~estim.estimators.kalman.heavy_tails`; a ``dof`` of
         5 to 10, docs/heavy_tails.md). Covariance form, vector states, ``iterations=1``.
+    adapt, forgetting :
+        ``adapt="R"``: learn a drifting measurement noise covariance online, the variational
+        Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about
+        :math:`1/(1-\rho)` samples remembered; :mod:`~estim.estimators.kalman.adaptive`);
+        the learnt ``R`` in ``info.extra["R"]`` and ``FilterResult.R``, starting at ``R``.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
@@ -160,6 +172,7 @@ class EKF(FusedKalman):
     name = "ekf"
     _checks_inf_itself = True
     _manifold_aware = True
+    _adapt_start, _adapted = start_statistics, adapted
 
     def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
                  x0: ArrayLike, P0: ArrayLike, clip: bool = False,
@@ -168,7 +181,8 @@ class EKF(FusedKalman):
                  iterations: int = 1, damping: str | None = None, tol: float = 1e-4,
                  Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
                  discretisation: str = "moments", noise: str = "gaussian",
-                 dof: float | None = None):
+                 dof: float | None = None, adapt: str | None = None,
+                 forgetting: float = 0.98):
         Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         self.discretisation = as_choice(discretisation, DISCRETISATIONS, "discretisation")
         if self.discretisation != "moments" and self.Qc is None:
@@ -184,6 +198,7 @@ class EKF(FusedKalman):
                              f"covariance form on vector states; use form='covariance' "
                              f"(and a model without quaternions or angles), or iterations=1")
         self.noise, self.dof = check_noise(noise, dof, self)
+        self.adapt, self.forgetting, self._n_adapt = check_adapt(adapt, forgetting, self)
         self.clip = as_bool(clip, "clip")
         self.gate = self._gate(gate)
         self.lower, self.upper = self._bounds(lower, upper)
@@ -199,6 +214,8 @@ class EKF(FusedKalman):
         m = self.model
         nx = m.nx
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
+        a_prior = a_new = predicted_statistics(self, s[self._nP:]) if predict and self.adapt \
+            else s[self._nP:]  # an adaptive filter's statistics (none without adapt)
         if predict and self.Qc is not None:  # the moments over the interval
             xb, Pb = ekf_prediction(self, x, P, u, p, Q)
         elif predict:
@@ -215,10 +232,10 @@ class EKF(FusedKalman):
         if self.iterations > 1:  # Gauss-Newton on the update, plain or damped
             xh, Ph, S, converged = ekf_update(m, xb, Pb, y, mask, Rm, uy, p, self.iterations,
                                               self.damping, self.tol)
-        elif self.dof is not None:  # the variational Student-t update
+        elif self.dof is not None or self.adapt:  # Student-t or adaptive noise
             C = D @ m.H_x(xb, uy, p)
-            xh, Ph, S, _ = student_t_update(xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, R, mask,
-                                            self.dof)
+            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, R, mask,
+                                            a_prior)
         else:
             C = D @ m.H_x(xb, uy, p)
             S = C @ Pb @ C.T + Rm
@@ -231,8 +248,8 @@ class EKF(FusedKalman):
         if self.clip:
             xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
         nis = ca.dot(e, ca.solve(S, e))
-        s_new = ca.vertcat(xh, ca.vec(Ph))
-        s_prior = ca.vertcat(xb, ca.vec(Pb))
+        s_new = ca.vertcat(xh, ca.vec(Ph), a_new)
+        s_prior = ca.vertcat(xb, ca.vec(Pb), a_prior)
         ok, ok_mean, ok_prior = ekf_checks(s_new, nis, Ph, xb, Pb)
         name = "ekf_predict_update" if predict else "ekf_update"
         return self._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,
@@ -292,17 +309,7 @@ class EKF(FusedKalman):
         H. E. Rauch, F. Tung, C. T. Striebel (1965), AIAA J. 3(8);
         S. Särkkä, *Bayesian Filtering and Smoothing*, 2013, sec. 9.1.
         """
-        m, Q = self.model, self.Q
-        jacobian = None if m.manifold.euclidean_states else tangent_transition_jacobian(m)
-
-        def predict(X, P, W):
-            A = transitions(m, X, W, jacobian=True) if jacobian is None else \
-                np.asarray(jacobian.map(len(X))(X.T, W.T, ca.DM(m.p))).reshape(
-                    m.ndx, len(X), m.ndx).transpose(1, 0, 2)
-            D = P @ A.transpose(0, 2, 1)  # P_k A_k^T
-            Pb = A @ D + Q
-            return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
-
+        predict = _extended_predictions(self)
         passes = smoothing_passes(self, iterations)
         clip = (lambda x: np.minimum(np.maximum(x, self.lower), self.upper)) if self.clip \
             else None
@@ -328,3 +335,21 @@ class EKF(FusedKalman):
         return ("failed: non-finite update (h or dh/dx at the prediction); kept the prediction",
                 "non-finite " + ("update" if flags[2] else "Jacobian dF/dx" if flags[5]
                                  else "prediction F(x, u)"))
+
+
+def _extended_predictions(ekf: EKF):
+    """The extended smoother's predictions of every transition at once: ``(X, P, W) ->
+    (x_bar, P_bar, D)``, :math:`D = P_k A_k^\top` (on quaternions and angles, the
+    Jacobian along the retraction)."""
+    m, Q = ekf.model, ekf.Q
+    jacobian = None if m.manifold.euclidean_states else tangent_transition_jacobian(m)
+
+    def predict(X, P, W):
+        A = transitions(m, X, W, jacobian=True) if jacobian is None else \
+            np.asarray(jacobian.map(len(X))(X.T, W.T, ca.DM(m.p))).reshape(
+                m.ndx, len(X), m.ndx).transpose(1, 0, 2)
+        D = P @ A.transpose(0, 2, 1)  # P_k A_k^T
+        Pb = A @ D + Q
+        return transitions(m, X, W), 0.5 * (Pb + Pb.transpose(0, 2, 1)), D
+
+    return predict

@@ -212,6 +212,8 @@ class FusedKalman(Estimator):
                               iterations=self._update_iterations)
         if self._update_iterations:
             info.extra["converged"] = bool(flags[8])
+        if self._n_adapt:  # the noise the filter has learnt
+            info.extra.update(self._adapted(self._s[self._nP:]))
         if suspect:
             info.__dict__["status"] = self._consistency(flags[0], int(flags[4]),
                                                         bool(flags[7]), bool(flags[8]))
@@ -225,9 +227,18 @@ class FusedKalman(Estimator):
         """``(the kept-prediction status, what failed)`` of a failed step."""
         raise NotImplementedError
 
+    @property
+    def x(self) -> np.ndarray:
+        """Current estimate."""
+        return self._s[: self.model.nx].copy()
+
     def _adapt_start(self) -> np.ndarray:
         """The adaptive statistics at a reset (none: a filter that does not adapt)."""
         return np.zeros(self._n_adapt)
+
+    def _adapted(self, a: np.ndarray) -> dict[str, np.ndarray]:
+        """The covariances the statistics ``a`` stand for (``info.extra``)."""
+        return {}
 
     def _consistency(self, nis: float, dof: int, rejected: bool, converged: bool = True
                      ) -> str:
@@ -302,6 +313,8 @@ class FusedKalman(Estimator):
         measured = F[4, :n] > 0
         nis[:n][measured] = F[0, :n][measured]
         flagged, suspect = record_statuses(self, F[:, :n].T, P[:n])
+        learnt = {k: np.concatenate([v, np.full((T - n,) + v.shape[1:], np.nan)])
+                  for k, v in self._adapted(S[self._nP:, :n].T).items()}  # (adapt=)
         converged = None
         if self._update_iterations:
             converged = np.zeros(T, dtype=bool)
@@ -331,11 +344,13 @@ class FusedKalman(Estimator):
             nis[k] = info.nis
             if converged is not None:
                 converged[k] = info.extra.get("converged", False)
+            for key, v in learnt.items():
+                v[k] = info.extra[key]
             status.append(info.status)
             success = success and info.success
         return stamped(FilterResult(x=X, P=P, innovation=innovation, nis=nis,
                                     status=tuple(status), success=success,
-                                    converged=converged), self.model, t)
+                                    converged=converged, R=learnt.get("R")), self.model, t)
 
     def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples

@@ -125,6 +125,9 @@ class IMM(Estimator):
             if not isinstance(est, FusedKalman):
                 raise TypeError(f"estimators[{key!r}] must be an estim.EKF or estim.UKF, "
                                 f"got {type(est).__name__}")
+            if est._n_adapt:
+                raise ValueError(f"estimators[{key!r}] adapts its noise (adapt=): the modes "
+                                 f"of an IMM mix their Gaussians only")
         modes = list(estimators.values())
         first = modes[0]
         for key, est in estimators.items():

@@ -12,6 +12,13 @@ from numpy.typing import ArrayLike
 from estim._manifold import NP
 from estim._validate import as_bool, as_float, as_int
 from estim.estimators.base import EstimationWarning
+from estim.estimators.kalman.adaptive import (
+    adapted,
+    check_adapt,
+    noise_update,
+    predicted_statistics,
+    start_statistics,
+)
 from estim.estimators.kalman.continuous import (
     SUBSTEPS,
     continuous_noise,
@@ -20,7 +27,7 @@ from estim.estimators.kalman.continuous import (
     unscented_smoother_prediction,
 )
 from estim.estimators.kalman.fused import FusedKalman
-from estim.estimators.kalman.heavy_tails import check_noise, student_t_update
+from estim.estimators.kalman.heavy_tails import check_noise
 from estim.estimators.kalman.iterated_updates import check_iterated, posterior_linearised_update
 from estim.estimators.kalman.smoothing import (
     SmoothResult,
@@ -104,6 +111,8 @@ class UKF(FusedKalman):
     noise, dof :
         ``"student-t"`` with ``dof`` (above 2): as for :class:`~estim.EKF`, linearised by
         the sigma points' statistical linear regression.
+    adapt, forgetting :
+        ``adapt="R"``, a measurement noise learnt online, as for :class:`~estim.EKF`.
     points : {"merwe", "julier", "cubature", "cubature5", "gauss-hermite"}
         Sigma-point set: Van der Merwe's scaled points (default), Julier's, the
         :math:`2n_x` equally weighted points of the cubature Kalman filter, the
@@ -168,6 +177,7 @@ class UKF(FusedKalman):
     name = "ukf"
     _manifold_aware = True
     _checks_inf_itself = True
+    _adapt_start, _adapted = start_statistics, adapted
 
     def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
                  x0: ArrayLike, P0: ArrayLike, points: str = "merwe", alpha: float = 1.0,
@@ -175,7 +185,8 @@ class UKF(FusedKalman):
                  gate: float | None = None, form: str = "covariance", jit: bool = False,
                  order: int = 3, iterations: int = 1, damping: str | None = None,
                  tol: float = 1e-4, Qc: ArrayLike | None = None, substeps: int = SUBSTEPS,
-                 noise: str = "gaussian", dof: float | None = None):
+                 noise: str = "gaussian", dof: float | None = None,
+                 adapt: str | None = None, forgetting: float = 0.98):
         Q, self.Qc, self.substeps = continuous_noise(model, Q, Qc, substeps)
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)
         self.form, self._sqrt = check_form(form)
@@ -198,6 +209,7 @@ class UKF(FusedKalman):
                              f"states; use form='covariance', or iterations=1")
         self._update_iterations = self.iterations if self.iterations > 1 else 0
         self.noise, self.dof = check_noise(noise, dof, self)
+        self.adapt, self.forgetting, self._n_adapt = check_adapt(adapt, forgetting, self)
         #: the spread, the weights, and the unit points (nx, N) of a rule given by its
         #: points or None (merwe, julier, cubature: the rows of the factor of c P)
         self._scale, self._Wm, self._Wc, self._unit = _rule(self, model)
@@ -214,7 +226,8 @@ class UKF(FusedKalman):
         m = self.model
         Wm, Wc = self._Wm, self._Wc
         s, x, P, u, y, tun, Q, R, p, mask, y_inf = self._symbols()
-
+        a_prior = a_new = predicted_statistics(self, s[self._nP:]) if predict and self.adapt \
+            else s[self._nP:]  # an adaptive filter's statistics (none without adapt)
         if predict and self.Qc is not None:  # the sigma-point moments over the interval
             xb, Pb, definite = ukf_prediction(self, x, P, u, p, Q)
             ok_mean = ca.logic_and(definite, finite(ca.vertcat(xb, ca.vec(Pb))))
@@ -247,9 +260,9 @@ class UKF(FusedKalman):
         Ph = Pb - K @ S @ K.T
         Ph = 0.5 * (Ph + Ph.T)
         converged = None
-        if self.dof is not None:  # the variational Student-t update
-            xh, Ph, S, _ = student_t_update(xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), R, mask,
-                                            self.dof)
+        if self.dof is not None or self.adapt:  # Student-t or adaptive noise
+            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), R, mask,
+                                            a_prior)
         if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
             xh, Ph, posterior, converged = posterior_linearised_update(
                 self, xb, Pb, xh, Ph, y, mask, D @ R @ D + ca.diag(1 - mask), uy, p,
@@ -258,8 +271,8 @@ class UKF(FusedKalman):
         if self.clip:
             xh = ca.fmin(ca.fmax(xh, ca.DM(self.lower)), ca.DM(self.upper))
         nis = ca.dot(e, ca.solve(S, e))
-        s_new = ca.vertcat(xh, ca.vec(Ph))
-        s_prior = ca.vertcat(xb, ca.vec(Pb))
+        s_new = ca.vertcat(xh, ca.vec(Ph), a_new)
+        s_prior = ca.vertcat(xb, ca.vec(Pb), a_prior)
         # finite, and a covariance the next sigma points can be drawn from
         ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _cholesky(Ph)[1])
         name = "ukf_predict_update" if predict else "ukf_update"
@@ -335,11 +348,6 @@ class UKF(FusedKalman):
         return first if passes == 1 else posterior_linearised(
             self, first, Y, U, t, passes,
             moments=sigma_moments(self) if self.Qc is not None else None)
-
-    @property
-    def x(self) -> np.ndarray:
-        """Current estimate."""
-        return self._s[: self.model.nx].copy()
 
     @property
     def P(self) -> np.ndarray:
