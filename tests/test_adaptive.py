@@ -122,3 +122,28 @@ def test_what_the_adaptive_filters_refuse(tmp_path):
         estim.IMM({"a": f, "b": estim.EKF(m, **kw)},
                   transition=np.array([[0.95, 0.05], [0.05, 0.95]]))
     assert estim.EKF(m, **kw).filter(switching_record()).R is None
+
+
+def test_a_switching_noise_is_tracked_near_the_oracle():
+    """The resonator of benchmarks/adaptive.py (R 1, 4, 1, then drifting), 5 seeds: the
+    adaptive EKF (forgetting 0.95) is within 5 % of filterpy's Kalman filter told the true
+    R_k at every sample (measured over 50 seeds: 1.009 in the median, 1.044 at worst), and
+    better than the EKF with the record's mean R on average."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "benchmarks"))
+    from adaptive import discretised, model, oracle, record
+
+    F, Qd = discretised()
+    m = model(F)
+    tun = {"Q": Qd, "x0": [0.0, 0.0], "P0": np.eye(2)}
+    vb = estim.EKF(m, **tun, R=1.0, adapt="R", forgetting=0.95)
+    fixed = estim.EKF(m, **tun, R=1.5)
+    ratios, gains = [], []
+    for seed in range(5):
+        X, Y, Rk = record(seed, F, Qd, False)
+        best = np.sqrt(np.mean((oracle(F, Qd, Y, Rk) - X) ** 2))
+        ratios.append(np.sqrt(np.mean((vb.filter(Y).x - X) ** 2)) / best)
+        gains.append(np.sqrt(np.mean((fixed.filter(Y).x - X) ** 2)) / best - ratios[-1])
+    assert max(ratios) < 1.05 and np.mean(gains) > 0
