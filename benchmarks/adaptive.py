@@ -12,6 +12,8 @@ switches and drifts: 1 for the first 300 samples, 4 until 600, 1 until 900, then
 * ``VB-EKF``: ``estim.EKF(..., adapt="R", forgetting=rho)`` from R = 1 (``--forgetting``,
   default 0.95);
 * ``VB-UKF``: the same with the UKF;
+* ``Sage-Husa EKF``: ``adapt="sage-husa"`` with the same forgetting, the classical
+  fading-memory estimate;
 * ``fixed R``: ``estim.EKF`` with R = 1.5, the record's mean noise variance.
 
 Printed: RMSE against the oracle's (median and range over seeds), the learnt R at 100
@@ -101,10 +103,12 @@ def main() -> None:
     tun = {"Q": Qd, "x0": [0.0, 0.0], "P0": np.eye(2)}
     filters = {"VB-EKF": estim.EKF(m, **tun, R=1.0, adapt="R", forgetting=args.forgetting),
                "VB-UKF": estim.UKF(m, **tun, R=1.0, adapt="R", forgetting=args.forgetting),
+               "Sage-Husa EKF": estim.EKF(m, **tun, R=1.0, adapt="sage-husa",
+                                          forgetting=args.forgetting),
                "fixed R": estim.EKF(m, **tun, R=1.5 if not args.stationary else 1.0)}
     rmse = {k: [] for k in ["oracle", *filters, "ML-tuned EKF"]}
     nees = {k: [] for k in filters}
-    learnt = {k: [] for k in ("VB-EKF", "VB-UKF")}
+    learnt = {k: [] for k in ("VB-EKF", "VB-UKF", "Sage-Husa EKF")}
     for seed in range(args.seeds):
         X, Y, Rk = record(seed, F, Qd, args.stationary)
         rmse["oracle"].append(np.sqrt(np.mean((oracle(F, Qd, Y, Rk) - X) ** 2)))

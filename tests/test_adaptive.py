@@ -147,3 +147,59 @@ def test_a_switching_noise_is_tracked_near_the_oracle():
         ratios.append(np.sqrt(np.mean((vb.filter(Y).x - X) ** 2)) / best)
         gains.append(np.sqrt(np.mean((fixed.filter(Y).x - X) ** 2)) / best - ratios[-1])
     assert max(ratios) < 1.05 and np.mean(gains) > 0
+
+
+def definite(M):
+    """Every Cholesky pivot above DEFINITE times the largest variance."""
+    from estim.estimators.kalman.adaptive import DEFINITE
+
+    p0 = M[0, 0]
+    p1 = M[1, 1] - M[1, 0] ** 2 / p0 if p0 > 0 else -1.0
+    return min(p0, p1) > DEFINITE * max(M[0, 0], M[1, 1])
+
+
+def sage_husa(Y, b):
+    """Sage and Husa's fading-memory estimate, per sample (numpy): the Kalman update with
+    the current estimate, then the estimate moved towards e e^T - H Pbar H^T, a candidate
+    that is not positive definite replaced by the one without the subtraction, or the
+    estimate kept."""
+    x, P, Rh, j = np.zeros(2), np.eye(2), R0.copy(), 0
+    xs, Rs, fallbacks = [], [], 0
+    for k, y in enumerate(Y):
+        if k:
+            x, P = A @ x, A @ P @ A.T + Q
+        rows = np.isfinite(y)
+        Hm, Rm = H[rows], Rh[np.ix_(rows, rows)]
+        S = Hm @ P @ Hm.T + Rm
+        K = P @ Hm.T @ np.linalg.inv(S)
+        e = y[rows] - Hm @ x
+        Pzz = Hm @ P @ Hm.T
+        x, P = x + K @ e, P - K @ S @ K.T
+        if rows.all():
+            d = (1 - b) / (1 - b ** (j + 1))
+            first = (1 - d) * Rh + d * (np.outer(e, e) - Pzz)
+            second = (1 - d) * Rh + d * np.outer(e, e)
+            if definite(first):
+                Rh = first
+            else:
+                fallbacks += 1
+                Rh = second if definite(second) else Rh
+            j += 1
+        xs.append(x)
+        Rs.append(Rh)
+    return np.array(xs), np.array(Rs), fallbacks
+
+
+@pytest.mark.parametrize("F", [estim.EKF, estim.UKF])
+def test_sage_husa_is_the_classical_estimate_with_its_guard(F):
+    """``adapt="sage-husa"``: the numpy transcription to 1e-10 on the switching record,
+    whose first samples' estimates are not positive definite (the classical failure,
+    guarded: every learnt R is positive definite)."""
+    Y = switching_record()
+    want_x, want_R, fallbacks = sage_husa(Y, 0.97)
+    assert fallbacks > 0  # the guard is exercised
+    res = F(linear_model(), Q=Q, R=R0, x0=np.zeros(2), P0=np.eye(2), adapt="sage-husa",
+            forgetting=0.97).filter(Y)
+    np.testing.assert_allclose(res.x, want_x, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(res.R, want_R, rtol=0, atol=1e-10)
+    assert np.linalg.eigvalsh(res.R).min() > 0

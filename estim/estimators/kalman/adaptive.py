@@ -30,9 +30,24 @@ the first measurements after the gap move it quickly. The statistics start at
 :math:`\hat R = R` (the filter's ``R``) with the weight of the forgetting's window
 (:math:`\nu_0 - d - 1 = 1/(1-\rho)`, at most :data:`PRIOR_WEIGHT` without forgetting).
 
+``adapt="sage-husa"`` is the classical baseline (Sage & Husa 1969), a fading-memory mean
+of the innovations' outer products less their predicted part,
+
+.. math::
+    \hat R_k = (1 - d_k) \hat R_{k-1} + d_k (e_k e_k^\top - H \bar P_k H^\top), \qquad
+    d_k = \frac{1 - b}{1 - b^{j+1}}
+
+(:math:`b` the forgetting, :math:`j` the updates so far; :math:`d_k = 1/(j+1)` without
+forgetting), after the Kalman update with :math:`\hat R_{k-1}`. Its known failure is the
+loss of definiteness (the subtraction); guarded: a candidate that is not positive definite
+is replaced by :math:`(1 - d_k)\hat R_{k-1} + d_k e_k e_k^\top`, and if that is not
+either, :math:`\hat R_{k-1}` is kept. Its statistics ``[j; vec R]`` start at the filter's
+``R`` (which the first update replaces: :math:`d_0 = 1`).
+
 References
 ----------
-S. Särkkä, A. Nummenmaa, "Recursive noise adaptive Kalman filtering by variational Bayesian
+A. P. Sage, G. W. Husa, "Adaptive filtering with unknown prior statistics", Proc. JACC
+1969; S. Särkkä, A. Nummenmaa, "Recursive noise adaptive Kalman filtering by variational Bayesian
 approximations", IEEE TAC 54(3), 2009; S. Särkkä, J. Hartikainen, "Non-linear noise
 adaptive Kalman filtering via variational Bayes", IEEE MLSP 2013.
 """
@@ -47,11 +62,15 @@ import numpy as np
 from estim._validate import as_choice, as_float
 from estim.estimators.kalman.heavy_tails import ITERATIONS, student_t_update
 
-__all__ = ["ADAPTS", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
+__all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
            "predicted_statistics", "start_statistics"]
 
-#: What the filters adapt: the measurement noise covariance.
-ADAPTS = ("R",)
+#: What the filters adapt: the measurement noise covariance, by variational Bayes or by
+#: Sage and Husa's fading-memory estimate.
+ADAPTS = ("R", "sage-husa")
+#: The smallest Cholesky pivot, relative to the largest variance, of a Sage-Husa estimate
+#: taken as positive definite.
+DEFINITE = 1e-10
 #: The weight (:math:`\nu_0 - d - 1`, in samples) of the start :math:`\hat R = R` without
 #: forgetting (``forgetting=1``).
 PRIOR_WEIGHT = 20.0
@@ -81,13 +100,18 @@ def start_statistics(est: Any) -> np.ndarray:
     (nothing for a filter that does not adapt)."""
     if not est._n_adapt:
         return np.zeros(0)
+    if est.adapt == "sage-husa":
+        return np.concatenate([[0.0], est.R.ravel(order="F")])
     d = est.model.ny
     weight = 1.0 / (1.0 - est.forgetting) if est.forgetting < 1 else PRIOR_WEIGHT
     return np.concatenate([[weight + d + 1.0], (weight * est.R).ravel(order="F")])
 
 
 def predicted_statistics(est: Any, a: Any) -> Any:
-    """The statistics ``[nu; vec V]`` after the forgetting's prediction."""
+    """The statistics ``[nu; vec V]`` after the forgetting's prediction (Sage-Husa's
+    unchanged)."""
+    if est.adapt == "sage-husa":
+        return a
     d, rho = est.model.ny, est.forgetting
     return ca.vertcat(rho * (a[0] - d - 1) + d + 1, rho * a[1:])
 
@@ -100,6 +124,8 @@ def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any,
     if est.dof is not None:
         xh, Ph, S, _ = student_t_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
         return xh, Ph, S, a
+    if est.adapt == "sage-husa":
+        return _sage_husa(est, xb, Pb, e, Pxz, Pzz, mask, a)
     d = est.model.ny
     D, E = ca.diag(mask), ca.diag(1 - mask)
     every = ca.sum1(mask) == d  # an inverse Wishart takes whole vectors
@@ -131,4 +157,43 @@ def adapted(est: Any, a: np.ndarray) -> dict[str, np.ndarray]:
     d = est.model.ny
     a = np.asarray(a, dtype=float)
     V = a[..., 1:].reshape(a.shape[:-1] + (d, d)).swapaxes(-1, -2)
-    return {"R": V / (a[..., :1, None] - d - 1)}
+    return {"R": V if est.adapt == "sage-husa" else V / (a[..., :1, None] - d - 1)}
+
+
+def _sage_husa(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, mask: Any, a: Any
+               ) -> tuple[Any, Any, Any, Any]:
+    """Sage and Husa's update (see the module): the Kalman update with the current
+    estimate, then the estimate moved towards the innovation's, definiteness guarded."""
+    d, b = est.model.ny, est.forgetting
+    D, E = ca.diag(mask), ca.diag(1 - mask)
+    j, Rh = a[0], ca.reshape(a[1:], d, d)
+    S = Pzz + D @ Rh @ D + E
+    S = 0.5 * (S + S.T)
+    K = ca.solve(S, Pxz.T).T
+    xh = xb + K @ e
+    Ph = Pb - K @ S @ K.T
+    dk = 1 / (j + 1) if b == 1 else (1 - b) / (1 - b ** (j + 1))
+    ee = e @ e.T
+    first = (1 - dk) * Rh + dk * (ee - Pzz)
+    second = (1 - dk) * Rh + dk * ee
+    Rn = ca.if_else(_definite(first), first, ca.if_else(_definite(second), second, Rh))
+    every = ca.sum1(mask) == d  # (whole vectors only, as the variational filter)
+    Rn = ca.if_else(every, 0.5 * (Rn + Rn.T), Rh)
+    return xh, 0.5 * (Ph + Ph.T), S, ca.vertcat(ca.if_else(every, j + 1, j), ca.vec(Rn))
+
+
+def _definite(M: Any) -> Any:
+    """1 where the symmetric ``M`` is positive definite: every Cholesky pivot above
+    :data:`DEFINITE` times the largest diagonal entry (a rank-deficient outer product,
+    definite only by rounding, is not)."""
+    n = M.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    ok = ca.SX(1)
+    scale = ca.mmax(ca.diag(M))
+    for j in range(n):
+        p = M[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
+        ok = ca.logic_and(ok, p > DEFINITE * scale)
+        L[j][j] = ca.sqrt(ca.fmax(p, 1e-300))
+        for i in range(j + 1, n):
+            L[i][j] = (M[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
+    return ok

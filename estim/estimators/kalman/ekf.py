@@ -94,7 +94,8 @@ class EKF(FusedKalman):
         ``adapt="R"``: learn a drifting measurement noise covariance online, the variational
         Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about
         :math:`1/(1-\rho)` samples remembered; :mod:`~estim.estimators.kalman.adaptive`);
-        the learnt ``R`` in ``info.extra["R"]`` and ``FilterResult.R``, starting at ``R``.
+        the learnt ``R`` in ``info.extra["R"]`` and ``FilterResult.R``, starting at ``R``;
+        ``adapt="sage-husa"``: Sage and Husa's fading-memory estimate, definiteness guarded.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
