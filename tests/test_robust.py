@@ -239,3 +239,62 @@ def test_multi_rate_record_is_the_kalman_smoother():
                         np.repeat(kf.Q[None], len(Y), 0))[0]
     np.testing.assert_allclose(fit.x, xs_s, atol=1e-8)
     np.testing.assert_allclose(fit.P_last, Ps[-1], atol=1e-10)
+
+
+def test_the_student_t_loss_is_the_t_likelihood():
+    """``loss="student-t", dof=nu``: the loss is twice the negative log-density of
+    Student's t (scipy.stats) less its value at zero, its weight rho'(r) / 2r; the
+    full-information fit is scipy's least_squares with that loss written from the density
+    (to 1e-6, the IRLS stopping rule, and the same cost to 1e-10), and it resists the
+    100-sigma outliers that pull the least-squares fit away."""
+    from scipy import stats
+
+    nu = 4.0
+    r = np.array([0.0, 0.3, -1.0, 1.3, -2.0, 7.5, -40.0, 1e3])
+    loss = RobustLoss("student-t", nu)
+    want = -2 * (stats.t.logpdf(r, nu) - stats.t.logpdf(0.0, nu))
+    np.testing.assert_allclose(loss.rho(r), want, rtol=1e-12, atol=1e-14)
+    h = 1e-6
+    for rk in r[1:]:
+        slope = (loss.rho(np.array([rk + h])) - loss.rho(np.array([rk - h])))[0] / (2 * h)
+        assert loss.weight(np.array([rk]))[0] == pytest.approx(slope / (2 * rk), rel=1e-5)
+    m, X, _, Yo, mask = _record(60, seed=3, outliers=6)
+    T, nm = len(Yo), 2 + 2 * 59
+    Z = ca.MX.sym("Z", 2, T)
+    Fx = m.F.map(T - 1)(Z[:, :-1], ca.DM.zeros(0, T - 1), m.p)
+    res_ = ca.vertcat(Z[:, 0], ca.vec((Z[:, 1:] - Fx) / 0.1), ca.vec(ca.DM(Yo.T) - Z))
+    fun = ca.Function("r", [ca.vec(Z)], [res_, ca.jacobian(res_, ca.vec(Z))])
+
+    def rho(z):  # the t's: (nu + 1) log(1 + z / nu) of z = r^2, on the measurements
+        out = np.vstack([z, np.ones_like(z), np.zeros_like(z)])
+        zm = z[nm:]
+        out[0, nm:] = (nu + 1) * np.log1p(zm / nu)
+        out[1, nm:] = (nu + 1) / (nu + zm)
+        out[2, nm:] = -(nu + 1) / (nu + zm) ** 2
+        return out
+
+    ref = least_squares(lambda z: np.asarray(fun(z)[0]).ravel(), np.zeros(2 * T),
+                        jac=lambda z: fun(z)[1].full(), loss=rho, method="trf", xtol=1e-15,
+                        ftol=1e-15, gtol=1e-15, max_nfev=5000)
+    fit = estim.FullInformation(m, loss="student-t", dof=nu, **TUNING).fit(Yo)
+    assert fit.status == "ok"
+    np.testing.assert_allclose(fit.x.ravel(), ref.x, atol=1e-6)
+    assert fit.cost == pytest.approx(2 * ref.cost, rel=1e-10)
+    assert np.all(fit.measurement_weights[mask] < 0.01)
+    plain = estim.FullInformation(m, **TUNING).fit(Yo)
+    rmse = [np.sqrt(np.mean((f.x - X) ** 2)) for f in (plain, fit)]
+    assert rmse[1] < 0.5 < 3.0 < rmse[0]
+    log = estim.replay(estim.MHE(m, horizon=10, loss="student-t", dof=nu, **TUNING), Yo)
+    assert np.sqrt(np.mean((log.x_hat - X) ** 2)) < 0.6
+
+
+def test_what_the_student_t_loss_refuses():
+    m = estim.models.van_der_pol()
+    with pytest.raises(TypeError, match="needs dof="):
+        estim.MHE(m, horizon=5, loss="student-t", **TUNING)
+    with pytest.raises(ValueError, match="give loss='student-t'"):
+        estim.FullInformation(m, dof=4, **TUNING)
+    with pytest.raises(ValueError, match="dof must be above 2"):
+        estim.FullInformation(m, loss="student-t", dof=2, **TUNING)
+    with pytest.raises(ValueError, match="f_scale applies to"):
+        estim.MHE(m, horizon=5, loss="student-t", dof=4, f_scale=2.0, **TUNING)

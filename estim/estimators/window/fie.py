@@ -353,10 +353,11 @@ class FullInformation(Estimator):
         ``info.extra["solver"]``.
     solver_options : dict, optional
         As for :class:`~estim.MHE`.
-    loss, f_scale : optional
-        A robust measurement cost (``"huber"``, ``"soft_l1"``, ``"cauchy"``) and
-        its scale, as for :class:`~estim.MHE`; the fit then reports the final
-        weight of every measured value in ``FitResult.measurement_weights``.
+    loss, f_scale, dof : optional
+        A robust measurement cost (``"huber"``, ``"soft_l1"``, ``"cauchy"``,
+        ``"student-t"`` with ``dof``) and its scale, as for :class:`~estim.MHE`; the fit
+        then reports the final weight of every measured value in
+        ``FitResult.measurement_weights``.
     jit : bool
         Compiled code, as for :class:`~estim.MHE` (``solver_options={"jit": True}``).
 
@@ -378,11 +379,11 @@ class FullInformation(Estimator):
                  upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, jit: bool = False,
-                 Qc: ArrayLike | None = None):
+                 Qc: ArrayLike | None = None, dof: float | None = None):
         Q, self.Qc = noise_density(model, Q, Qc)
         solver_options, self.jit = jit_options(jit, solver_options)
         requested, solver = solver, resolve_solver(solver, solver_options)
-        self._loss = as_loss(loss, f_scale)
+        self._loss = as_loss(loss, f_scale, dof)
         self._prior = x0 is not None and P0 is not None
         self._x0_given = x0 is not None
         if P0 is not None and x0 is None:

@@ -64,8 +64,7 @@ class MHE(RealTimeIteration):
     ``"none"``
         :math:`\Gamma_s = 0` (the seeds' ``priorupdate='none'``).
     ``"fixed"``
-        :math:`\bar P_s = P_0`, :math:`\bar x_s` the previous window's
-        estimate of :math:`x_s`.
+        :math:`\bar P_s = P_0`, :math:`\bar x_s` the previous window's estimate of :math:`x_s`.
     ``"filtering"``
         :math:`\bar x_s = F(\hat x_{s-1}, u_{s-1})` from the MHE's own past
         estimate and :math:`\bar P_s` from the EKF Riccati recursion along
@@ -119,7 +118,7 @@ class MHE(RealTimeIteration):
         ``jit`` (as ``jit=True``) and ``mode`` (``"unrolled"``: one expanded graph,
         ``"mapped"``: expanded chunks of slots called in a loop, ``"auto"``: unrolled
         below about two million instructions: 4200 slots of Lorenz, 850 of 7 states).
-    loss : {"squared", "huber", "soft_l1", "cauchy"}
+    loss : {"squared", "huber", "soft_l1", "cauchy", "student-t"}
         The measurement cost. ``"squared"``: least squares, as above. The robust
         losses replace :math:`\|y_k - h(x_k)\|^2_{R^{-1}}` by
         :math:`\sum_i \rho(r_{k,i})` over the whitened residual components
@@ -127,10 +126,10 @@ class MHE(RealTimeIteration):
         gross outliers no longer pull the estimate; minimised by iteratively
         reweighted least squares, inside the Gauss-Newton iterations (or by
         reweighted solves for the NLP solvers). See :mod:`estim.solvers.least_squares.robust`.
-    f_scale : float, optional
-        Where a robust loss leaves the quadratic, in standard deviations (default:
-        1.345 for huber and soft_l1, 2.385 for cauchy: 95 % efficiency on Gaussian
-        noise), as ``scipy.optimize.least_squares``'s.
+    f_scale, dof : float, optional
+        Where a robust loss leaves the quadratic, in standard deviations (default 1.345
+        for huber and soft_l1, 2.385 for cauchy: 95 % efficiency on Gaussian noise);
+        ``loss="student-t"`` takes ``dof`` (above 2): MAP under Student-t noise of scale R.
     max_lag : int
         How many of the latest steps a late (out-of-sequence) measurement may
         belong to (0: none are kept). See :meth:`insert`.
@@ -181,11 +180,12 @@ class MHE(RealTimeIteration):
                  lower: ArrayLike | None = None, upper: ArrayLike | None = None,
                  solver: str = "auto", solver_options: dict | None = None,
                  loss: str = "squared", f_scale: float | None = None, max_lag: int = 0,
-                 rti: bool = False, jit: bool = False, Qc: ArrayLike | None = None):
+                 rti: bool = False, jit: bool = False, Qc: ArrayLike | None = None,
+                 dof: float | None = None):
         Q, self.Qc = noise_density(model, Q, Qc)
         arrival_cost = as_choice(arrival_cost, ARRIVAL_COSTS, "arrival_cost")
         self.rti = as_bool(rti, "rti")
-        self._loss = as_loss(loss, f_scale)
+        self._loss = as_loss(loss, f_scale, dof)
         self.max_lag = as_int(max_lag, "max_lag", minimum=0)
         self._requires_P0 = arrival_cost != "none"
         super().__init__(model, Q=Q, R=R, x0=x0, P0=P0)

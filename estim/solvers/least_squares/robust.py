@@ -14,6 +14,7 @@ huber      :math:`r^2` if :math:`|r| \le c`, else         :math:`\min(1, c/|r|)`
            :math:`2c|r| - c^2`
 soft_l1    :math:`2c^2(\sqrt{1 + (r/c)^2} - 1)`           :math:`1/\sqrt{1 + (r/c)^2}`
 cauchy     :math:`c^2 \ln(1 + (r/c)^2)`                   :math:`1/(1 + (r/c)^2)`
+student-t  :math:`(\nu + 1) \ln(1 + r^2/\nu)`             :math:`(\nu + 1)/(\nu + r^2)`
 ========== ============================================= ==================================
 
 These are twice ``scipy.optimize.least_squares``'s ``loss`` functions with the
@@ -35,6 +36,13 @@ zero.
 
 The default scales (``f_scale=None``) give 95 % efficiency on Gaussian
 residuals: :math:`c = 1.345` (huber, soft_l1) and :math:`c = 2.385` (cauchy).
+
+``student-t`` is not a tuned M-estimator but the noise model itself: twice the negative
+log-density of Student's :math:`t` with :math:`\nu` degrees of freedom (``dof``) and scale
+:math:`R`, so the robust fit is the MAP estimate under that noise (its IRLS weight, the
+expectation-maximisation weight of the :math:`t` as a scale mixture, exceeds 1 near zero:
+:math:`\rho \approx (\nu+1)/\nu\, r^2`); the measurement noise of the Student-t filters
+(:mod:`estim.estimators.kalman.heavy_tails`).
 
 References
 ----------
@@ -62,7 +70,7 @@ from estim.consistency import SUSPECT_TAIL
 OUTLIER_SIGMA = -NormalDist().inv_cdf(SUSPECT_TAIL / 2)
 
 #: The measurement losses: ``"squared"`` (least squares) and the robust ones.
-LOSSES = ("squared", "huber", "soft_l1", "cauchy")
+LOSSES = ("squared", "huber", "soft_l1", "cauchy", "student-t")
 
 #: ``f_scale`` for 95 % asymptotic efficiency on Gaussian residuals.
 DEFAULT_SCALES = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
@@ -74,9 +82,10 @@ class RobustLoss:
 
     Parameters
     ----------
-    name : {"huber", "soft_l1", "cauchy"}
+    name : {"huber", "soft_l1", "cauchy", "student-t"}
     f_scale : float
-        :math:`c`, where the loss leaves the quadratic, in standard deviations.
+        :math:`c`, where the loss leaves the quadratic, in standard deviations (for
+        ``"student-t"``: the degrees of freedom :math:`\\nu`).
     """
 
     name: str
@@ -85,6 +94,8 @@ class RobustLoss:
     def rho(self, r: np.ndarray) -> np.ndarray:
         """The cost of each residual component (equal to ``r**2`` near zero)."""
         c, a = self.f_scale, np.abs(r)
+        if self.name == "student-t":
+            return (c + 1) * np.log1p(a * a / c)
         if self.name == "huber":
             return np.where(a <= c, a * a, 2 * c * a - c * c)
         z = (a / c) ** 2
@@ -93,8 +104,11 @@ class RobustLoss:
         return c * c * np.log1p(z)
 
     def weight(self, r: np.ndarray) -> np.ndarray:
-        """The IRLS weight :math:`\\rho'(r) / 2r` of each component, in (0, 1]."""
+        """The IRLS weight :math:`\\rho'(r) / 2r` of each component, in (0, 1] (to
+        :math:`(\\nu+1)/\\nu` for ``"student-t"``)."""
         c, a = self.f_scale, np.abs(r)
+        if self.name == "student-t":
+            return (c + 1) / (c + a * a)
         if self.name == "huber":
             return np.minimum(1.0, c / np.maximum(a, c))
         z = (a / c) ** 2
@@ -103,10 +117,25 @@ class RobustLoss:
         return 1 / (1 + z)
 
 
-def as_loss(loss, f_scale) -> RobustLoss | None:
-    """Check ``loss`` and ``f_scale``; None for least squares."""
+def as_loss(loss, f_scale, dof=None) -> RobustLoss | None:
+    """Check ``loss``, ``f_scale`` and ``dof`` (the Student-t loss's degrees of freedom,
+    above 2); None for least squares."""
     loss = as_choice(loss, LOSSES, "loss")
     f_scale = as_float(f_scale, "f_scale", positive=True, allow_none=True)
+    if dof is None and loss == "student-t":
+        raise TypeError("loss='student-t' needs dof= (its degrees of freedom, above 2)")
+    if dof is not None and loss != "student-t":
+        raise ValueError(f"dof is the Student-t loss's degrees of freedom; loss is {loss!r}: "
+                         f"give loss='student-t' with it")
+    if loss == "student-t":
+        if f_scale is not None:
+            raise ValueError("f_scale applies to 'huber', 'soft_l1' and 'cauchy'; the "
+                             "Student-t loss's scale is R itself (give dof)")
+        nu = as_float(dof, "dof")
+        if not nu > 2:
+            raise ValueError(f"dof must be above 2 (Student's t has a finite variance only "
+                             f"then), got {dof!r}")
+        return RobustLoss(loss, nu)
     if loss == "squared":
         if f_scale is not None:
             raise ValueError("f_scale applies to a robust loss ('huber', 'soft_l1', "
