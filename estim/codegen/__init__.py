@@ -197,7 +197,3 @@ def _exportable(estimator: object) -> None:
         mhe.check(estimator)
     else:
         check_model(estimator.model)
-        if estimator._n_adapt:
-            raise ValueError(f"estimator: the C export of an adaptive filter (adapt="
-                             f"{getattr(estimator, 'adapt', None)!r}) is not built yet: "
-                             f"export the filter with the noise it has learnt as R")

@@ -124,7 +124,7 @@ def dimensions(estimator: EKF | UKF, sizes: Mapping[str, int]) -> dict[str, int]
     ``casadi_int``, 4-byte ints)."""
     m = estimator.model
     nx, ny, nu, nw, nd = m.nx, m.ny, m.nu, m.nw, m.ndx  # P is nd x nd (tangent space)
-    ns, nt = nx + nd * nd, nd * nd + ny * ny
+    ns, nt = nx + nd * nd + estimator._n_adapt, nd * nd + ny * ny
     d = {"NX": nx, "NDX": nd, "NY": ny, "NU": nu, "NW": nw, "NS": ns, "NT": nt,
          "NY1": max(ny, 1), "NU1": max(nu, 1), "NW1": max(nw, 1),
          "SAMPLED": int(m.sampled),
@@ -145,7 +145,12 @@ def values(estimator: EKF | UKF) -> dict[str, str]:
     failed step projects its anchor on (``LOWER``, ``UPPER``)."""
     m = estimator.model
     assert estimator.P0 is not None  # a Kalman filter always has its prior covariance
-    return {"Q": c_array(estimator.Q), "R": c_array(estimator.R),
+    from estim.estimators.kalman.adaptive import start_parts
+
+    # an adaptive filter's statistics at a reset: [first; scale * vec R]
+    first, scale = start_parts(estimator) if estimator._n_adapt else (0.0, 1.0)
+    return {"ADAPT_FIRST": c_double(first), "ADAPT_SCALE": c_double(scale),
+            "Q": c_array(estimator.Q), "R": c_array(estimator.R),
             "X0": c_array(estimator.x0), "P0": c_array(estimator.P0),
             "LOWER": c_array(getattr(estimator, "lower", m.lower)),
             "UPPER": c_array(getattr(estimator, "upper", m.upper)), "DT": c_double(m.dt)}
@@ -184,7 +189,9 @@ def write(estimator: EKF | UKF, directory: Path, name: str,
                  values(estimator), dimensions(estimator, work_sizes(funs)),
                  {"sqrt": estimator.form == "sqrt",
                   "damped": getattr(estimator, "damping", None) is not None,
-                  "variable_dt": estimator.model.variable_dt}, flags)
+                  "variable_dt": estimator.model.variable_dt,
+                  "adaptive": bool(estimator._n_adapt),
+                  "sage_husa": getattr(estimator, "adapt", None) == "sage-husa"}, flags)
 
 
 def memory(estimator: EKF | UKF) -> int:

@@ -63,7 +63,7 @@ from estim._validate import as_choice, as_float
 from estim.estimators.kalman.heavy_tails import ITERATIONS, student_t_update
 
 __all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
-           "predicted_statistics", "start_statistics"]
+           "predicted_statistics", "start_parts", "start_statistics"]
 
 #: What the filters adapt: the measurement noise covariance, by variational Bayes or by
 #: Sage and Husa's fading-memory estimate.
@@ -100,11 +100,17 @@ def start_statistics(est: Any) -> np.ndarray:
     (nothing for a filter that does not adapt)."""
     if not est._n_adapt:
         return np.zeros(0)
+    first, scale = start_parts(est)
+    return np.concatenate([[first], (scale * est.R).ravel(order="F")])
+
+
+def start_parts(est: Any) -> tuple[float, float]:
+    """The statistics' start as ``(first entry, the factor of R)``: ``(nu_0, weight)``, or
+    Sage-Husa's ``(0, 1)``."""
     if est.adapt == "sage-husa":
-        return np.concatenate([[0.0], est.R.ravel(order="F")])
-    d = est.model.ny
+        return 0.0, 1.0
     weight = 1.0 / (1.0 - est.forgetting) if est.forgetting < 1 else PRIOR_WEIGHT
-    return np.concatenate([[weight + d + 1.0], (weight * est.R).ravel(order="F")])
+    return weight + est.model.ny + 1.0, weight
 
 
 def predicted_statistics(est: Any, a: Any) -> Any:
