@@ -14,12 +14,14 @@ switches and drifts: 1 for the first 300 samples, 4 until 600, 1 until 900, then
 * ``VB-UKF``: the same with the UKF;
 * ``Sage-Husa EKF``: ``adapt="sage-husa"`` with the same forgetting, the classical
   fading-memory estimate;
+* ``VB-QR EKF``: ``adapt="QR"``, the process noise learnt too (Huang et al. 2018);
 * ``fixed R``: ``estim.EKF`` with R = 1.5, the record's mean noise variance.
 
 Printed: RMSE against the oracle's (median and range over seeds), the learnt R at 100
 samples after each switch against the truth (median relative error, the share of seeds
 within 20 %), and the step cost against the plain EKF's (``filter`` per sample, median and
-range of interleaved repeats). ``--stationary`` instead: the noise constant at 1, the
+range of interleaved repeats). ``--q-factor f``: every filter's Q is f times the true one
+(the oracle's stays right). ``--stationary`` instead: the noise constant at 1, the
 adaptive filters against an EKF tuned by maximum likelihood on the record (do no harm),
 with the NEES.
 
@@ -97,18 +99,20 @@ def main() -> None:
     parser.add_argument("--forgetting", type=float, default=0.95)
     parser.add_argument("--repeats", type=int, default=21)
     parser.add_argument("--stationary", action="store_true")
+    parser.add_argument("--q-factor", type=float, default=1.0)
     args = parser.parse_args()
     F, Qd = discretised()
     m = model(F)
-    tun = {"Q": Qd, "x0": [0.0, 0.0], "P0": np.eye(2)}
+    tun = {"Q": args.q_factor * Qd, "x0": [0.0, 0.0], "P0": np.eye(2)}
     filters = {"VB-EKF": estim.EKF(m, **tun, R=1.0, adapt="R", forgetting=args.forgetting),
                "VB-UKF": estim.UKF(m, **tun, R=1.0, adapt="R", forgetting=args.forgetting),
                "Sage-Husa EKF": estim.EKF(m, **tun, R=1.0, adapt="sage-husa",
                                           forgetting=args.forgetting),
+               "VB-QR EKF": estim.EKF(m, **tun, R=1.0, adapt="QR", forgetting=args.forgetting),
                "fixed R": estim.EKF(m, **tun, R=1.5 if not args.stationary else 1.0)}
     rmse = {k: [] for k in ["oracle", *filters, "ML-tuned EKF"]}
     nees = {k: [] for k in filters}
-    learnt = {k: [] for k in ("VB-EKF", "VB-UKF", "Sage-Husa EKF")}
+    learnt = {k: [] for k in ("VB-EKF", "VB-UKF", "Sage-Husa EKF", "VB-QR EKF")}
     for seed in range(args.seeds):
         X, Y, Rk = record(seed, F, Qd, args.stationary)
         rmse["oracle"].append(np.sqrt(np.mean((oracle(F, Qd, Y, Rk) - X) ** 2)))
@@ -124,7 +128,7 @@ def main() -> None:
         if args.stationary:
             ml = estim.tuning.maximum_likelihood(m, Y, x0=[0.0, 0.0], P0=np.eye(2),
                                                  Q0=Qd, structure={"Q": "fixed"}, starts=1)
-            res = estim.EKF(m, **tun, R=ml.R).filter(Y)
+            res = estim.EKF(m, **tun, R=ml.R).filter(Y)  # (Q as the other filters')
             rmse["ML-tuned EKF"].append(np.sqrt(np.mean((res.x - X) ** 2)))
     _, Y, _ = record(0, F, Qd, args.stationary)
     plain = estim.EKF(m, **tun, R=1.0)
@@ -142,7 +146,8 @@ def main() -> None:
     ref = np.array(rmse["ML-tuned EKF" if args.stationary else "oracle"])
     what = "constant noise (1)" if args.stationary else "switching and drifting noise"
     print(f"# The resonator with {what}: {args.seeds} seeds x {T} samples, "
-          f"forgetting {args.forgetting:g}\n")
+          f"forgetting {args.forgetting:g}, the filters' Q {args.q_factor:g} times the "
+          f"true one\n")
     print(f"| filter | RMSE (median) | RMSE / {'ML-tuned EKF' if args.stationary else 'oracle'}"
           " (median [range]) | NEES/n (median) | step cost / EKF (median [range]) |")
     print("|---|---|---|---|---|")

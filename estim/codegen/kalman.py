@@ -191,7 +191,8 @@ def write(estimator: EKF | UKF, directory: Path, name: str,
                   "damped": getattr(estimator, "damping", None) is not None,
                   "variable_dt": estimator.model.variable_dt,
                   "adaptive": bool(estimator._n_adapt),
-                  "sage_husa": getattr(estimator, "adapt", None) == "sage-husa"}, flags)
+                  "sage_husa": getattr(estimator, "adapt", None) == "sage-husa",
+                  "adapt_qr": getattr(estimator, "adapt", None) == "QR"}, flags)
 
 
 def memory(estimator: EKF | UKF) -> int:

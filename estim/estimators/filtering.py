@@ -148,10 +148,10 @@ class FilterResult(Estimates):
     converged : (T,) bool array or None
         For a filter whose update iterates (``iterations`` > 1): whether each sample's
         update converged (:mod:`estim.estimators.kalman.iterated_updates`); None otherwise.
-    R : (T, ny, ny) array or None
-        For an adaptive filter (``adapt="R"``): the measurement noise covariance it has
-        learnt after each sample (:mod:`estim.estimators.kalman.adaptive`); None
-        otherwise.
+    R, Q : (T, ny, ny) and (T, nx, nx) arrays or None
+        For an adaptive filter (``adapt=``): the measurement noise covariance it has
+        learnt after each sample and, with ``adapt="QR"``, the process noise it implied
+        (:mod:`estim.estimators.kalman.adaptive`); None otherwise.
     t, state_names, manifold :
         Sample times, state names and the states' manifold (see :class:`Estimates`).
     """
@@ -164,3 +164,4 @@ class FilterResult(Estimates):
     success: bool
     converged: np.ndarray | None = None
     R: np.ndarray | None = None
+    Q: np.ndarray | None = None

@@ -44,8 +44,19 @@ is replaced by :math:`(1 - d_k)\hat R_{k-1} + d_k e_k e_k^\top`, and if that is 
 either, :math:`\hat R_{k-1}` is kept. Its statistics ``[j; vec R]`` start at the filter's
 ``R`` (which the first update replaces: :math:`d_0 = 1`).
 
+``adapt="QR"`` learns the process noise too (Huang, Zhang, Wu, Li & Chambers 2018): the
+predicted covariance is itself uncertain, :math:`\bar P_k \sim \mathrm{IW}(n + \tau + 1,
+\tau \tilde P_k)` about the nominal :math:`\tilde P_k = A P_{k-1} A^\top + Q` (:math:`\tau`
+= :data:`TAU`), and each iteration updates both inverse Wisharts: :math:`T_k = \tau \tilde
+P_k + P^{(i)} + (x^{(i)} - \bar x)(x^{(i)} - \bar x)^\top`, :math:`\bar P^{(i+1)} =
+T_k / (\tau + 1)` (:math:`t_k = n + \tau + 2`), and :math:`U_k` as :math:`V_k` above; the Kalman
+update then uses :math:`\bar P^{(i+1)}` and :math:`\hat R`. The process noise it implies,
+:math:`\hat Q_k = Q + \bar P^{(N)} - \tilde P_k`, is reported beside :math:`\hat R`.
+
 References
 ----------
+Y. Huang, Y. Zhang, Z. Wu, N. Li, J. Chambers, "A novel adaptive Kalman filter with
+inaccurate process and measurement noise covariance matrices", IEEE TAC 63(2), 2018;
 A. P. Sage, G. W. Husa, "Adaptive filtering with unknown prior statistics", Proc. JACC
 1969; S. Särkkä, A. Nummenmaa, "Recursive noise adaptive Kalman filtering by variational Bayesian
 approximations", IEEE TAC 54(3), 2009; S. Särkkä, J. Hartikainen, "Non-linear noise
@@ -66,8 +77,11 @@ __all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "nois
            "predicted_statistics", "start_parts", "start_statistics"]
 
 #: What the filters adapt: the measurement noise covariance, by variational Bayes or by
-#: Sage and Husa's fading-memory estimate.
-ADAPTS = ("R", "sage-husa")
+#: Sage and Husa's fading-memory estimate, or both noise covariances by variational Bayes.
+ADAPTS = ("R", "sage-husa", "QR")
+#: The prior weight :math:`\tau` of the predicted covariance in ``adapt="QR"`` (Huang et
+#: al. 2018: 3).
+TAU = 3.0
 #: The smallest Cholesky pivot, relative to the largest variance, of a Sage-Husa estimate
 #: taken as positive definite.
 DEFINITE = 1e-10
@@ -91,8 +105,8 @@ def check_adapt(adapt: object, forgetting: object, est: Any) -> tuple[str | None
             or est.dof is not None:
         raise ValueError(f"adapt={adapt!r} is built in the {est.name.upper()}'s covariance "
                          f"form on vector states, with iterations=1 and a Gaussian noise")
-    ny = est.model.ny
-    return adapt, rho, 1 + ny * ny
+    ny, nx = est.model.ny, est.model.nx
+    return adapt, rho, 1 + ny * ny + (nx * nx if adapt == "QR" else 0)
 
 
 def start_statistics(est: Any) -> np.ndarray:
@@ -101,7 +115,8 @@ def start_statistics(est: Any) -> np.ndarray:
     if not est._n_adapt:
         return np.zeros(0)
     first, scale = start_parts(est)
-    return np.concatenate([[first], (scale * est.R).ravel(order="F")])
+    Q = [est.Q.ravel(order="F")] if est.adapt == "QR" else []
+    return np.concatenate([[first], (scale * est.R).ravel(order="F"), *Q])
 
 
 def start_parts(est: Any) -> tuple[float, float]:
@@ -119,14 +134,15 @@ def predicted_statistics(est: Any, a: Any) -> Any:
     if est.adapt == "sage-husa":
         return a
     d, rho = est.model.ny, est.forgetting
-    return ca.vertcat(rho * (a[0] - d - 1) + d + 1, rho * a[1:])
+    return ca.vertcat(rho * (a[0] - d - 1) + d + 1, rho * a[1:1 + d * d], a[1 + d * d:])
 
 
-def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask: Any,
-                 a: Any) -> tuple[Any, Any, Any, Any]:
+def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, Q: Any, R: Any,
+                 mask: Any, a: Any) -> tuple[Any, Any, Any, Any]:
     r"""The update of a Student-t or adaptive filter ``est`` from the prediction ``(xb,
-    Pb)``, the innovation ``e``, the linearisation's ``Pxz``, ``Pzz`` and the predicted
-    statistics ``a`` (empty without adaptation): ``(x_hat, P_hat, S, a_new)``."""
+    Pb)``, the innovation ``e``, the linearisation's ``Pxz``, ``Pzz``, the nominal ``Q``
+    and the predicted statistics ``a`` (empty without adaptation): ``(x_hat, P_hat, S,
+    a_new)``."""
     if est.dof is not None:
         xh, Ph, S, _ = student_t_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
         return xh, Ph, S, a
@@ -136,23 +152,35 @@ def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any,
     D, E = ca.diag(mask), ca.diag(1 - mask)
     every = ca.sum1(mask) == d  # an inverse Wishart takes whole vectors
     nu = ca.if_else(every, a[0] + 1, a[0])
-    V0 = ca.reshape(a[1:], d, d)
+    V0 = ca.reshape(a[1:1 + d * d], d, d)
     H = ca.solve(Pb, Pxz).T  # P_xz^T Pb^-1 (the EKF's C)
     Omega = Pzz - H @ Pb @ H.T
-    V = V0
+    V, Pbar = V0, Pb  # (with adapt="QR" the predicted covariance learnt too)
     xh, Ph, S = xb, Pb, Pzz + E
-    for _ in range(ITERATIONS):
+    qr = est.adapt == "QR"  # (Huang et al.: both noises from the current posterior first)
+    for i in range(ITERATIONS):
+        if qr or i:  # the statistics from the current posterior (x^(i), P^(i))
+            r = e - H @ (xh - xb)
+            Vn = V0 + r @ r.T + H @ Ph @ H.T + Omega
+            V = ca.if_else(every, 0.5 * (Vn + Vn.T), V0)
+        if qr:  # T_k / (t_k - n - 1), t_k - n - 1 = tau + 1
+            dx = xh - xb
+            Pn = (TAU * Pb + Ph + dx @ dx.T) / (TAU + 1)
+            Pbar = ca.if_else(every, 0.5 * (Pn + Pn.T), Pb)
         Rh = V / (nu - d - 1)
-        S = Pzz + D @ Rh @ D + E
+        Pzz_i, Pxz_i = H @ Pbar @ H.T + Omega, Pbar @ H.T
+        S = Pzz_i + D @ Rh @ D + E
         S = 0.5 * (S + S.T)
-        K = ca.solve(S, Pxz.T).T
+        K = ca.solve(S, Pxz_i.T).T
         xh = xb + K @ e
-        Ph = Pb - K @ S @ K.T
+        Ph = Pbar - K @ S @ K.T
         Ph = 0.5 * (Ph + Ph.T)
+    if not qr:  # Sarkka & Hartikainen's statistics from the final posterior
         r = e - H @ (xh - xb)
         Vn = V0 + r @ r.T + H @ Ph @ H.T + Omega
         V = ca.if_else(every, 0.5 * (Vn + Vn.T), V0)
-    return xh, Ph, S, ca.vertcat(nu, ca.vec(V))
+    Qh = [ca.vec(Q + Pbar - Pb)] if qr else []
+    return xh, Ph, S, ca.vertcat(nu, ca.vec(V), *Qh)
 
 
 def adapted(est: Any, a: np.ndarray) -> dict[str, np.ndarray]:
@@ -160,10 +188,13 @@ def adapted(est: Any, a: np.ndarray) -> dict[str, np.ndarray]:
     covariances): :math:`\hat R = V / (\nu - d - 1)`; nothing without adaptation."""
     if not est._n_adapt:
         return {}
-    d = est.model.ny
+    d, n = est.model.ny, est.model.nx
     a = np.asarray(a, dtype=float)
-    V = a[..., 1:].reshape(a.shape[:-1] + (d, d)).swapaxes(-1, -2)
-    return {"R": V if est.adapt == "sage-husa" else V / (a[..., :1, None] - d - 1)}
+    V = a[..., 1:1 + d * d].reshape(a.shape[:-1] + (d, d)).swapaxes(-1, -2)
+    out = {"R": V if est.adapt == "sage-husa" else V / (a[..., :1, None] - d - 1)}
+    if est.adapt == "QR":
+        out["Q"] = a[..., 1 + d * d:].reshape(a.shape[:-1] + (n, n)).swapaxes(-1, -2)
+    return out
 
 
 def _sage_husa(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, mask: Any, a: Any

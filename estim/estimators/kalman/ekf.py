@@ -95,7 +95,7 @@ class EKF(FusedKalman):
         Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about
         :math:`1/(1-\rho)` samples remembered; :mod:`~estim.estimators.kalman.adaptive`);
         the learnt ``R`` in ``info.extra["R"]`` and ``FilterResult.R``, starting at ``R``;
-        ``adapt="sage-husa"``: Sage and Husa's fading-memory estimate, definiteness guarded.
+        ``"sage-husa"``: Sage and Husa's estimate, definiteness guarded; ``"QR"``: Q too.
     clip : bool
         Project each estimate onto ``[lower, upper]`` after the update (the
         covariance is left as it is), as in the KU Leuven course, exercise 4.
@@ -235,8 +235,8 @@ class EKF(FusedKalman):
                                               self.damping, self.tol)
         elif self.dof is not None or self.adapt:  # Student-t or adaptive noise
             C = D @ m.H_x(xb, uy, p)
-            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, R, mask,
-                                            a_prior)
+            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, Q, R,
+                                            mask, a_prior)
         else:
             C = D @ m.H_x(xb, uy, p)
             S = C @ Pb @ C.T + Rm

@@ -350,7 +350,8 @@ class FusedKalman(Estimator):
             success = success and info.success
         return stamped(FilterResult(x=X, P=P, innovation=innovation, nis=nis,
                                     status=tuple(status), success=success,
-                                    converged=converged, R=learnt.get("R")), self.model, t)
+                                    converged=converged, R=learnt.get("R"),
+                                    Q=learnt.get("Q")), self.model, t)
 
     def _whole_record(self, T: int, expand: bool = True) -> FastFunction:
         """``(s0, Y, W, tuning, P0) -> (S, E, flags)``: the fused step over ``T`` samples

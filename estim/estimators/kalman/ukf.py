@@ -261,8 +261,8 @@ class UKF(FusedKalman):
         Ph = 0.5 * (Ph + Ph.T)
         converged = None
         if self.dof is not None or self.adapt:  # Student-t or adaptive noise
-            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), R, mask,
-                                            a_prior)
+            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), Q, R,
+                                            mask, a_prior)
         if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
             xh, Ph, posterior, converged = posterior_linearised_update(
                 self, xb, Pb, xh, Ph, y, mask, D @ R @ D + ca.diag(1 - mask), uy, p,
