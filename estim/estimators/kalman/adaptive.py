@@ -74,7 +74,7 @@ from estim._validate import as_choice, as_float
 from estim.estimators.kalman.heavy_tails import ITERATIONS, student_t_update
 
 __all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
-           "predicted_statistics", "start_parts", "start_statistics"]
+           "predicted_statistics", "sqrt_noise", "start_parts", "start_statistics"]
 
 #: What the filters adapt: the measurement noise covariance, by variational Bayes or by
 #: Sage and Husa's fading-memory estimate, or both noise covariances by variational Bayes.
@@ -92,8 +92,8 @@ PRIOR_WEIGHT = 20.0
 
 def check_adapt(adapt: object, forgetting: object, est: Any) -> tuple[str | None, float, int]:
     """``(adapt, forgetting, size of the statistics in the filter state)`` of the filter
-    ``est`` checked: ``forgetting`` in (0, 1]; the adaptive filter in the covariance form
-    on vector states, without the iterated update or a Student-t noise."""
+    ``est`` checked: ``forgetting`` in (0, 1]; the adaptive filter on vector states,
+    without the iterated update or a Student-t noise (``"QR"`` in the covariance form)."""
     rho = as_float(forgetting, "forgetting")
     if not 0 < rho <= 1:
         raise ValueError(f"forgetting must be in (0, 1] (1: no forgetting, R constant), got "
@@ -101,10 +101,11 @@ def check_adapt(adapt: object, forgetting: object, est: Any) -> tuple[str | None
     if adapt is None:
         return None, rho, 0
     adapt = as_choice(adapt, ADAPTS, "adapt")
-    if est._sqrt or not est.model.manifold.trivial or est.iterations > 1 \
-            or est.dof is not None:
-        raise ValueError(f"adapt={adapt!r} is built in the {est.name.upper()}'s covariance "
-                         f"form on vector states, with iterations=1 and a Gaussian noise")
+    if not est.model.manifold.trivial or est.iterations > 1 or est.dof is not None \
+            or (adapt == "QR" and est._sqrt):
+        raise ValueError(f"adapt={adapt!r} is built in the {est.name.upper()} on vector "
+                         f"states, with iterations=1 and a Gaussian noise"
+                         + (" (and adapt='QR' in the covariance form)" if est._sqrt else ""))
     ny, nx = est.model.ny, est.model.nx
     return adapt, rho, 1 + ny * ny + (nx * nx if adapt == "QR" else 0)
 
@@ -138,14 +139,14 @@ def predicted_statistics(est: Any, a: Any) -> Any:
 
 
 def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, Q: Any, R: Any,
-                 mask: Any, a: Any) -> tuple[Any, Any, Any, Any]:
+                 mask: Any, a: Any) -> tuple[Any, Any, Any, Any, Any]:
     r"""The update of a Student-t or adaptive filter ``est`` from the prediction ``(xb,
     Pb)``, the innovation ``e``, the linearisation's ``Pxz``, ``Pzz``, the nominal ``Q``
     and the predicted statistics ``a`` (empty without adaptation): ``(x_hat, P_hat, S,
-    a_new)``."""
+    a_new, R_used)``, ``R_used`` the measurement noise covariance of the final update."""
     if est.dof is not None:
-        xh, Ph, S, _ = student_t_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
-        return xh, Ph, S, a
+        xh, Ph, S, lam = student_t_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
+        return xh, Ph, S, a, R / lam
     if est.adapt == "sage-husa":
         return _sage_husa(est, xb, Pb, e, Pxz, Pzz, mask, a)
     d = est.model.ny
@@ -180,7 +181,26 @@ def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, Q: Any,
         Vn = V0 + r @ r.T + H @ Ph @ H.T + Omega
         V = ca.if_else(every, 0.5 * (Vn + Vn.T), V0)
     Qh = [ca.vec(Q + Pbar - Pb)] if qr else []
-    return xh, Ph, S, ca.vertcat(nu, ca.vec(V), *Qh)
+    return xh, Ph, S, ca.vertcat(nu, ca.vec(V), *Qh), Rh
+
+
+def sqrt_noise(est: Any, s: Any, predict: bool, xb: Any, Pxz: Any, Pzz: Any, Pb: Any,
+               e: Any, LR: Any, mask: Any) -> tuple[Any, Any, Any]:
+    r"""The square-root filters' Student-t or adaptive noise: ``(L, a_prior, a_new)``,
+    ``L`` the lower factor of the measurement noise covariance of the final update (of
+    :math:`R/\lambda`, or of the learnt :math:`\hat R`), which the filter's update then
+    takes in place of :math:`L_R` (the scale and the statistics found from the
+    covariances ``Pxz``, ``Pzz``, ``Pb`` of the factors; :func:`noise_update`), the
+    statistics before and after (empty without adaptation)."""
+    from estim.solvers.kalman.triangular import cholesky
+
+    a_prior = s[est._nP:]
+    if predict and est.adapt:
+        a_prior = predicted_statistics(est, a_prior)
+    R = LR @ LR.T
+    _, _, _, a_new, R_used = noise_update(est, xb, Pb, e, Pxz, Pzz, ca.SX(0), R, mask,
+                                          a_prior)
+    return cholesky(0.5 * (R_used + R_used.T)), a_prior, a_new
 
 
 def adapted(est: Any, a: np.ndarray) -> dict[str, np.ndarray]:
@@ -198,7 +218,7 @@ def adapted(est: Any, a: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def _sage_husa(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, mask: Any, a: Any
-               ) -> tuple[Any, Any, Any, Any]:
+               ) -> tuple[Any, Any, Any, Any, Any]:
     """Sage and Husa's update (see the module): the Kalman update with the current
     estimate, then the estimate moved towards the innovation's, definiteness guarded."""
     d, b = est.model.ny, est.forgetting
@@ -216,7 +236,8 @@ def _sage_husa(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, mask: Any
     Rn = ca.if_else(_definite(first), first, ca.if_else(_definite(second), second, Rh))
     every = ca.sum1(mask) == d  # (whole vectors only, as the variational filter)
     Rn = ca.if_else(every, 0.5 * (Rn + Rn.T), Rh)
-    return xh, 0.5 * (Ph + Ph.T), S, ca.vertcat(ca.if_else(every, j + 1, j), ca.vec(Rn))
+    return (xh, 0.5 * (Ph + Ph.T), S, ca.vertcat(ca.if_else(every, j + 1, j), ca.vec(Rn)),
+            Rh)
 
 
 def _definite(M: Any) -> Any:

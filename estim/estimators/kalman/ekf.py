@@ -12,6 +12,7 @@ from estim.estimators.kalman.adaptive import (
     check_adapt,
     noise_update,
     predicted_statistics,
+    sqrt_noise,
     start_statistics,
 )
 from estim.estimators.kalman.continuous import (
@@ -89,7 +90,7 @@ class EKF(FusedKalman):
         ``"gaussian"`` (default), or ``"student-t"`` with ``dof`` (above 2) degrees of
         freedom and scale ``R``: the variational update that inflates the noise of a
         measurement in the tails (:mod:`~estim.estimators.kalman.heavy_tails`; a ``dof`` of
-        5 to 10, docs/heavy_tails.md). Covariance form, vector states, ``iterations=1``.
+        5 to 10, docs/heavy_tails.md). Both forms, vector states, ``iterations=1``.
     adapt, forgetting :
         ``adapt="R"``: learn a drifting measurement noise covariance online, the variational
         Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about
@@ -173,7 +174,7 @@ class EKF(FusedKalman):
     name = "ekf"
     _checks_inf_itself = True
     _manifold_aware = True
-    _adapt_start, _adapted = start_statistics, adapted
+    _adapt_start, _adapted, _sqrt_noise = start_statistics, adapted, sqrt_noise
 
     def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
                  x0: ArrayLike, P0: ArrayLike, clip: bool = False,
@@ -235,8 +236,8 @@ class EKF(FusedKalman):
                                               self.damping, self.tol)
         elif self.dof is not None or self.adapt:  # Student-t or adaptive noise
             C = D @ m.H_x(xb, uy, p)
-            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, Q, R,
-                                            mask, a_prior)
+            xh, Ph, S, a_new, _ = noise_update(self, xb, Pb, e, Pb @ C.T, C @ Pb @ C.T, Q, R,
+                                               mask, a_prior)
         else:
             C = D @ m.H_x(xb, uy, p)
             S = C @ Pb @ C.T + Rm

@@ -49,8 +49,7 @@ ITERATIONS = 10
 
 def check_noise(noise: object, dof: object, est: Any) -> tuple[str, float | None]:
     """``(noise, dof)`` of the filter ``est`` checked: a Student-t noise needs ``dof``
-    above 2 (a finite variance) and the covariance form on vector states, without the
-    iterated update."""
+    above 2 (a finite variance) and vector states, without the iterated update."""
     noise = as_choice(noise, NOISES, "noise")
     if noise == "gaussian":
         if dof is not None:
@@ -64,9 +63,9 @@ def check_noise(noise: object, dof: object, est: Any) -> tuple[str, float | None
     if not nu > 2:
         raise ValueError(f"dof must be above 2 (Student's t has a finite variance only "
                          f"then), got {dof!r}")
-    if est._sqrt or not est.model.manifold.trivial or est.iterations > 1:
-        raise ValueError(f"noise='student-t' is built in the {est.name.upper()}'s "
-                         f"covariance form on vector states, with iterations=1")
+    if not est.model.manifold.trivial or est.iterations > 1:
+        raise ValueError(f"noise='student-t' is built in the {est.name.upper()} on vector "
+                         f"states, with iterations=1")
     return noise, nu
 
 
@@ -76,7 +75,8 @@ def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask:
     with the innovation ``e`` (0 where not measured), the cross- and output covariances
     ``Pxz``, ``Pzz`` of the linearisation (their unmeasured rows 0), the scale ``R`` and
     the measured ``mask``: ``(x_hat, P_hat, S, lambda)``, ``S`` the innovation covariance
-    :math:`P_{zz} + R/\lambda` the update used (the identity on unmeasured rows)."""
+    :math:`P_{zz} + R/\lambda` the update used (the identity on unmeasured rows) and
+    ``lambda`` the scale it used."""
     D = ca.diag(mask)
     E = ca.diag(1 - mask)
     m = ca.sum1(mask)
@@ -84,9 +84,10 @@ def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask:
     Rinv = D @ ca.solve(RD, ca.DM.eye(RD.shape[0])) @ D  # R^-1 on the measured rows
     H = ca.solve(Pb, Pxz).T  # P_xz^T Pb^-1 (the EKF's C)
     Omega = Pzz - H @ Pb @ H.T
-    lam = ca.SX(1)
+    lam = used = ca.SX(1)
     xh, Ph, S = xb, Pb, Pzz + RD
     for _ in range(iterations):  # the update with lambda, then lambda from it
+        used = lam
         S = Pzz + D @ R @ D / lam + E
         S = 0.5 * (S + S.T)
         K = ca.solve(S, Pxz.T).T
@@ -96,4 +97,4 @@ def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask:
         r = e - H @ (xh - xb)
         delta = ca.dot(r, Rinv @ r) + ca.trace(Rinv @ (H @ Ph @ H.T + Omega))
         lam = (dof + m) / (dof + delta)
-    return xh, Ph, S, lam
+    return xh, Ph, S, used

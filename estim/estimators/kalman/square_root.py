@@ -175,7 +175,14 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
         Sb = tria(ca.horzcat(transition_jacobian(m, x, u, p, xb) @ S, LQ)) if predict else S
     C = ca.diag(mask) @ output_jacobian(m, xb, uy, p)
     e = ca.if_else(mask, M.output_difference(y, m.H(xb, uy, p)), 0)
-    LRm = _measurement_noise(LR, mask, est._diagonal["R"])
+    a_prior = a_new = s[est._nP:]
+    diagonal = est._diagonal["R"]
+    if getattr(est, "dof", None) is not None or est._n_adapt:  # Student-t or adaptive
+        Pb = Sb @ Sb.T
+        LR, a_prior, a_new = est._sqrt_noise(s, predict, xb, Pb @ C.T, C @ Pb @ C.T, Pb, e,
+                                             LR, mask)
+        diagonal = False
+    LRm = _measurement_noise(LR, mask, diagonal)
     pre = ca.vertcat(ca.horzcat(LRm, C @ Sb), ca.horzcat(ca.SX(nx, LRm.shape[1]), Sb))
     post = tria(pre)
     Sy, Kb = post[:ny, :ny], post[ny:, :ny]
@@ -192,8 +199,8 @@ def ekf_step(est: Filter, predict: bool) -> ca.Function:
     if est.clip:
         xh = ca.fmin(ca.fmax(xh, ca.DM(est.lower)), ca.DM(est.upper))
     nis = ca.sumsqr(z)
-    s_new = ca.vertcat(xh, ca.vec(Sh))
-    s_prior = ca.vertcat(xb, ca.vec(Sb))
+    s_new = ca.vertcat(xh, ca.vec(Sh), a_new)
+    s_prior = ca.vertcat(xb, ca.vec(Sb), a_prior)
     ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
     ok_mean = finite(xb)
     ok_prior = ca.logic_and(ok_mean, finite(Sb))
@@ -280,7 +287,14 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
         dZ = [v - zp for v in Z]
         dX = offs if not M.euclidean_states else [v - xb for v in sig]
         e = ca.if_else(mask, M.output_difference(y, zr + zp), 0)
-    LRm = _measurement_noise(LR, mask, est._diagonal["R"])
+    a_prior = a_new = s[est._nP:]
+    diagonal = est._diagonal["R"]
+    if getattr(est, "dof", None) is not None or est._n_adapt:  # Student-t or adaptive
+        Pzz = sum((float(w) * (b @ b.T) for w, b in zip(Wc, dZ, strict=True)), 0)
+        Pxz = sum((float(w) * (a @ b.T) for w, a, b in zip(Wc, dX, dZ, strict=True)), 0)
+        LR, a_prior, a_new = est._sqrt_noise(s, predict, xb, Pxz, Pzz, Sb @ Sb.T, e, LR, mask)
+        diagonal = False
+    LRm = _measurement_noise(LR, mask, diagonal)
     Sy = _factor(dZ, Wc, LRm)
     Pxz = sum((float(w) * (a @ b.T) for w, a, b in zip(Wc, dX, dZ, strict=True)),
               ca.SX.zeros(m.ndx, m.ny))
@@ -293,8 +307,8 @@ def ukf_step(est: Filter, predict: bool) -> ca.Function:
     if est.clip:
         xh = ca.fmin(ca.fmax(xh, ca.DM(est.lower)), ca.DM(est.upper))
     nis = ca.sumsqr(solve_lower(Sy, e))
-    s_new = ca.vertcat(xh, ca.vec(Sh))
-    s_prior = ca.vertcat(xb, ca.vec(Sb))
+    s_new = ca.vertcat(xh, ca.vec(Sh), a_new)
+    s_prior = ca.vertcat(xb, ca.vec(Sb), a_prior)
     ok = ca.logic_and(finite(ca.vertcat(s_new, nis)), _positive_variances(Sh))
     name = "ukf_sqrt_predict_update" if predict else "ukf_sqrt_update"
     return est._fused_function(name, [s, u, y, tun], s_new, e, nis, ok, ok_prior, y_inf,

@@ -17,6 +17,7 @@ from estim.estimators.kalman.adaptive import (
     check_adapt,
     noise_update,
     predicted_statistics,
+    sqrt_noise,
     start_statistics,
 )
 from estim.estimators.kalman.continuous import (
@@ -177,7 +178,7 @@ class UKF(FusedKalman):
     name = "ukf"
     _manifold_aware = True
     _checks_inf_itself = True
-    _adapt_start, _adapted = start_statistics, adapted
+    _adapt_start, _adapted, _sqrt_noise = start_statistics, adapted, sqrt_noise
 
     def __init__(self, model: Model, *, Q: ArrayLike | None = None, R: ArrayLike,
                  x0: ArrayLike, P0: ArrayLike, points: str = "merwe", alpha: float = 1.0,
@@ -261,8 +262,8 @@ class UKF(FusedKalman):
         Ph = 0.5 * (Ph + Ph.T)
         converged = None
         if self.dof is not None or self.adapt:  # Student-t or adaptive noise
-            xh, Ph, S, a_new = noise_update(self, xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), Q, R,
-                                            mask, a_prior)
+            xh, Ph, S, a_new, _ = noise_update(self, xb, Pb, e, Pxz, _cov(dZ, dZ, Wc), Q, R,
+                                               mask, a_prior)
         if self.iterations > 1:  # iterated posterior linearisation (the first: the UKF)
             xh, Ph, posterior, converged = posterior_linearised_update(
                 self, xb, Pb, xh, Ph, y, mask, D @ R @ D + ca.diag(1 - mask), uy, p,
