@@ -6,19 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_student_t import A, H, Q, linear_model
+from test_student_t import R as R0
 
 import estim
 from estim.estimators.kalman.heavy_tails import ITERATIONS
-
-A = np.array([[1.0, 0.1], [0.0, 1.0]])
-H = np.array([[1.0, 0.0], [1.0, 1.0]])
-Q = np.diag([1e-3, 1e-2])
-R0 = np.array([[0.04, 0.01], [0.01, 0.09]])
-
-
-def linear_model() -> estim.Model:
-    return estim.Model(states=2, outputs=2, dynamics=lambda x, u, p: A @ x,
-                       output=lambda x, u, p: H @ x)
 
 
 def switching_record(T: int = 400, seed: int = 0):

@@ -77,6 +77,17 @@ def irregular_record(T: int = 60, seed: int = 0, lo: float = 1e-3, hi: float = 1
     return np.concatenate([[0.0], np.cumsum(dts)]), dts, np.array(Y)
 
 
+def exact_rts(xs, Ps, dts):
+    """filterpy's RTS smoother of the exact Kalman filter's ``(xs, Ps)``, each interval's
+    exact transition and Q_d."""
+    from filterpy.kalman import rts_smoother
+
+    Fs = [np.array([[1.0, dt], [0.0, 1.0]]) for dt in dts] + [np.eye(2)]
+    Qs = [wiener_velocity_qd(dt) for dt in dts] + [np.eye(2)]
+    xr, Pr, _, _ = rts_smoother(xs, Ps, Fs, Qs)
+    return xr, Pr
+
+
 def exact_kalman(Y, dts, x0, P0):
     """The Kalman filter of the exact discretisation, interval by interval (numpy)."""
     x, P, xs, Ps = x0.copy(), P0.copy(), [], []
@@ -116,11 +127,7 @@ def test_continuous_discrete_filters_are_the_exact_kalman_filter(make):
     np.testing.assert_allclose(log.x_hat, xs, rtol=0, atol=1e-12)
     assert set(res.status) == {"ok"}
     # the continuous-discrete extended and unscented smoothers
-    from filterpy.kalman import rts_smoother
-
-    Fs = [np.array([[1.0, dt], [0.0, 1.0]]) for dt in dts] + [np.eye(2)]
-    Qs = [wiener_velocity_qd(dt) for dt in dts] + [np.eye(2)]
-    xr, Pr, _, _ = rts_smoother(xs, Ps, Fs, Qs)
+    xr, Pr = exact_rts(xs, Ps, dts)
     sm = f.smooth(Y, t=t)
     np.testing.assert_allclose(sm.x, xr, rtol=0, atol=1e-12)
     np.testing.assert_allclose(sm.P, Pr, rtol=0, atol=1e-12)
@@ -156,16 +163,12 @@ def test_iterated_smoothers_with_a_continuous_noise(monkeypatch):
     Pol the IEKS converges to ``FullInformation(Qc=...)``'s optimum, its fixed point
     (measured 5.2e-11 in the means with the fit's weights re-linearised until they settle
     to 1e-12; with the default 1e-4, 7e-7)."""
-    from filterpy.kalman import rts_smoother
-
     import estim.solvers.least_squares.reweighting as reweighting
 
     t, dts, Y = irregular_record()
     x0, P0 = np.array([0.0, 1.0]), np.diag([1.0, 2.0])
     xs, Ps = exact_kalman(Y, dts, x0, P0)
-    Fs = [np.array([[1.0, dt], [0.0, 1.0]]) for dt in dts] + [np.eye(2)]
-    Qs = [wiener_velocity_qd(dt) for dt in dts] + [np.eye(2)]
-    xr, Pr, _, _ = rts_smoother(xs, Ps, Fs, Qs)
+    xr, Pr = exact_rts(xs, Ps, dts)
     for F in (estim.EKF, estim.UKF):
         sm = F(wiener_velocity(), Qc=Q_DENSITY, R=R_VAR, x0=x0, P0=P0).smooth(
             Y, t=t, iterations=3)
@@ -459,14 +462,10 @@ def test_full_information_weighs_each_interval_by_its_own_noise(solver):
     smoother on the exact discretisation (the Laplace covariances too, with the
     Gauss-Newton solver; measured: 1.6e-14 in the means, 2.3e-10 in the covariances,
     whose weights at 1 ms span seven decades)."""
-    from filterpy.kalman import rts_smoother
-
     t, dts, Y = irregular_record()
     x0, P0 = np.array([0.0, 1.0]), np.diag([1.0, 2.0])
     xs, Ps = exact_kalman(Y, dts, x0, P0)
-    Fs = [np.array([[1.0, dt], [0.0, 1.0]]) for dt in dts] + [np.eye(2)]
-    Qs = [wiener_velocity_qd(dt) for dt in dts] + [np.eye(2)]
-    xr, Pr, _, _ = rts_smoother(xs, Ps, Fs, Qs)
+    xr, Pr = exact_rts(xs, Ps, dts)
     fit = estim.FullInformation(wiener_velocity(), Qc=Q_DENSITY, R=R_VAR, x0=x0, P0=P0,
                                 solver=solver).fit(Y, t=t)
     assert fit.status == "ok"

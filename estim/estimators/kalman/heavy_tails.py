@@ -37,7 +37,8 @@ from typing import Any
 
 import casadi as ca
 
-from estim._validate import as_choice, as_float
+from estim._validate import as_choice
+from estim.solvers.least_squares.robust import as_dof
 
 __all__ = ["ITERATIONS", "NOISES", "check_noise", "student_t_update"]
 
@@ -59,10 +60,7 @@ def check_noise(noise: object, dof: object, est: Any) -> tuple[str, float | None
     if dof is None:
         raise TypeError("noise='student-t' needs dof= (its degrees of freedom, above 2; "
                         "3 to 5 for heavy outliers)")
-    nu = as_float(dof, "dof")
-    if not nu > 2:
-        raise ValueError(f"dof must be above 2 (Student's t has a finite variance only "
-                         f"then), got {dof!r}")
+    nu = as_dof(dof)
     if not est.model.manifold.trivial or est.iterations > 1:
         raise ValueError(f"noise='student-t' is built in the {est.name.upper()} on vector "
                          f"states, with iterations=1")

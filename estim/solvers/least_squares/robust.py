@@ -117,6 +117,16 @@ class RobustLoss:
         return 1 / (1 + z)
 
 
+def as_dof(dof: object) -> float:
+    """Student's t degrees of freedom, checked: a finite number above 2 (a finite
+    variance)."""
+    nu = as_float(dof, "dof")
+    if not nu > 2:
+        raise ValueError(f"dof must be above 2 (Student's t has a finite variance only "
+                         f"then), got {dof!r}")
+    return nu
+
+
 def as_loss(loss, f_scale, dof=None) -> RobustLoss | None:
     """Check ``loss``, ``f_scale`` and ``dof`` (the Student-t loss's degrees of freedom,
     above 2); None for least squares."""
@@ -131,11 +141,7 @@ def as_loss(loss, f_scale, dof=None) -> RobustLoss | None:
         if f_scale is not None:
             raise ValueError("f_scale applies to 'huber', 'soft_l1' and 'cauchy'; the "
                              "Student-t loss's scale is R itself (give dof)")
-        nu = as_float(dof, "dof")
-        if not nu > 2:
-            raise ValueError(f"dof must be above 2 (Student's t has a finite variance only "
-                             f"then), got {dof!r}")
-        return RobustLoss(loss, nu)
+        return RobustLoss(loss, as_dof(dof))
     if loss == "squared":
         if f_scale is not None:
             raise ValueError("f_scale applies to a robust loss ('huber', 'soft_l1', "
