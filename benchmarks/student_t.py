@@ -9,7 +9,8 @@ mixture :math:`0.9\\,N(0, I) + 0.1\\,N(0, 10^2 I)` of whole samples. On the same
 * ``EKF``: the plain filter (R = I);
 * ``EKF, gate``: the NIS gate (``gate=1e-3``: a measurement beyond the 0.999 quantile of
   its chi-square dropped);
-* ``EKF(noise="student-t", dof=nu)`` and ``UKF(...)`` for nu = 3, 4, 5;
+* ``EKF(noise="student-t", dof=nu)`` and ``UKF(...)`` for nu = 3 to 20;
+* ``EKF(noise="student-t-roth", dof=5)``: Roth et al.'s closed-form Student's t filter;
 * ``PF, true likelihood``: ``ParticleFilter`` with 1000 particles and the mixture's
   log-density (``loglik=``), the reference with the right noise model;
 
@@ -60,6 +61,7 @@ def estimators(sc: estim.Scenario, share: float, scale: float) -> dict:
     out = {"EKF": estim.EKF(m, **tun), "EKF, gate 1e-3": estim.EKF(m, **tun, gate=1e-3)}
     for nu in DOFS:
         out[f"EKF, Student-t {nu}"] = estim.EKF(m, **tun, noise="student-t", dof=nu)
+    out["EKF, Roth's t filter 5"] = estim.EKF(m, **tun, noise="student-t-roth", dof=5)
     out["UKF"] = estim.UKF(m, **tun)
     for nu in (4,):
         out[f"UKF, Student-t {nu}"] = estim.UKF(m, **tun, noise="student-t", dof=nu)

@@ -71,7 +71,7 @@ import casadi as ca
 import numpy as np
 
 from estim._validate import as_choice, as_float
-from estim.estimators.kalman.heavy_tails import ITERATIONS, student_t_update
+from estim.estimators.kalman.heavy_tails import ITERATIONS, roth_update, student_t_update
 
 __all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
            "predicted_statistics", "sqrt_noise", "start_parts", "start_statistics"]
@@ -144,6 +144,9 @@ def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, Q: Any,
     Pb)``, the innovation ``e``, the linearisation's ``Pxz``, ``Pzz``, the nominal ``Q``
     and the predicted statistics ``a`` (empty without adaptation): ``(x_hat, P_hat, S,
     a_new, R_used)``, ``R_used`` the measurement noise covariance of the final update."""
+    if est.noise == "student-t-roth":
+        xh, Ph, S = roth_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
+        return xh, Ph, S, a, R
     if est.dof is not None:
         xh, Ph, S, lam = student_t_update(xb, Pb, e, Pxz, Pzz, R, mask, est.dof)
         return xh, Ph, S, a, R / lam

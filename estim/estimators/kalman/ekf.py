@@ -90,7 +90,8 @@ class EKF(FusedKalman):
         ``"gaussian"`` (default), or ``"student-t"`` with ``dof`` (above 2) degrees of
         freedom and scale ``R``: the variational update that inflates the noise of a
         measurement in the tails (:mod:`~estim.estimators.kalman.heavy_tails`; a ``dof`` of
-        5 to 10, docs/heavy_tails.md). Both forms, vector states, ``iterations=1``.
+        5 to 10, docs/heavy_tails.md); ``"student-t-roth"``: Roth et al.'s closed-form t
+        filter (covariance form). Vector states, ``iterations=1``.
     adapt, forgetting :
         ``adapt="R"``: learn a drifting measurement noise covariance online, the variational
         Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about

@@ -23,6 +23,21 @@ where a gate drops it whole. :data:`ITERATIONS` fixed-point iterations, unrolled
 compiled step; as :math:`\nu \to \infty`, :math:`\lambda \to 1` and the update is the
 Kalman filter's.
 
+``noise="student-t-roth"`` is the Student's t filter of Roth, Özkan & Gustafsson (2013):
+the state, the process noise and the measurement noise all Student's t with :math:`\nu`
+degrees of freedom (``Q`` and ``R`` their covariances, the scales :math:`(\nu-2)/\nu`
+times them), the joint of state and measurement a t, conditioned in closed form and its
+degrees of freedom :math:`\nu + m` brought back to :math:`\nu` by matching the
+covariance. In covariance terms the mean is the Kalman filter's and the covariance is
+scaled by how surprising the measurement was:
+
+.. math::
+    \hat P = \frac{\nu - 2 + e^\top S^{-1} e}{\nu + m - 2} (\bar P - K S K^\top),
+
+larger after an outlier (the filter then trusts its prediction less), smaller after a
+measurement that fits; it resists heavy-tailed *process* noise (a jump of the state)
+where the variational update resists measurement outliers.
+
 References
 ----------
 R. Piché, S. Särkkä, J. Hartikainen, "Recursive outlier-robust filtering and smoothing for
@@ -40,10 +55,11 @@ import casadi as ca
 from estim._validate import as_choice
 from estim.solvers.least_squares.robust import as_dof
 
-__all__ = ["ITERATIONS", "NOISES", "check_noise", "student_t_update"]
+__all__ = ["ITERATIONS", "NOISES", "check_noise", "roth_update", "student_t_update"]
 
-#: The measurement noise's distributions.
-NOISES = ("gaussian", "student-t")
+#: The noises' distributions: Gaussian, Student-t measurement noise (the variational
+#: update), or every noise and the state Student-t (Roth et al.'s filter).
+NOISES = ("gaussian", "student-t", "student-t-roth")
 #: Fixed-point iterations of the variational update (unrolled in the compiled step).
 ITERATIONS = 10
 
@@ -58,13 +74,29 @@ def check_noise(noise: object, dof: object, est: Any) -> tuple[str, float | None
                              "noise='student-t' with it")
         return noise, None
     if dof is None:
-        raise TypeError("noise='student-t' needs dof= (its degrees of freedom, above 2; "
-                        "3 to 5 for heavy outliers)")
+        raise TypeError(f"noise={noise!r} needs dof= (its degrees of freedom, above 2; 5 "
+                        f"to 10 for outliers)")
     nu = as_dof(dof)
-    if not est.model.manifold.trivial or est.iterations > 1:
-        raise ValueError(f"noise='student-t' is built in the {est.name.upper()} on vector "
-                         f"states, with iterations=1")
+    if not est.model.manifold.trivial or est.iterations > 1 \
+            or (noise == "student-t-roth" and est._sqrt):
+        raise ValueError(f"noise={noise!r} is built in the {est.name.upper()} on vector "
+                         f"states, with iterations=1"
+                         + (" (and 'student-t-roth' in the covariance form)" if est._sqrt
+                            else ""))
     return noise, nu
+
+
+def roth_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask: Any,
+                dof: float) -> tuple[Any, Any, Any]:
+    r"""Roth et al.'s Student's t update in covariance terms (see the module): ``(x_hat,
+    P_hat, S)``."""
+    D, E = ca.diag(mask), ca.diag(1 - mask)
+    S = Pzz + D @ R @ D + E
+    S = 0.5 * (S + S.T)
+    K = ca.solve(S, Pxz.T).T
+    scale = (dof - 2 + ca.dot(e, ca.solve(S, e))) / (dof + ca.sum1(mask) - 2)
+    Ph = scale * (Pb - K @ S @ K.T)
+    return xb + K @ e, 0.5 * (Ph + Ph.T), S
 
 
 def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask: Any,
