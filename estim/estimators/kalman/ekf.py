@@ -87,11 +87,10 @@ class EKF(FusedKalman):
         :math:`\bar P = \Phi P \Phi^\top + Q_d(\Delta t)` (Van Loan; exact on a linear
         model whatever ``substeps``), the mean by the model's ``F``.
     noise, dof :
-        ``"gaussian"`` (default), or ``"student-t"`` with ``dof`` (above 2) degrees of
-        freedom and scale ``R``: the variational update that inflates the noise of a
-        measurement in the tails (:mod:`~estim.estimators.kalman.heavy_tails`; a ``dof`` of
-        5 to 10, docs/heavy_tails.md); ``"student-t-roth"``: Roth et al.'s closed-form t
-        filter (covariance form). Vector states, ``iterations=1``.
+        ``"gaussian"`` (default); ``"student-t"`` with ``dof`` (above 2; 5 to 10) and scale
+        ``R``, the variational update that inflates a measurement's noise in the tails;
+        ``"student-t-roth"``, Roth et al.'s closed-form t filter (covariance form; see
+        :mod:`~estim.estimators.kalman.heavy_tails`). Vector states, ``iterations=1``.
     adapt, forgetting :
         ``adapt="R"``: learn a drifting measurement noise covariance online, the variational
         Bayes filter with the forgetting factor :math:`\rho \in (0, 1]` (about
