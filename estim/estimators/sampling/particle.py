@@ -203,6 +203,47 @@ def _update(X: np.ndarray, ell: np.ndarray, observed: np.ndarray, const: float,
     return W, inc + const, X
 
 
+def _smooth(self: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None, *,
+            n_paths: int = 100, t: ArrayLike | None = None, seed: int | None = None
+            ) -> ParticleSmoothResult:
+    """Smoothed trajectories of a whole record by forward-filtering
+    backward-simulation (:mod:`estim.estimators.sampling.particle_smoothing`).
+
+    Parameters
+    ----------
+    Y, U :
+        The record, as for :meth:`filter` (which runs first, from a :meth:`reset`).
+    n_paths : int
+        Number of trajectories drawn backwards (cost ``O(T N n_paths)``).
+    t : (T,) array, optional
+        Sample times, kept in the result.
+    seed : int, optional
+        The random numbers of this call, forward pass and backward draws (as for
+        :meth:`filter`).
+
+    Returns
+    -------
+    ParticleSmoothResult
+        ``paths (n_paths, T, nx)``, their mean ``x (T, nx)`` and covariances
+        ``P (T, nx, nx)``, the filter's ``x_filtered``, ``P_filtered`` and its whole
+        result ``filtered`` (its log-likelihood estimate, ESS and statuses: no second
+        forward pass needed); a singular ``Q`` handled exactly
+        (:mod:`~estim.estimators.sampling.particle_smoothing`).
+    """
+    if seed is not None:
+        return seeded(self, seed, lambda: self.smooth(Y, U, n_paths=n_paths, t=t))
+    n_paths = as_int(n_paths, "n_paths", minimum=1)
+    self._trace = []
+    try:
+        filtered = self.filter(Y, U, t=t)
+        trace = self._trace
+    finally:
+        self._trace = None
+    M = self.model.manifold
+    return backward_simulation(self._transit, self.Q, trace, self._rng, n_paths,
+                               None if M.euclidean_states else M, filtered)
+
+
 class ParticleFilter(CompiledParticles):
     r"""Bootstrap particle filter (sequential importance resampling; see the module).
 
@@ -448,13 +489,19 @@ class ParticleFilter(CompiledParticles):
 
     # ------------------------------------------------------------ record
     def filter(self, Y: ArrayLike, U: ArrayLike | None = None, *,
-               t: ArrayLike | None = None) -> ParticleFilterResult:
+               t: ArrayLike | None = None, seed: int | None = None) -> ParticleFilterResult:
         """Filter a whole record (after a :meth:`reset`): what :func:`~estim.replay` gives.
 
         ``Y (T, ny)`` (NaN where missing) and ``U`` as in :meth:`EKF.filter
         <estim.EKF.filter>`; the sample times ``t (T,)`` are kept in the result (default
-        :math:`k\\,\\Delta t`). Returns a :class:`ParticleFilterResult`.
+        :math:`k\\,\\Delta t`). ``seed``: this call's random numbers instead of the
+        constructor's (independent runs of one record: a Monte Carlo over seeds, the
+        likelihood estimates of a particle MCMC chain); the filter is left as that run
+        left it, and the next :meth:`reset` starts the constructor's stream again.
+        Returns a :class:`ParticleFilterResult`.
         """
+        if seed is not None:
+            return seeded(self, seed, lambda: self.filter(Y, U, t=t))
         if self._kernel is not None:  # the whole record in compiled calls
             X, P, statuses, ess, inc = self._compiled_filter(Y, U)
         else:
@@ -468,34 +515,16 @@ class ParticleFilter(CompiledParticles):
             status=status, success=not any(s.startswith("failed") for s in status))
         return stamped(res, self.model, t, fixed_dt=True)
 
-    def smooth(self, Y: ArrayLike, U: ArrayLike | None = None, *, n_paths: int = 100,
-               t: ArrayLike | None = None) -> ParticleSmoothResult:
-        """Smoothed trajectories of a whole record by forward-filtering
-        backward-simulation (:mod:`estim.estimators.sampling.particle_smoothing`).
+    smooth = _smooth
 
-        Parameters
-        ----------
-        Y, U :
-            The record, as for :meth:`filter` (which runs first, from a :meth:`reset`).
-        n_paths : int
-            Number of trajectories drawn backwards (cost ``O(T N n_paths)``).
-        t : (T,) array, optional
-            Sample times, kept in the result.
 
-        Returns
-        -------
-        ParticleSmoothResult
-            ``paths (n_paths, T, nx)``, their mean ``x (T, nx)`` and covariances
-            ``P (T, nx, nx)``, the filter's ``x_filtered``, ``P_filtered``; a singular
-            ``Q`` handled exactly (:mod:`~estim.estimators.sampling.particle_smoothing`).
-        """
-        n_paths = as_int(n_paths, "n_paths", minimum=1)
-        self._trace = []
-        try:
-            filtered = self.filter(Y, U, t=t)
-            trace = self._trace
-        finally:
-            self._trace = None
-        M = self.model.manifold
-        return backward_simulation(self._transit, self.Q, trace, self._rng, n_paths,
-                                   None if M.euclidean_states else M, filtered)
+def seeded(pf: ParticleFilter, seed: object, run: Callable[[], Any]) -> Any:
+    """``run()`` with the particle filter's random numbers from ``seed`` (checked), the
+    constructor's seed back afterwards (the next reset starts its stream again)."""
+    seed = as_seed(seed)
+    before = pf.seed
+    pf.seed = 0 if seed is None else seed
+    try:
+        return run()
+    finally:
+        pf.seed = before

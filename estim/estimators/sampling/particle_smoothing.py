@@ -11,8 +11,15 @@ West 2004): :math:`\tilde x_{T-1}` from the last weights, then for
     N\!\left(\tilde x_{t+1};\, F(x^i_t, u_t),\, Q\right),
 
 so that the paths are draws from the particle approximation of the joint
-smoothing distribution :math:`p(x_{0:T-1} \mid y_{0:T-1})`. The cost is
-:math:`O(T\, N\, n_\text{paths})`.
+smoothing distribution :math:`p(x_{0:T-1} \mid y_{0:T-1})`. Drawn directly, this costs
+:math:`O(T\, N\, n_\text{paths})`. With a definite ``Q`` on vector states each draw is
+made by rejection first (Douc, Garivier, Moulines & Olsson 2011): a candidate
+:math:`i` drawn from the weights :math:`W_t` alone is accepted with probability
+:math:`\exp(-\tfrac12 \|L_Q^{-1}(\tilde x_{t+1} - F(x^i_t))\|^2) \le 1` (the
+transition density over its maximum), which gives exactly the distribution above; the
+paths not accepted after :data:`REJECTION_ROUNDS` rounds (an informative transition
+against a wide cloud) are drawn directly. The expected cost per path and sample is then
+a few candidates instead of :math:`N`.
 
 A singular ``Q`` (process noise on some states only, or along some directions) makes
 the transition density degenerate: with :math:`Q = V_r \Lambda_r V_r^\top`
@@ -34,7 +41,9 @@ particle approximation does.
 References
 ----------
 S. J. Godsill, A. Doucet, M. West, "Monte Carlo smoothing for nonlinear time
-series", J. Am. Stat. Assoc. 99(465), 2004; N. Chopin, O. Papaspiliopoulos,
+series", J. Am. Stat. Assoc. 99(465), 2004; R. Douc, A. Garivier, E. Moulines,
+J. Olsson, "Sequential Monte Carlo smoothing for general state space hidden Markov
+models", Ann. Appl. Probab. 21(6), 2011; N. Chopin, O. Papaspiliopoulos,
 *An Introduction to Sequential Monte Carlo*, Springer 2020, ch. 12.
 """
 
@@ -42,6 +51,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -54,6 +64,8 @@ __all__ = ["ParticleSmoothResult", "backward_simulation"]
 
 #: at most this many (path, particle) pairs of transition densities at once
 _BLOCK = 4_000_000
+#: Rounds of candidates per sample before the paths still pending are drawn directly.
+REJECTION_ROUNDS = 16
 
 
 @dataclass(frozen=True, repr=False)
@@ -71,6 +83,8 @@ class ParticleSmoothResult(Estimates):
         Their covariance at every sample.
     x_filtered, P_filtered : arrays
         The particle filter's weighted means and covariances (its forward pass).
+    filtered : ParticleFilterResult or None
+        The forward pass's whole result (its log-likelihood estimate, ESS, statuses).
     t, state_names, manifold :
         Sample times, state names and the states' manifold (see
         :class:`~estim.estimators.filtering.Estimates`).
@@ -81,6 +95,7 @@ class ParticleSmoothResult(Estimates):
     P: np.ndarray
     x_filtered: np.ndarray | None = None
     P_filtered: np.ndarray | None = None
+    filtered: Any = None
 
 
 class Transition:
@@ -135,11 +150,14 @@ def backward_simulation(transit: Callable[..., list[np.ndarray]], Q: np.ndarray,
             X, W, _ = trace[t]
             FX = transit(X, trace[t + 1][2], n=N)[0]  # (nx, N) the predictions
             logW = np.log(W)
-            if exact:  # whitened predictions
+            pending = np.arange(n_paths)
+            if exact:  # whitened predictions; most paths drawn by rejection
                 Z = LQ_inv @ FX
+                pending = _rejection(paths, t, X, W, Z, LQ_inv, rng)
                 logW = logW - 0.5 * (Z * Z).sum(axis=0)
-            for lo in range(0, n_paths, block):
-                succ = paths[lo:lo + block, t + 1]  # (m, nx) the successors
+            for lo in range(0, len(pending), block):
+                rows = pending[lo:lo + block]
+                succ = paths[rows, t + 1]  # (m, nx) the successors
                 if exact:  # log W_i - |z_j - Z_i|^2 / 2 up to a constant
                     a = logW[None, :] + (LQ_inv @ succ.T).T @ Z
                 else:
@@ -148,7 +166,7 @@ def backward_simulation(transit: Callable[..., list[np.ndarray]], Q: np.ndarray,
                 c = np.cumsum(a, axis=1)
                 u = rng.random(len(c))[:, None] * c[:, -1:]
                 pick = np.minimum((c <= u).sum(axis=1), N - 1)
-                paths[lo:lo + block, t] = X[:, pick].T
+                paths[rows, t] = X[:, pick].T
     if manifold is None:
         x = paths.mean(axis=0)
         D = paths - x[None]
@@ -160,8 +178,30 @@ def backward_simulation(transit: Callable[..., list[np.ndarray]], Q: np.ndarray,
     if filtered is None:
         return ParticleSmoothResult(paths=paths, x=x, P=P)
     return ParticleSmoothResult(paths=paths, x=x, P=P, x_filtered=filtered.x,
-                                P_filtered=getattr(filtered, "P", None), t=filtered.t,
-                                state_names=filtered.state_names, manifold=filtered.manifold)
+                                P_filtered=getattr(filtered, "P", None), filtered=filtered,
+                                t=filtered.t, state_names=filtered.state_names,
+                                manifold=filtered.manifold)
+
+
+def _rejection(paths: np.ndarray, t: int, X: np.ndarray, W: np.ndarray, Z: np.ndarray,
+               LQ_inv: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Draw ``paths[:, t]`` by rejection (see the module): candidates from the weights
+    ``W``, accepted with the transition density of the successor over its maximum, in
+    at most :data:`REJECTION_ROUNDS` vectorised rounds; returns the paths still pending."""
+    cumulative = np.cumsum(W)
+    cumulative /= cumulative[-1]
+    pending = np.arange(len(paths))
+    target = paths[:, t + 1] @ LQ_inv.T  # (n_paths, r) the successors, whitened
+    for _ in range(REJECTION_ROUNDS):
+        cand = np.minimum(np.searchsorted(cumulative, rng.random(len(pending)), "right"),
+                          len(W) - 1)
+        d = target[pending] - Z[:, cand].T
+        accept = rng.random(len(pending)) < np.exp(-0.5 * (d * d).sum(axis=1))
+        paths[pending[accept], t] = X[:, cand[accept]].T
+        pending = pending[~accept]
+        if not pending.size:
+            break
+    return pending
 
 
 def _log_density(density: Transition, FX: np.ndarray, succ: np.ndarray, logW: np.ndarray,
