@@ -278,7 +278,9 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
         ``method="maximum likelihood"``, ``Q``, ``R``, ``params``, ``stderr`` (NaN for
         entries the structure holds fixed), ``check`` (the innovations of the filter with
         the estimates), ``objective`` :math:`\ell(\hat\theta)`, and ``details`` with
-        ``"starts"`` (each start's objective), ``"iterations"`` (per start),
+        ``"starts"`` (each start's objective), ``"optima"`` (the different values of
+        :math:`\ell` the starts ended at, more than one unit apart: several is a
+        multimodal likelihood, said in ``status``), ``"iterations"`` (per start),
         ``"polish_iterations"``, ``"evaluations"`` (of :math:`\ell` and its gradient),
         ``"theta"``, ``"covariance"`` (of :math:`\hat\theta`), ``"log_likelihood"``,
         ``"compile_time"`` and ``"fit_time"`` (seconds).
@@ -347,6 +349,11 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
 
     opt = _optimise(obj, par, f0, starts, seed, spread, method, tol, max_iter, param_spread)
     est = _estimates(par, opt, tol, nq, model.ny)
+    optima = _distinct_optima([r.fun for r in opt.runs if r is not None], opt.nll)
+    status = est.status if len(optima) < 2 else est.status + (
+        f"; the starts ended at {len(optima)} different optima (-log L "
+        f"{', '.join(f'{v:.6g}' for v in optima)}): the likelihood is multimodal here, the "
+        f"best is returned and the standard errors are those of its own basin")
     eps = obj.whitened(opt.theta)
     eps[~rec.measured] = np.nan
     eps[:rec.burn] = np.nan
@@ -374,5 +381,21 @@ def maximum_likelihood(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *
     }
     return TuningResult(method="maximum likelihood", Q=est.Q, R=est.R, params=est.params,
                         stderr=est.stderr, check=innovation_check(eps),
-                        objective=float(opt.nll), success=est.success, status=est.status,
-                        details=details)
+                        objective=float(opt.nll), success=est.success, status=status,
+                        details={**details, "optima": optima})
+
+
+#: Starts whose negative log-likelihoods differ by more than this ended at different
+#: optima (a likelihood ratio of e: twice it is the chi-square(1) quantile 0.84).
+DISTINCT_OPTIMA = 1.0
+
+
+def _distinct_optima(values: Sequence[float], best: float) -> list[float]:
+    """The different optima among the starts' final ``-log L`` ``values`` (the polished
+    ``best`` for the lowest): sorted, those within :data:`DISTINCT_OPTIMA` of the one
+    below merged."""
+    out = [float(best)]
+    for v in sorted(float(x) for x in values if np.isfinite(x)):
+        if v > out[-1] + DISTINCT_OPTIMA:
+            out.append(v)
+    return out
