@@ -1,7 +1,23 @@
-"""Bayesian parameter inference (to come): particle marginal Metropolis-Hastings, particle
+"""Bayesian parameter inference: the priors of the parameters
+(:mod:`~estim.inference.priors`); to come, particle marginal Metropolis-Hastings, particle
 Gibbs and SMC², with the particle filter (:mod:`estim.estimators.sampling`) as the
 likelihood engine.
 
 Its layer is above the estimators and the simulation loop and below the comparisons
 (``[tool.importlinter]`` in ``pyproject.toml``; docs/architecture.md).
 """
+
+from estim.inference.priors import (
+    Beta,
+    Gamma,
+    HalfNormal,
+    InverseGamma,
+    LogDensity,
+    LogNormal,
+    Normal,
+    Prior,
+    Uniform,
+)
+
+__all__ = ["Beta", "Gamma", "HalfNormal", "InverseGamma", "LogDensity", "LogNormal", "Normal",
+           "Prior", "Uniform"]
