@@ -1,5 +1,6 @@
 """Bayesian parameter inference: the priors of the parameters
-(:mod:`~estim.inference.priors`); to come, particle marginal Metropolis-Hastings, particle
+(:mod:`~estim.inference.priors`) and the chains' diagnostics
+(:mod:`~estim.inference.chains`); to come, particle marginal Metropolis-Hastings, particle
 Gibbs and SMC², with the particle filter (:mod:`estim.estimators.sampling`) as the
 likelihood engine.
 
@@ -7,6 +8,7 @@ Its layer is above the estimators and the simulation loop and below the comparis
 (``[tool.importlinter]`` in ``pyproject.toml``; docs/architecture.md).
 """
 
+from estim.inference.chains import ess, rhat
 from estim.inference.priors import (
     Beta,
     Gamma,
@@ -20,4 +22,4 @@ from estim.inference.priors import (
 )
 
 __all__ = ["Beta", "Gamma", "HalfNormal", "InverseGamma", "LogDensity", "LogNormal", "Normal",
-           "Prior", "Uniform"]
+           "Prior", "Uniform", "ess", "rhat"]
