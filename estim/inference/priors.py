@@ -45,11 +45,14 @@ class Prior:
     support) and :meth:`sample`."""
 
     low, high = -math.inf, math.inf
+    #: the support excludes ``low`` (the densities of the positives)
+    open_low = False
 
     def logpdf(self, theta: float) -> float:
         """The log-density at ``theta`` (``-inf`` outside the support)."""
         theta = float(theta)
-        if not self.low <= theta <= self.high or not math.isfinite(theta):
+        if not self.low <= theta <= self.high or not math.isfinite(theta) \
+                or (self.open_low and theta == self.low):
             return -math.inf
         return self._log(theta)
 
@@ -90,14 +93,12 @@ class Normal(Prior):
 class LogNormal(Prior):
     """:math:`\\log\\theta \\sim N(\\mu, \\sigma^2)`, on the positives."""
 
-    low = 0.0
+    low, open_low = 0.0, True
 
     def __init__(self, mu: float, sigma: float):
         self.mu, self.sigma = as_float(mu, "mu"), _positive(sigma, "sigma")
 
     def _log(self, theta: float) -> float:
-        if theta <= 0:
-            return -math.inf
         z = (math.log(theta) - self.mu) / self.sigma
         return -0.5 * (z * z + _LOG_2PI) - math.log(self.sigma * theta)
 
@@ -120,18 +121,20 @@ class Uniform(Prior):
         return rng.uniform(self.low, self.high, n)
 
 
-class Gamma(Prior):
-    """The gamma density of ``shape`` :math:`k` and ``scale`` :math:`s`, on the
-    positives."""
+class _ShapeScale(Prior):
+    """A density on the positives with a ``shape`` and a ``scale``."""
 
-    low = 0.0
+    low, open_low = 0.0, True
 
     def __init__(self, shape: float, scale: float):
         self.shape, self.scale = _positive(shape, "shape"), _positive(scale, "scale")
 
+
+class Gamma(_ShapeScale):
+    """The gamma density of ``shape`` :math:`k` and ``scale`` :math:`s`, on the
+    positives."""
+
     def _log(self, theta: float) -> float:
-        if theta <= 0:
-            return -math.inf
         k, s = self.shape, self.scale
         return (k - 1) * math.log(theta) - theta / s - math.lgamma(k) - k * math.log(s)
 
@@ -139,18 +142,11 @@ class Gamma(Prior):
         return rng.gamma(self.shape, self.scale, n)
 
 
-class InverseGamma(Prior):
+class InverseGamma(_ShapeScale):
     """The inverse gamma density of ``shape`` :math:`k` and ``scale`` :math:`s` (the
     conjugate prior of a variance), on the positives."""
 
-    low = 0.0
-
-    def __init__(self, shape: float, scale: float):
-        self.shape, self.scale = _positive(shape, "shape"), _positive(scale, "scale")
-
     def _log(self, theta: float) -> float:
-        if theta <= 0:
-            return -math.inf
         k, s = self.shape, self.scale
         return k * math.log(s) - math.lgamma(k) - (k + 1) * math.log(theta) - s / theta
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import casadi as ca
 import numpy as np
 
 from estim.model import Model
@@ -40,20 +39,13 @@ def interval_bases(model: Model, dens: list[np.ndarray], X: np.ndarray, W: np.nd
     ``k`` (from the state ``X[k]``, with the transition input ``W[k]``, its interval the
     last entry with ``variable_dt``) per density ``D_i``: Van Loan's exponential of the
     drift linearised at ``X[k]``
-    (:func:`~estim.solvers.kalman.continuous.discretised_noise`), one mapped call per
+    (:func:`~estim.solvers.kalman.continuous.discretised_noises`), one mapped call per
     density."""
-    from estim.solvers.kalman.continuous import discretised_noise
+    from estim.solvers.kalman.continuous import discretised_noises
 
-    n, nx = len(X), model.nx
-    out = np.empty((n, len(dens), nx, nx))
-    if not n:
-        return out
-    x, w, D = ca.SX.sym("x", nx), ca.SX.sym("w", model.nw), ca.SX.sym("D", nx, nx)
-    fun = ca.Function("q_d", [x, w, ca.vec(D)],
-                      [ca.vec(discretised_noise(model, D, x, w))]).map(n)
+    out = np.empty((len(X), len(dens), model.nx, model.nx))
     for i, Di in enumerate(dens):
-        q = np.asarray(fun(X.T, W.T, np.repeat(Di.reshape(-1, 1, order="F"), n, axis=1)))
-        out[:, i] = q.T.reshape(n, nx, nx).transpose(0, 2, 1)
+        out[:, i] = discretised_noises(model, Di, X, W)
     return out
 
 

@@ -299,6 +299,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
             raise ValueError(f"G must be a finite ({nx}, ng) array, got shape {Gm.shape}")
     qblock, rblock = _structures(structure, Gm.shape[1], ny)
     W, Uh = _inputs(model, U, dts)
+    w1 = W[min(1, T - 1)]  # a transition's input (the first)
 
     # ---- the filter
     from estim.estimators.kalman.ekf import EKF
@@ -328,7 +329,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
     R0m = as_covariance(R0, ny, "R0")
     Qc0 = None
     if Q0 is None and continuous:  # its effect on the outputs a tenth of R0's
-        Q0 = start_density(model, R0m, x0v, Uh[0], W[min(1, T - 1)] if dts is None else
+        Q0 = start_density(model, R0m, x0v, Uh[0], w1 if dts is None else
                            np.median(W[1:], axis=0))
     elif Q0 is None:
         Cp = np.linalg.pinv(np.asarray(model.H_x(x0v, Uh[0], model.p).full()))
@@ -336,7 +337,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         Q0 = np.diag(np.maximum(q, 1e-3 * max(q.max(), 1e-12)))
     if continuous:  # Q0 starts Qc; the steady-state gain takes its Q_d
         Qc0 = as_covariance(Q0, Gm.shape[0], "Q0", definite=False)
-        Q0m = discretised(model, Qc0, x0v, W[min(1, T - 1)])
+        Q0m = discretised(model, Qc0, x0v, w1)
     else:
         Q0m = as_covariance(Q0, nx, "Q0", definite=False)
     constant = [model.output_names[i] for i in range(ny) if np.ptp(Y[:, i]) == 0]
@@ -365,7 +366,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         QB: list[np.ndarray] | np.ndarray = _qbasis(qblock, Gm)
         if continuous:  # each free entry's Q_d: one basis, or one per interval
             dens = densities(model, list(qblock.basis))
-            QB = list(interval_bases(model, dens, x0v[None], W[min(1, T - 1)][None])[0]) \
+            QB = list(interval_bases(model, dens, x0v[None], w1[None])[0]) \
                 if filt.invariant is not None else interval_bases(model, dens,
                                                                   filt.run.xh[:-1], W[1:])
         RB = list(rblock.basis)
@@ -397,7 +398,7 @@ def als(model: Model, Y: ArrayLike, U: ArrayLike | None = None, *,
         # ---- the check: a filter with the estimates, after the burn-in
         if continuous:  # the check's filter: EKF(Qc=), or the stationary one of its Q_d
             check = innovation_check(_whitened(
-                model, Y, U, W, Uh, filt, discretised(model, Qh, x0v, W[min(1, T - 1)]), Rh,
+                model, Y, U, W, Uh, filt, discretised(model, Qh, x0v, w1), Rh,
                 x0v, Qh, times)[burn_in:])
         else:
             check = innovation_check(_whitened(model, Y, U, W, Uh, filt, Qh, Rh,

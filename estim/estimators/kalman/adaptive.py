@@ -71,7 +71,13 @@ import casadi as ca
 import numpy as np
 
 from estim._validate import as_choice, as_float
-from estim.estimators.kalman.heavy_tails import ITERATIONS, roth_update, student_t_update
+from estim.estimators.kalman.heavy_tails import (
+    ITERATIONS,
+    gain_update,
+    roth_update,
+    student_t_update,
+)
+from estim.solvers.kalman.triangular import checked_cholesky
 
 __all__ = ["ADAPTS", "DEFINITE", "PRIOR_WEIGHT", "adapted", "check_adapt", "noise_update",
            "predicted_statistics", "sqrt_noise", "start_parts", "start_statistics"]
@@ -172,13 +178,7 @@ def noise_update(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, Q: Any,
             Pn = (TAU * Pb + Ph + dx @ dx.T) / (TAU + 1)
             Pbar = ca.if_else(every, 0.5 * (Pn + Pn.T), Pb)
         Rh = V / (nu - d - 1)
-        Pzz_i, Pxz_i = H @ Pbar @ H.T + Omega, Pbar @ H.T
-        S = Pzz_i + D @ Rh @ D + E
-        S = 0.5 * (S + S.T)
-        K = ca.solve(S, Pxz_i.T).T
-        xh = xb + K @ e
-        Ph = Pbar - K @ S @ K.T
-        Ph = 0.5 * (Ph + Ph.T)
+        xh, Ph, S = gain_update(xb, Pbar, e, Pbar @ H.T, H @ Pbar @ H.T + Omega + D @ Rh @ D + E)
     if not qr:  # Sarkka & Hartikainen's statistics from the final posterior
         r = e - H @ (xh - xb)
         Vn = V0 + r @ r.T + H @ Ph @ H.T + Omega
@@ -227,34 +227,14 @@ def _sage_husa(est: Any, xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, mask: Any
     d, b = est.model.ny, est.forgetting
     D, E = ca.diag(mask), ca.diag(1 - mask)
     j, Rh = a[0], ca.reshape(a[1:], d, d)
-    S = Pzz + D @ Rh @ D + E
-    S = 0.5 * (S + S.T)
-    K = ca.solve(S, Pxz.T).T
-    xh = xb + K @ e
-    Ph = Pb - K @ S @ K.T
+    xh, Ph, S = gain_update(xb, Pb, e, Pxz, Pzz + D @ Rh @ D + E)
     dk = 1 / (j + 1) if b == 1 else (1 - b) / (1 - b ** (j + 1))
     ee = e @ e.T
     first = (1 - dk) * Rh + dk * (ee - Pzz)
     second = (1 - dk) * Rh + dk * ee
-    Rn = ca.if_else(_definite(first), first, ca.if_else(_definite(second), second, Rh))
+    Rn = ca.if_else(checked_cholesky(first, DEFINITE)[1], first,
+                    ca.if_else(checked_cholesky(second, DEFINITE)[1], second, Rh))
     every = ca.sum1(mask) == d  # (whole vectors only, as the variational filter)
     Rn = ca.if_else(every, 0.5 * (Rn + Rn.T), Rh)
-    return (xh, 0.5 * (Ph + Ph.T), S, ca.vertcat(ca.if_else(every, j + 1, j), ca.vec(Rn)),
-            Rh)
+    return xh, Ph, S, ca.vertcat(ca.if_else(every, j + 1, j), ca.vec(Rn)), Rh
 
-
-def _definite(M: Any) -> Any:
-    """1 where the symmetric ``M`` is positive definite: every Cholesky pivot above
-    :data:`DEFINITE` times the largest diagonal entry (a rank-deficient outer product,
-    definite only by rounding, is not)."""
-    n = M.shape[0]
-    L = [[ca.SX(0)] * n for _ in range(n)]
-    ok = ca.SX(1)
-    scale = ca.mmax(ca.diag(M))
-    for j in range(n):
-        p = M[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
-        ok = ca.logic_and(ok, p > DEFINITE * scale)
-        L[j][j] = ca.sqrt(ca.fmax(p, 1e-300))
-        for i in range(j + 1, n):
-            L[i][j] = (M[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
-    return ok

@@ -55,7 +55,8 @@ import casadi as ca
 from estim._validate import as_choice
 from estim.solvers.least_squares.robust import as_dof
 
-__all__ = ["ITERATIONS", "NOISES", "check_noise", "roth_update", "student_t_update"]
+__all__ = ["ITERATIONS", "NOISES", "check_noise", "gain_update", "roth_update",
+           "student_t_update"]
 
 #: The noises' distributions: Gaussian, Student-t measurement noise (the variational
 #: update), or every noise and the state Student-t (Roth et al.'s filter).
@@ -86,17 +87,24 @@ def check_noise(noise: object, dof: object, est: Any) -> tuple[str, float | None
     return noise, nu
 
 
+def gain_update(xb: Any, Pb: Any, e: Any, Pxz: Any, S: Any) -> tuple[Any, Any, Any]:
+    r"""The Kalman update of ``(xb, Pb)`` by the innovation ``e`` with its covariance ``S``
+    and the cross-covariance ``Pxz``: ``(x_hat, P_hat, S)``, :math:`K = P_{xz} S^{-1}`,
+    :math:`\hat P = \bar P - K S K^\top` (``S`` and :math:`\hat P` symmetrised)."""
+    S = 0.5 * (S + S.T)
+    K = ca.solve(S, Pxz.T).T
+    Ph = Pb - K @ S @ K.T
+    return xb + K @ e, 0.5 * (Ph + Ph.T), S
+
+
 def roth_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask: Any,
                 dof: float) -> tuple[Any, Any, Any]:
     r"""Roth et al.'s Student's t update in covariance terms (see the module): ``(x_hat,
     P_hat, S)``."""
     D, E = ca.diag(mask), ca.diag(1 - mask)
-    S = Pzz + D @ R @ D + E
-    S = 0.5 * (S + S.T)
-    K = ca.solve(S, Pxz.T).T
+    xh, Ph, S = gain_update(xb, Pb, e, Pxz, Pzz + D @ R @ D + E)
     scale = (dof - 2 + ca.dot(e, ca.solve(S, e))) / (dof + ca.sum1(mask) - 2)
-    Ph = scale * (Pb - K @ S @ K.T)
-    return xb + K @ e, 0.5 * (Ph + Ph.T), S
+    return xh, scale * Ph, S
 
 
 def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask: Any,
@@ -118,12 +126,7 @@ def student_t_update(xb: Any, Pb: Any, e: Any, Pxz: Any, Pzz: Any, R: Any, mask:
     xh, Ph, S = xb, Pb, Pzz + RD
     for _ in range(iterations):  # the update with lambda, then lambda from it
         used = lam
-        S = Pzz + D @ R @ D / lam + E
-        S = 0.5 * (S + S.T)
-        K = ca.solve(S, Pxz.T).T
-        xh = xb + K @ e
-        Ph = Pb - K @ S @ K.T
-        Ph = 0.5 * (Ph + Ph.T)
+        xh, Ph, S = gain_update(xb, Pb, e, Pxz, Pzz + D @ R @ D / lam + E)
         r = e - H @ (xh - xb)
         delta = ca.dot(r, Rinv @ r) + ca.trace(Rinv @ (H @ Ph @ H.T + Omega))
         lam = (dof + m) / (dof + delta)

@@ -44,6 +44,7 @@ from numpy.typing import ArrayLike
 from estim._validate import as_inputs, as_int, as_intervals, as_record
 from estim.estimators.base import Estimator
 from estim.estimators.filtering import Estimates, stamped
+from estim.solvers.kalman.continuous import discretised_noises
 from estim.solvers.kalman.rts import backward, transitions
 
 #: A prediction of a whole record: from the filtered means ``(T-1, nx)``, covariances
@@ -214,12 +215,11 @@ def iterated(estimator: Estimator, first: SmoothResult, Y: ArrayLike, U: ArrayLi
     Qs = np.broadcast_to(estimator.Q, (max(T - 1, 0), nx, nx))
     Rs = np.broadcast_to(estimator.R, (T, m.ny, m.ny))
     continuous = getattr(estimator, "Qc", None) is not None
-    noise = _interval_noise(estimator, T - 1) if continuous and T > 1 else None
 
     def linearise(Xs, Ps):  # the Jacobians and the affine terms at the trajectory
         nonlocal Qs
-        if noise is not None:  # each interval's Q_d at the trajectory
-            Qs = noise(Xs[:-1], W)
+        if continuous and T > 1:  # each interval's Q_d at the trajectory
+            Qs = discretised_noises(m, estimator.Q, Xs[:-1], W)
         FX = transitions(m, Xs[:-1], W) if T > 1 else np.empty((0, nx))
         A = transitions(m, Xs[:-1], W, jacobian=True) if T > 1 else np.empty((0, nx, nx))
         HX = np.asarray(out[0](Xs.T, Uy.T, pm)).T
@@ -298,23 +298,6 @@ def posterior_linearised(estimator, first: SmoothResult, Y: ArrayLike, U: ArrayL
 
     return _passes(estimator, first, Y, first.x_filtered, first.P_filtered, iterations, tol,
                    linearise)
-
-
-def _interval_noise(estimator, n: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-    r"""``(X (n, nx), W (n, nw)) -> Q_d (n, nx, nx)``: each transition's
-    :math:`Q_d(\Delta t_k)` of the drift linearised at ``X[k]`` under the estimator's
-    density :math:`L Q_c L^\top` (one mapped CasADi call)."""
-    from estim.solvers.kalman.continuous import discretised_noise
-
-    m, nx = estimator.model, estimator.model.nx
-    x, w = ca.SX.sym("x", nx), ca.SX.sym("w", m.nw)
-    fun = ca.Function("q_d", [x, w], [ca.vec(discretised_noise(m, ca.DM(estimator.Q), x,
-                                                                w))]).map(n)
-
-    def noise(X, W):
-        return np.asarray(fun(X.T, W.T)).T.reshape(n, nx, nx).transpose(0, 2, 1)
-
-    return noise
 
 
 def _passes(estimator, first: SmoothResult, Y: np.ndarray, Xs: np.ndarray, Ps: np.ndarray,

@@ -41,6 +41,7 @@ from estim.estimators.manifold_steps import check_manifold_options, usque_step
 from estim.model import Model
 from estim.solvers.kalman.kalman import finite
 from estim.solvers.kalman.rts import transitions
+from estim.solvers.kalman.triangular import checked_cholesky as _cholesky
 from estim.solvers.quadrature import cubature5, gauss_hermite
 
 #: The sigma-point sets of :class:`UKF` (see :func:`sigma_weights`).
@@ -477,18 +478,3 @@ def sigma_rule(points: str, n: int, order: int = 3, alpha: float = 1.0, beta: fl
     if points != "cubature" and n + kappa <= 0:
         raise ValueError(f"kappa must make nx + kappa positive (nx = {n}), got {kappa!r}")
     return (*sigma_weights(points, n, alpha, beta, kappa), None)
-
-
-def _cholesky(A) -> tuple[ca.SX, ca.SX]:
-    r"""Lower Cholesky factor :math:`L` (:math:`L L^\top = A`, from the upper triangle of
-    ``A`` as LAPACK's upper factorisation reads it) and whether every pivot is positive."""
-    n = A.shape[0]
-    L = [[ca.SX(0)] * n for _ in range(n)]
-    definite = ca.SX(1)
-    for j in range(n):
-        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
-        definite = ca.logic_and(definite, d > 0)
-        L[j][j] = ca.sqrt(d)
-        for i in range(j + 1, n):
-            L[i][j] = (A[j, i] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
-    return ca.vertcat(*[ca.horzcat(*row) for row in L]), definite

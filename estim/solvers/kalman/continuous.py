@@ -37,15 +37,16 @@ nonlinear systems", IEEE TAC 52(9), 2007.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable
 from typing import Any
 
 import casadi as ca
 import numpy as np
 
-__all__ = ["DOUBLINGS", "discretised_noise", "drift_jacobian", "interval", "interval_weight",
-           "moment_step", "noise_density", "sigma_moment_step", "sqrt_moment_step",
-           "sqrt_sigma_moment_step", "van_loan"]
+__all__ = ["DOUBLINGS", "discretised_noise", "discretised_noises", "drift_jacobian",
+           "interval", "interval_weight", "moment_step", "noise_density", "sigma_moment_step",
+           "sqrt_moment_step", "sqrt_sigma_moment_step", "van_loan"]
 
 #: The squarings of :func:`van_loan`'s scaling: the exponent is taken of the matrix divided
 #: by :math:`2^{32}`, then doubled back; with the Taylor series of degree
@@ -193,6 +194,29 @@ def discretised_noise(model: Any, W: Any, x: Any, w: Any) -> Any:
         h = ca.if_else(h > 0, h, 1.0)
     A = drift_jacobian(model)(x, input_at(u_of, 0.0), ca.DM(model.p))
     return van_loan(A, W, h)[1]
+
+
+#: the mapped Functions of :func:`discretised_noises`, per model and number of transitions
+_MAPPED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def discretised_noises(model: Any, W: np.ndarray, X: np.ndarray, Wt: np.ndarray
+                       ) -> np.ndarray:
+    r"""``(n, nx, nx)``: :func:`discretised_noise` of every transition ``k`` at once, from
+    the state ``X[k]`` with the transition input ``Wt[k]`` (``X (n, nx)``, ``Wt (n, nw)``)
+    under the density ``W`` ``(nx, nx)``; one mapped call (its Function built once per
+    model and ``n``)."""
+    n, nx = len(X), model.nx
+    if not n:
+        return np.empty((0, nx, nx))
+    cache = _MAPPED.setdefault(model, {})
+    if n not in cache:
+        x, w, D = ca.SX.sym("x", nx), ca.SX.sym("w", model.nw), ca.SX.sym("D", nx, nx)
+        cache[n] = ca.Function("q_d", [x, w, ca.vec(D)],
+                               [ca.vec(discretised_noise(model, D, x, w))]).map(n)
+    q = np.asarray(cache[n](X.T, Wt.T, np.repeat(np.reshape(W, (-1, 1), order="F"), n,
+                                                 axis=1)))
+    return q.T.reshape(n, nx, nx).transpose(0, 2, 1)
 
 
 def interval_weight(model: Any, W: Any, x: Any, w: Any) -> Any:

@@ -24,7 +24,8 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-__all__ = ["cholesky", "cholesky_downdate", "psd_factor", "solve_lower", "tria", "tria_numpy"]
+__all__ = ["checked_cholesky", "cholesky", "cholesky_downdate", "psd_factor", "solve_lower",
+           "tria", "tria_numpy"]
 
 
 def tria(A: ca.SX) -> ca.SX:
@@ -113,6 +114,24 @@ def cholesky(A: ca.SX) -> ca.SX:
             acc = A[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))
             L[i][j] = ca.sqrt(acc) if i == j else acc / L[j][j]
     return ca.vertcat(*[ca.horzcat(*row) for row in L]) if n else ca.SX(0, 0)
+
+
+def checked_cholesky(A, tol: float = 0.0) -> tuple[ca.SX, ca.SX]:
+    r"""Lower Cholesky factor :math:`L` (:math:`L L^\top = A`, from the upper triangle of
+    ``A`` as LAPACK's upper factorisation reads it) and whether every pivot is positive
+    (with ``tol``, above ``tol`` times the largest diagonal entry: a rank-deficient
+    matrix, definite only by rounding, is not)."""
+    n = A.shape[0]
+    L = [[ca.SX(0)] * n for _ in range(n)]
+    definite = ca.SX(1)
+    floor = tol * ca.mmax(ca.diag(A)) if tol else 0
+    for j in range(n):
+        d = A[j, j] - sum((L[j][k] ** 2 for k in range(j)), ca.SX(0))
+        definite = ca.logic_and(definite, d > floor)
+        L[j][j] = ca.sqrt(d)
+        for i in range(j + 1, n):
+            L[i][j] = (A[j, i] - sum((L[i][k] * L[j][k] for k in range(j)), ca.SX(0))) / L[j][j]
+    return ca.vertcat(*[ca.horzcat(*row) for row in L]), definite
 
 
 def solve_lower(L: ca.SX, B: ca.SX, transpose: bool = False) -> ca.SX:
