@@ -22,6 +22,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from estim._runs import Run, Spec, build, run_seed
+from estim._workers import run_tasks
 from estim.estimators.base import Estimator
 from estim.scenarios import Scenario
 
@@ -175,20 +176,7 @@ def dispatch(scenario: Scenario, specs: Mapping[str, Spec], seeds: list[int],
     args = [(scenario, specs[name], seeds[a:b], burn_in, keep_logs, (call, name))
             for name, a, b in tasks]
     t0 = time.time()
-    if backend == "dask":
-        # straight to the active dask.distributed client (a local or remote cluster)
-        from dask.distributed import get_client
-
-        client = get_client()
-        results = client.gather([client.submit(run_chunk, *a, pure=False) for a in args])
-    else:
-        import joblib.parallel as jp
-        from joblib import Parallel, delayed
-
-        if backend not in jp.BACKENDS and backend in getattr(jp, "EXTERNAL_BACKENDS", {}):
-            jp.EXTERNAL_BACKENDS[backend]()  # joblib registers dask/ray lazily
-        results = Parallel(n_jobs=n_jobs, backend=backend, verbose=0, batch_size=1)(
-            delayed(run_chunk)(*a) for a in args)
+    results = run_tasks(run_chunk, args, n_jobs=n_jobs, backend=backend)
     wall = time.time() - t0
     with _BUILT_LOCK:
         _BUILT.clear()  # this process's (threading backend)

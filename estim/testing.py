@@ -60,6 +60,7 @@ from estim._version import __version__
 from estim.compare import Comparison
 from estim.estimators.base import Estimator
 from estim.experiment import Record
+from estim.inference.posterior import Posterior, agreement
 from estim.log import Log
 from estim.metrics import nees as nees_of
 from estim.metrics import nis as nis_of
@@ -78,7 +79,8 @@ from estim.verdicts import (
 )
 
 __all__ = ["METRICS", "TESTS", "Consistency", "PairedTest", "assert_better", "assert_close",
-           "assert_consistent", "assert_equivalent", "assert_no_regression", "load_baseline",
+           "assert_consistent", "assert_equivalent", "assert_no_regression",
+           "assert_posterior_close", "load_baseline",
            "record", "recording", "save_baseline"]
 
 #: The per-seed metrics a comparison holds.
@@ -391,6 +393,18 @@ def _contributors(runs: list[tuple[Log, int]]) -> str:
     t = runs[0][0].t
     return "; the steps that contribute most: " + ", ".join(
         f"k={k0 + i} (t={t[k0 + i]:g}): {per_step[i]:.3g}" for i in sorted(top))
+
+
+def assert_posterior_close(posterior: Posterior, reference: Posterior | Mapping[str, float],
+                           *, confidence: float = 0.99) -> None:
+    """Assert that chains' posterior means agree with a reference (other chains, such
+    as an exact-likelihood Metropolis-Hastings run, or exact values) within their
+    combined Monte Carlo standard errors, each parameter at ``confidence`` with a
+    Bonferroni correction; chains with R-hat above 1.05 or fewer than 100 effective
+    draws fail as not judgeable (:func:`estim.inference.posterior.agreement`)."""
+    passed, text = agreement(posterior, dict(reference) if isinstance(reference, Mapping)
+                             else reference, _level(confidence, "confidence"))
+    _verdict("assert_posterior_close", passed, text)
 
 
 def assert_close(a: Estimator, b: Estimator, record: Record | tuple, *, atol: float = 1e-8,

@@ -9,6 +9,9 @@ Its layer is above the estimators and the simulation loop and below the comparis
 """
 
 from estim.inference.chains import ess, rhat
+from estim.inference.likelihood import ParticleLikelihood
+from estim.inference.pmmh import pmmh
+from estim.inference.posterior import Forecast, Posterior, StatePosterior
 from estim.inference.priors import (
     Beta,
     Gamma,
@@ -21,5 +24,6 @@ from estim.inference.priors import (
     Uniform,
 )
 
-__all__ = ["Beta", "Gamma", "HalfNormal", "InverseGamma", "LogDensity", "LogNormal", "Normal",
-           "Prior", "Uniform", "ess", "rhat"]
+__all__ = ["Beta", "Forecast", "Gamma", "HalfNormal", "InverseGamma", "LogDensity", "LogNormal",
+           "Normal", "ParticleLikelihood", "Posterior", "Prior", "StatePosterior", "Uniform",
+           "ess", "pmmh", "rhat"]

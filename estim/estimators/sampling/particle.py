@@ -244,6 +244,34 @@ def _smooth(self: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None, *,
                                None if M.euclidean_states else M, filtered)
 
 
+def _set_params(self: ParticleFilter, **values: float) -> None:
+    """Change the model's parameter values in this filter, from the next step on; nothing
+    is rebuilt (the compiled steps take the parameters as data, so a chain over them
+    costs one filter run per point). ``pf.set_params(rho=0.9)``; unknown names and
+    values that are not finite numbers are refused by name."""
+    p = self._p.copy()
+    names = self.model.param_names
+    for key, val in values.items():
+        if key not in names:
+            raise ValueError(f"unknown parameter {key!r}; the model's parameters are "
+                             f"{names}")
+        p[names.index(key)] = as_float(val, f"parameter {key!r}")
+    self._p = p
+
+
+def _params(self: ParticleFilter) -> dict[str, float]:
+    """The parameter values the filter runs with (the model's, or :meth:`set_params`')."""
+    return dict(zip(self.model.param_names, self._p.tolist(), strict=True))
+
+
+def _stage_input(self: ParticleFilter, u: np.ndarray) -> np.ndarray:
+    """The per-particle Functions' input of a step: the transition input, then the
+    parameters."""
+    if not self.model.nw:
+        return self._p
+    return np.concatenate([self._transition(u), self._p])
+
+
 class ParticleFilter(CompiledParticles):
     r"""Bootstrap particle filter (sequential importance resampling; see the module).
 
@@ -350,6 +378,7 @@ class ParticleFilter(CompiledParticles):
         self.seed = 0 if seed_ is None else seed_
         self.loglik = loglik
         self.jit = as_bool(jit, "jit")
+        self._p = self.model.p.astype(float)
         self._build()
         self._tuning_changed()
         self._reset()
@@ -411,7 +440,7 @@ class ParticleFilter(CompiledParticles):
     def _step(self, y, u, first):
         m, N, nx = self.model, self.n_particles, self.model.ndx
         observed = ~np.isnan(y)
-        w = self._transition(u) if m.nw else np.zeros(0)
+        w = self._stage_input(u)
         if self._kernel is not None:
             return self._compiled_step(y, w, first)
         WR, const, Ro, tun, miss = self._measured(observed)
@@ -516,6 +545,9 @@ class ParticleFilter(CompiledParticles):
         return stamped(res, self.model, t, fixed_dt=True)
 
     smooth = _smooth
+    set_params = _set_params
+    params = property(_params)
+    _stage_input = _stage_input
 
 
 def seeded(pf: ParticleFilter, seed: object, run: Callable[[], Any]) -> Any:

@@ -109,6 +109,7 @@ class CompiledParticles(Estimator):
     _X: np.ndarray | None
     _W: np.ndarray | None
     _trusted: tuple[np.ndarray, np.ndarray | None]
+    _p: np.ndarray
 
     def _measured(self, observed: np.ndarray
                   ) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
@@ -283,21 +284,31 @@ class CompiledParticles(Estimator):
         self._published()
         return x_hat, info
 
+    def _record_inputs(self, Y: Any, U: Any) -> tuple[np.ndarray, np.ndarray]:
+        """The record checked, ``Y (T, ny)``, and the per-particle Functions' input of
+        every step ``(T, nw + np)``: the transition input, then the parameters (the
+        filter reset to run it)."""
+        m = self.model
+        Y, steps_u = prepared_record(self, Y, U)
+        T = Y.shape[0]
+        W = np.empty((T, m.nw + m.p.size))
+        W[:, m.nw:] = self._p
+        if m.nw or self._sampled:
+            for k in range(T):
+                if m.nw:
+                    W[k, :m.nw] = self._transition(steps_u[k])
+                if self._sampled:
+                    self._u_last = steps_u[k].copy()
+        return Y, W
+
     def _compiled_filter(self, Y: Any, U: Any
                          ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray,
                                     np.ndarray]:
         """A whole record through the kernel: estimates, covariances, statuses, ESS and
         log-likelihood increments (the filter's state as after :func:`~estim.replay`)."""
         m = self.model
-        Y, steps_u = prepared_record(self, Y, U)
+        Y, W = self._record_inputs(Y, U)
         T = Y.shape[0]
-        W = np.empty((T, m.nw))
-        if m.nw or self._sampled:
-            for k in range(T):
-                if m.nw:
-                    W[k] = self._transition(steps_u[k])
-                if self._sampled:
-                    self._u_last = steps_u[k].copy()
         rows = self._kernel_rows(Y, W)
         X, P = np.empty((T, m.nx)), np.empty((T, m.nx, m.nx))
         status: list[str] = []

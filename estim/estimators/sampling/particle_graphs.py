@@ -106,7 +106,9 @@ def graphs(model: Model, loglik: Callable | None, proposal: str,
     prior; None for the bootstrap filter), ``transit(x, w) -> F(x, w)`` and ``first(x0,
     v, w, tun0, y0, WR, miss) -> (x, yhat, l)``, the first step from the prior in one
     Function (``start``, or ``x0 + L_0 v`` weighed, ``tun0`` then ``L_0``), for one
-    particle (see :class:`~estim.ParticleFilter`): ``y0`` the measurement with 0 where
+    particle (see :class:`~estim.ParticleFilter`): ``w`` the transition input followed by
+    the model's parameters (``nw + np``: a chain over the parameters changes data, not
+    the Functions), ``y0`` the measurement with 0 where
     missing (``miss`` 1 there), ``WR`` the inverse Cholesky factor of the measured rows
     of ``R`` embedded in ``(ny, ny)`` (the Gaussian term without its constant), ``tun``
     what the ``proposal`` reads of the tuning (see ``ParticleFilter._measured``); with
@@ -114,8 +116,11 @@ def graphs(model: Model, loglik: Callable | None, proposal: str,
     proposal's."""
     nx, ny, nw, nd = model.nx, model.ny, model.nw, model.ndx
     M = model.manifold
-    p = ca.DM(model.p)
-    x, v, w = ca.SX.sym("x", nx), ca.SX.sym("v", nd), ca.SX.sym("w", nw)
+    # the transition input and then the parameters: one input, so that a chain over the
+    # parameters changes data, not the compiled kernels
+    wp = ca.SX.sym("w", nw + model.p.size)
+    w, p = wp[:nw], wp[nw:]
+    x, v = ca.SX.sym("x", nx), ca.SX.sym("v", nd)
     y0 = ca.SX.sym("y0", ny)
     WR, miss = ca.SX.sym("WR", ny * ny), ca.SX.sym("miss", ny)
 
@@ -125,7 +130,7 @@ def graphs(model: Model, loglik: Callable | None, proposal: str,
             e = (1 - miss) * M.output_difference(y0, yhat)
             return yhat, -0.5 * ca.sumsqr(ca.reshape(WR, ny, ny) @ e)
         y = (1 - miss) * y0 + miss * yhat
-        params = {n: ca.SX(val) for n, val in model.params.items()}
+        params = {n: p[i] for i, n in enumerate(model.param_names)}
         try:
             value = loglik(y, yhat, params)
         except Exception as exc:  # noqa: BLE001 - re-raised naming the argument
@@ -142,33 +147,33 @@ def graphs(model: Model, loglik: Callable | None, proposal: str,
         return yhat, ell
 
     yhat, ell = measure(x)
-    weigh = ca.Function("pf_weigh", [x, w, y0, WR, miss], [yhat, ell])
+    weigh = ca.Function("pf_weigh", [x, wp, y0, WR, miss], [yhat, ell])
     xb = model.F(x, w, p)
     if proposal == "bootstrap":  # tun: L_Q; on a manifold the noise in its tangent space
         tun = ca.SX.sym("tun", nd * nd)
         noise = ca.reshape(tun, nd, nd) @ v
         xn = xb + noise if M.euclidean_states else M.retract(xb, noise)
-        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss],
+        advance = ca.Function("pf_advance", [x, v, wp, tun, y0, WR, miss],
                               [xn, *measure(xn)])
         start = None
         L0 = ca.SX.sym("L0", nd * nd)
         x_0 = x + ca.reshape(L0, nd, nd) @ v if M.euclidean_states else \
             M.retract(x, ca.reshape(L0, nd, nd) @ v)
-        first = ca.Function("pf_first", [x, v, w, L0, y0, WR, miss], [x_0, *measure(x_0)])
+        first = ca.Function("pf_first", [x, v, wp, L0, y0, WR, miss], [x_0, *measure(x_0)])
     else:  # "ekf", "ukf", tun: Q, L_Q^-1, R (identity rows where missing), L_Q
         tun = ca.SX.sym("tun", 3 * nd * nd + ny * ny)
-        advance = ca.Function("pf_advance", [x, v, w, tun, y0, WR, miss], list(
-            linearised(model, measure, xb, v, w, tun, y0, miss, proposal, rule)))
+        advance = ca.Function("pf_advance", [x, v, wp, tun, y0, WR, miss], list(
+            linearised(model, measure, xb, v, w, p, tun, y0, miss, proposal, rule)))
         # the first step: the same from the prior N(x0, P0) (tun with P0 for Q)
-        start = ca.Function("pf_start", [x, v, w, tun, y0, WR, miss], list(
-            linearised(model, measure, x, v, w, tun, y0, miss, proposal, rule)))
+        start = ca.Function("pf_start", [x, v, wp, tun, y0, WR, miss], list(
+            linearised(model, measure, x, v, w, p, tun, y0, miss, proposal, rule)))
         first = start
-    transit = ca.Function("pf_transit", [x, w], [xb])
+    transit = ca.Function("pf_transit", [x, wp], [xb])
     return Graphs(weigh, advance, start, transit, first)
 
 
-def linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, tun: ca.SX,
-                y0: ca.SX, miss: ca.SX, kind: str = "ekf",
+def linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, p: ca.SX,
+               tun: ca.SX, y0: ca.SX, miss: ca.SX, kind: str = "ekf",
                rule: tuple[np.ndarray, np.ndarray] | None = None
                ) -> tuple[ca.SX, ca.SX, ca.SX]:
     r"""A particle drawn from :math:`N(\bar x,\, Q)` updated by the measurement
@@ -188,7 +193,7 @@ def linearised(model: Model, measure: Callable, xb: ca.SX, v: ca.SX, w: ca.SX, t
     is :math:`x \ominus \bar x = \delta`), the output's derivative taken along the
     retraction and its deviations wrapped."""
     M = model.manifold
-    nx, ny, p = model.ndx, model.ny, ca.DM(model.p)  # (on a manifold: the tangent space)
+    nx, ny = model.ndx, model.ny  # (on a manifold: the tangent space)
     n2 = nx * nx
     Qm, LQi = ca.reshape(tun[:n2], nx, nx), ca.reshape(tun[n2:2 * n2], nx, nx)
     Rm = ca.reshape(tun[2 * n2:2 * n2 + ny * ny], ny, ny)

@@ -1,0 +1,442 @@
+r"""Particle marginal Metropolis-Hastings: Markov chains over a model's parameters whose
+likelihood is the particle filter's unbiased estimate (Andrieu, Doucet & Holenstein 2010).
+
+From the chain's state :math:`(\theta, \hat\ell)` a random walk proposes
+:math:`\theta' = \theta + L\varepsilon`, :math:`\varepsilon \sim N(0, I)`; a
+:math:`\theta'` outside the priors' support is rejected at once, otherwise the particle
+filter estimates :math:`\hat\ell' = \log\hat p(y \mid \theta')` with new random numbers
+and the move is accepted with probability
+
+.. math::
+    \min\Bigl(1,\ \exp\bigl(\hat\ell' + \log p(\theta') - \hat\ell - \log p(\theta)
+    \bigr)\Bigr).
+
+The estimate is kept with its point (never estimated again there), which makes the
+chain's stationary distribution the exact posterior :math:`p(\theta \mid y)` whatever the
+number of particles; fewer particles only make the chain stickier. The spread of
+:math:`\hat\ell` decides how sticky: about 1 to 1.7 is efficient (Doucet, Pitt,
+Deligiannidis & Kohn 2015), above 3 the chain can stay for hundreds of iterations where
+an over-estimate put it. :func:`pmmh` measures that spread at the start and at the
+posterior mean and warns beyond :data:`STICKY_SD`.
+
+The proposal's covariance :math:`LL^\top` is adapted from the chain's own history:
+
+* ``adapt="haario"`` (Haario, Saksman & Tamminen 2001): after ``adapt_start``
+  iterations, :math:`s_d\,(\widehat{\mathrm{Cov}}(\theta_{0:t}) + \epsilon I)`,
+  :math:`s_d = 2.38^2/d`;
+* ``adapt="vanishing"`` (Andrieu & Thoms 2008): :math:`\mu_t = \mu_{t-1} +
+  \gamma_t(\theta_t - \mu_{t-1})`, :math:`\Sigma_t = (1-\gamma_t)\Sigma_{t-1} +
+  \gamma_t(\theta_t - \mu_t)(\theta_t - \mu_t)^\top`, :math:`\gamma_t = (t+1)^{-0.6}`,
+  from the first iteration, the proposal :math:`(2.38^2/d)\,\Sigma_t` (the scheme of the
+  ``particles`` library's PMMH);
+* ``adapt=None``: the initial covariance throughout.
+
+``correlation`` :math:`\rho > 0` runs the correlated pseudo-marginal chain
+(:mod:`estim.inference.likelihood`): the auxiliary normals move by
+:math:`z' = \rho z + \sqrt{1-\rho^2}\varepsilon` with each proposal, so the two estimates'
+errors largely cancel in the ratio.
+
+Chains run in parallel through the engine of :func:`~estim.compare`
+(:mod:`estim._workers`: joblib processes, or a dask cluster).
+
+References
+----------
+C. Andrieu, A. Doucet, R. Holenstein, "Particle Markov chain Monte Carlo methods",
+J. R. Stat. Soc. B 72(3), 2010; H. Haario, E. Saksman, J. Tamminen, "An adaptive
+Metropolis algorithm", Bernoulli 7(2), 2001; C. Andrieu, J. Thoms, "A tutorial on
+adaptive MCMC", Statistics and Computing 18(4), 2008; A. Doucet, M. K. Pitt, G.
+Deligiannidis, R. Kohn, "Efficient implementation of Markov chain Monte Carlo when using
+an unbiased likelihood estimator", Biometrika 102(2), 2015; G. Deligiannidis, A. Doucet,
+M. K. Pitt, "The correlated pseudo-marginal method", J. R. Stat. Soc. B 80(5), 2018.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from estim._progress import bar
+from estim._validate import as_choice, as_float, as_int, as_seed
+from estim._workers import run_tasks
+from estim.estimators.sampling.particle import ParticleFilter
+from estim.exceptions import EstimationWarning
+from estim.inference.likelihood import ParticleLikelihood
+from estim.inference.posterior import Posterior
+from estim.inference.priors import Prior, as_priors, check_start
+
+__all__ = ["pmmh"]
+
+#: the log-likelihood estimate's standard deviation beyond which chains stick (warned)
+STICKY_SD = 3.0
+#: the runs of the filter that measure that spread
+SPREAD_RUNS = 20
+
+
+class ExactLikelihood:
+    """A user's exact log-likelihood ``fn(theta: dict) -> float`` as a chain calls it."""
+
+    def __init__(self, fn: Callable[[dict], float], names: Sequence[str]):
+        self.fn, self.names = fn, list(names)
+        self.failures: dict[str, Any] = {"not finite": 0}
+
+    def __call__(self, theta: np.ndarray, seed: int) -> float:
+        value = float(self.fn(dict(zip(self.names, theta.tolist(), strict=True))))
+        if not math.isfinite(value):
+            self.failures["not finite"] += 1
+            return -math.inf
+        return value
+
+
+def _log_prior(priors: Sequence[Prior], theta: np.ndarray) -> float:
+    total = 0.0
+    for prior, value in zip(priors, theta, strict=True):
+        total += prior.logpdf(value)
+        if total == -math.inf:
+            break
+    return total
+
+
+class _Proposal:
+    """The random walk's covariance and its adaptation (see the module)."""
+
+    def __init__(self, cov0: np.ndarray, adapt: str | None, start: int):
+        d = len(cov0)
+        self.d, self.adapt, self.start = d, adapt, start
+        self.sd2 = 2.38 ** 2 / d
+        self.L = np.linalg.cholesky(cov0)
+        self.eps = 1e-10 * float(np.mean(np.diag(cov0)))
+        self.t, self.mu, self.S = 0, np.zeros(d), np.zeros((d, d))
+        if adapt == "vanishing":
+            self.S = cov0.copy()
+            self.L = math.sqrt(self.sd2) * np.linalg.cholesky(cov0)
+
+    def update(self, theta: np.ndarray) -> None:
+        self.t += 1
+        t = self.t
+        if self.adapt == "haario":  # the running mean and covariance of theta_0..t-1
+            delta = theta - self.mu
+            self.mu = self.mu + delta / t
+            self.S = self.S + np.outer(delta, theta - self.mu)
+            if t > self.start:
+                C = self.sd2 * (self.S / (t - 1) + self.eps * np.eye(self.d))
+                try:
+                    self.L = np.linalg.cholesky(C)
+                except np.linalg.LinAlgError:
+                    pass
+        elif self.adapt == "vanishing":
+            g = (1.0 / t) ** 0.6
+            if t == 1:
+                self.mu = theta.copy()
+            self.mu = (1 - g) * self.mu + g * theta
+            dv = theta - self.mu
+            self.S = (1 - g) * self.S + g * np.outer(dv, dv)
+            try:
+                self.L = math.sqrt(self.sd2) * np.linalg.cholesky(self.S)
+            except np.linalg.LinAlgError:
+                self.L = 1e-3 * np.eye(self.d)
+
+    @property
+    def cov(self) -> np.ndarray:
+        return self.L @ self.L.T
+
+
+def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.ndarray,
+           n_iter: int, adapt: str | None, adapt_start: int, correlation: float,
+           seed: np.random.SeedSequence, show: bool) -> dict:
+    """One chain (a worker's task): its states, log-likelihoods, log-priors, accepted
+    moves, final proposal covariance and the target's failures."""
+    rng = np.random.default_rng(seed)
+    d = len(start)
+    theta = np.asarray(start, float).copy()
+    prop = _Proposal(cov0, adapt, adapt_start)
+    draws, ll, lp = np.empty((n_iter, d)), np.empty(n_iter), np.empty(n_iter)
+    acc = np.zeros(n_iter, dtype=bool)
+    cpm = correlation > 0
+    keep = math.sqrt(1.0 - correlation ** 2)
+    if cpm:
+        z = rng.standard_normal(target.auxiliary_size())
+        ell = target.correlated(theta, z)
+    else:
+        ell = target(theta, int(rng.integers(2 ** 62)))
+    lpr = _log_prior(priors, theta)
+    draws[0], ll[0], lp[0], acc[0] = theta, ell, lpr, True
+    with bar(n_iter - 1 if show else 0, "pmmh", "iteration", show=show or None) as progress:
+        for i in range(1, n_iter):
+            cand = theta + prop.L @ rng.standard_normal(d)
+            lpc = _log_prior(priors, cand)
+            if lpc > -math.inf:
+                if cpm:
+                    zc = correlation * z + keep * rng.standard_normal(z.shape)
+                    ellc = target.correlated(cand, zc)
+                else:
+                    ellc = target(cand, int(rng.integers(2 ** 62)))
+                log_ratio = ellc + lpc - ell - lpr
+                if ell == -math.inf:  # (a start without likelihood: any move out of it)
+                    log_ratio = math.inf if ellc > -math.inf else -math.inf
+                if math.log(rng.uniform()) < log_ratio:
+                    theta, ell, lpr, acc[i] = cand, ellc, lpc, True
+                    if cpm:
+                        z = zc
+            draws[i], ll[i], lp[i] = theta, ell, lpr
+            if adapt is not None:
+                prop.update(theta)
+            progress.update(1)
+    return {"draws": draws, "ll": ll, "lp": lp, "acc": acc, "cov": prop.cov,
+            "failures": dict(target.failures)}
+
+
+def _covariance(proposal: object, names: list[str], priors: Sequence[Prior],
+                start: np.ndarray) -> np.ndarray:
+    """The initial proposal covariance: a matrix, per-parameter standard deviations
+    (a number or ``{name: sd}``), or by default a tenth of each prior's spread (its
+    interquartile range / 1.349 from draws; ``|start|/10`` or 0.1 where it cannot be
+    drawn), checked."""
+    d = len(names)
+    if proposal is None:
+        sds = []
+        rng = np.random.default_rng(0)
+        for prior, s in zip(priors, start, strict=True):
+            try:
+                q = np.quantile(prior.sample(rng, 4000), [0.25, 0.75])
+                sds.append(0.1 * (q[1] - q[0]) / 1.349)
+            except NotImplementedError:
+                sds.append(0.1 * max(abs(s), 1.0))
+        return np.diag(np.square(sds))
+    if isinstance(proposal, Mapping):
+        unknown = [k for k in proposal if k not in names]
+        if unknown:
+            raise ValueError(f"proposal: {unknown} have no prior (parameters: {names})")
+        missing = [k for k in names if k not in proposal]
+        if missing:
+            raise ValueError(f"proposal: no standard deviation for {missing}")
+        sd = np.array([as_float(proposal[k], f"proposal[{k!r}]") for k in names])
+    else:
+        arr = np.asarray(proposal, float) if not isinstance(proposal, str) else None
+        if arr is None or arr.ndim not in (0, 2):
+            raise TypeError(f"proposal must be a standard deviation, a dict of them by "
+                            f"parameter or a ({d}, {d}) covariance matrix, got {proposal!r}")
+        if arr.ndim == 2:
+            if arr.shape != (d, d) or not np.isfinite(arr).all() or \
+                    not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() <= 0:
+                raise ValueError(f"proposal: a covariance matrix must be ({d}, {d}), "
+                                 f"symmetric and positive definite (a zero scale never "
+                                 f"moves the chain)")
+            return arr.copy()
+        sd = np.full(d, float(arr))
+    if not np.all(np.isfinite(sd)) or np.any(sd <= 0):
+        raise ValueError(f"proposal: the standard deviations must be positive and finite, "
+                         f"got {dict(zip(names, sd.tolist(), strict=True))} (a zero scale "
+                         f"never moves the chain)")
+    return np.diag(sd ** 2)
+
+
+def _starts(start: object, names: list[str], priors: dict[str, Prior], n_chains: int,
+            rng: np.random.Generator) -> list[np.ndarray]:
+    """Each chain's start: given (one dict for all, or one per chain), or drawn from the
+    priors; checked inside their support."""
+    if start is None:
+        out = []
+        for _ in range(n_chains):
+            point = {}
+            for n in names:
+                try:
+                    point[n] = float(priors[n].sample(rng, 1)[0])
+                except NotImplementedError:
+                    raise ValueError(f"start: give a start for {n!r} (its prior "
+                                     f"{priors[n]!r} cannot be drawn from)") from None
+            out.append(point)
+    elif isinstance(start, Mapping):
+        out = [dict(start)] * n_chains
+    elif isinstance(start, Sequence) and len(start) == n_chains and \
+            all(isinstance(s, Mapping) for s in start):
+        out = [dict(s) for s in start]
+    else:
+        raise TypeError(f"start must be a dict of parameter values, a list of {n_chains} "
+                        f"such dicts (one per chain) or None (drawn from the priors), got "
+                        f"{type(start).__name__}")
+    for point in out:
+        check_start(priors, point)
+    return [np.array([float(p[n]) for n in names]) for p in out]
+
+
+def _spread(target: Any, theta: np.ndarray, correlation: float, seed: int) -> float:
+    r"""The standard deviation of the log-likelihood estimate at ``theta`` over
+    :data:`SPREAD_RUNS` runs (with ``correlation``: of the difference of two estimates
+    whose auxiliary normals are that correlated, what the acceptance ratio sees, over
+    :data:`SPREAD_RUNS` pairs, divided by :math:`\sqrt 2` to compare with the plain
+    estimate's)."""
+    rng = np.random.default_rng(seed)
+    if correlation > 0:
+        keep = math.sqrt(1 - correlation ** 2)
+        diffs = []
+        for _ in range(SPREAD_RUNS):
+            z = rng.standard_normal(target.auxiliary_size())
+            z2 = correlation * z + keep * rng.standard_normal(z.shape)
+            diffs.append(target.correlated(theta, z2) - target.correlated(theta, z))
+        return float(np.std(diffs, ddof=1) / math.sqrt(2))
+    values = [target(theta, int(rng.integers(2 ** 62))) for _ in range(SPREAD_RUNS)]
+    return float(np.std(values, ddof=1))
+
+
+def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = None,
+         U: ArrayLike | None = None, *, priors: Mapping[str, Prior | Callable],
+         tuning: Callable[[dict], Mapping] | None = None,
+         start: Mapping[str, float] | Sequence[Mapping[str, float]] | None = None,
+         n_iter: int = 5000, n_chains: int = 4, warmup: int | None = None,
+         proposal: Any = None, adapt: str | None = "haario", adapt_start: int | None = None,
+         correlation: float = 0.0, seed: int = 0, n_jobs: int = 1, backend: str = "loky",
+         t: ArrayLike | None = None, progress: bool | None = None) -> Posterior:
+    r"""Particle marginal Metropolis-Hastings chains over the parameters (see the module).
+
+    Parameters
+    ----------
+    pf : ParticleFilter or callable
+        The particle filter that estimates the likelihood (its particles, proposal and
+        resampling; ``jit=True`` runs each estimate in one compiled call), or an exact
+        log-likelihood ``fn(theta: dict) -> float`` (a Kalman filter's on a linear
+        model: then ``Y`` is not used).
+    Y, U, t :
+        The record, as for :meth:`ParticleFilter.filter <estim.ParticleFilter.filter>`.
+    priors : dict
+        ``{name: prior}`` (:mod:`estim.inference.priors`, or a log-density function):
+        the parameters, in this order. Names of the model's parameters set them
+        (:meth:`~estim.ParticleFilter.set_params`); others only reach ``tuning``.
+    tuning : callable, optional
+        ``tuning(theta: dict) -> dict`` with some of ``"Q"``, ``"R"``, ``"x0"``, ``"P0"``:
+        the noise covariances and the prior as functions of the parameters.
+    start : dict, list of dict or None
+        Each chain's first point (one dict for all, or one per chain); default: drawn
+        from the priors. Refused outside the priors' support.
+    n_iter, n_chains, warmup : int
+        Iterations per chain (the start included), chains, and the iterations of each
+        chain left out of the summaries (default ``n_iter // 4``).
+    proposal : float, dict, (d, d) array or None
+        The random walk's initial covariance (see :func:`_covariance`): standard
+        deviations (one for all, or by name) or a covariance matrix; default a tenth of
+        each prior's spread.
+    adapt : {"haario", "vanishing", None}
+        The adaptation of the proposal (see the module). ``adapt_start``: the iterations
+        before Haario's adaptation starts (default ``max(100, 10 d)``).
+    correlation : float in [0, 1)
+        :math:`\rho` of the correlated pseudo-marginal method (0: independent estimates;
+        0.99 or more with few particles). Runs the filter's Functions in numpy.
+    seed : int
+        The chains' random numbers (their own streams, spawned from it); the same seed
+        gives the same chains on any number of workers.
+    n_jobs, backend :
+        Workers for the chains, as :func:`~estim.compare` takes them.
+    progress : bool, optional
+        A progress bar (the chains in this process only).
+
+    Returns
+    -------
+    Posterior
+        The chains and their diagnostics (``details``: the settings, the spread of the
+        log-likelihood estimate at the start and at the posterior mean, the final
+        proposal covariances, the points without likelihood).
+
+    Warns
+    -----
+    EstimationWarning
+        The log-likelihood estimate's standard deviation above :data:`STICKY_SD` at the
+        start or at the posterior mean (too few particles: the chains stick), an
+        acceptance rate below 2 % after the warm-up, or :math:`\hat R > 1.05`.
+    """
+    t0 = time.perf_counter()
+    pri = as_priors(priors)
+    names = list(pri)
+    n_iter = as_int(n_iter, "n_iter", minimum=2)
+    n_chains = as_int(n_chains, "n_chains", minimum=1)
+    warmup = n_iter // 4 if warmup is None else as_int(warmup, "warmup", minimum=0)
+    if warmup >= n_iter - 1:
+        raise ValueError(f"warmup must leave draws: {warmup} of n_iter {n_iter}")
+    adapt = None if adapt is None else as_choice(adapt, ("haario", "vanishing"), "adapt")
+    d = len(names)
+    adapt_start = max(100, 10 * d) if adapt_start is None else \
+        as_int(adapt_start, "adapt_start", minimum=2)
+    correlation = as_float(correlation, "correlation", minimum=0.0, maximum=1.0)
+    if correlation >= 1.0:
+        raise ValueError("correlation must be below 1 (1 never renews the random numbers)")
+    seed = as_seed(seed) or 0
+    n_jobs = as_int(n_jobs, "n_jobs", minimum=1)
+    if isinstance(pf, ParticleFilter):
+        if Y is None:
+            raise ValueError("Y: the record is required with a particle filter")
+        target: Any = ParticleLikelihood(pf, Y, U, names=names, tuning=tuning, t=t)
+        method = "PMMH" + (f", correlated (rho = {correlation:g})" if correlation else "")
+    elif callable(pf):
+        if correlation:
+            raise ValueError("correlation needs a particle filter (an exact likelihood has "
+                             "no random numbers to correlate)")
+        target, method = ExactLikelihood(pf, names), "Metropolis-Hastings (exact likelihood)"
+    else:
+        raise TypeError(f"pf must be an estim.ParticleFilter or a log-likelihood function "
+                        f"theta -> float, got {type(pf).__name__}")
+    ss = np.random.SeedSequence(seed)
+    starts = _starts(start, names, pri, n_chains, np.random.default_rng(ss.spawn(1)[0]))
+    prior_list = [pri[n] for n in names]
+    cov0 = _covariance(proposal, names, prior_list, starts[0])
+    details: dict[str, Any] = {"n_particles": getattr(pf, "n_particles", None),
+                               "adapt": adapt, "adapt_start": adapt_start,
+                               "correlation": correlation, "proposal": cov0}
+    particle = isinstance(target, ParticleLikelihood)
+    if particle:  # too few particles: the estimate's spread at the start
+        sd0 = _spread(target, starts[0], correlation, seed)
+        details["loglik_sd_start"] = sd0
+        if sd0 > STICKY_SD:
+            warnings.warn(_sticky("the start", sd0, correlation, target.pf.n_particles),
+                          EstimationWarning, stacklevel=2)
+    show = bool(progress) if progress is not None else False
+    tasks = [(target, prior_list, starts[c], cov0, n_iter, adapt, adapt_start, correlation,
+              s, show and n_jobs == 1) for c, s in enumerate(ss.spawn(n_chains + 1)[1:])]
+    out = run_tasks(_chain, tasks, n_jobs=n_jobs, backend=backend)
+    details["final_proposal"] = [o["cov"] for o in out]
+    details["failures"] = [o["failures"] for o in out]
+    post = Posterior(names, np.stack([o["draws"] for o in out]),
+                     np.stack([o["ll"] for o in out]), np.stack([o["lp"] for o in out]),
+                     np.stack([o["acc"] for o in out]), warmup, method,
+                     time.perf_counter() - t0, details, target if particle else None)
+    _diagnose(post, target, correlation, seed)
+    return post
+
+
+def _sticky(where: str, sd: float, correlation: float, n: int) -> str:
+    what = "the difference of correlated estimates" if correlation else "the estimate"
+    more = int(math.ceil(n * (sd / 1.5) ** 2))
+    return (f"pmmh: the log-likelihood estimate is too noisy at {where}: the standard "
+            f"deviation of {what} is {sd:.2f} (over {SPREAD_RUNS} runs; efficient chains "
+            f"need about 1 to 1.7, above {STICKY_SD:g} they stick for hundreds of "
+            f"iterations). Use more particles (about {more} instead of {n}), a better "
+            f"proposal (proposal='ekf'), or correlation=0.99")
+
+
+def _diagnose(post: Posterior, target: Any, correlation: float, seed: int) -> None:
+    """The spread at the posterior mean, the acceptance and R-hat: warned when they say
+    the chains cannot be trusted."""
+    if isinstance(target, ParticleLikelihood):
+        mean = np.array(list(post.mean().values()))
+        if target.apply(mean):
+            sd = _spread(target, mean, correlation, seed + 1)
+            post.details["loglik_sd"] = sd
+            if sd > STICKY_SD:
+                warnings.warn(_sticky("the posterior mean", sd, correlation,
+                                      target.pf.n_particles), EstimationWarning,
+                              stacklevel=3)
+    acc = post.acceptance
+    if acc.min() < 0.02:
+        warnings.warn(f"pmmh: chain(s) {np.flatnonzero(acc < 0.02).tolist()} accepted "
+                      f"below 2 % of their moves after the warm-up ({acc.min():.3f}): they "
+                      f"barely move; the summaries are not to be trusted", EstimationWarning,
+                      stacklevel=3)
+    if post.draws.shape[0] > 1:
+        worst = max(post.rhat().items(), key=lambda kv: kv[1])
+        if worst[1] > 1.05:
+            warnings.warn(f"pmmh: the chains disagree: R-hat of {worst[0]} is "
+                          f"{worst[1]:.3f} (> 1.05): run longer chains or check for "
+                          f"several modes", EstimationWarning, stacklevel=3)
