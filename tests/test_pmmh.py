@@ -174,7 +174,7 @@ def test_exact_chains_agree_with_the_posterior_by_quadrature(record, exact_chain
 def test_pmmh_samples_the_exact_posterior(record, exact_chains):
     pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=150, jit=True)
-    post = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=6000,
+    post = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=4000,
                 n_chains=4, seed=3)
     assert_posterior_close(post, exact_chains)
     assert 0.05 < post.acceptance.mean() < exact_chains.acceptance.mean()

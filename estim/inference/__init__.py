@@ -10,6 +10,7 @@ Its layer is above the estimators and the simulation loop and below the comparis
 
 from estim.inference.chains import ess, rhat
 from estim.inference.likelihood import ParticleLikelihood
+from estim.inference.particle_gibbs import particle_gibbs
 from estim.inference.pmmh import pmmh
 from estim.inference.posterior import Forecast, Posterior, StatePosterior
 from estim.inference.priors import (
@@ -23,7 +24,8 @@ from estim.inference.priors import (
     Prior,
     Uniform,
 )
+from estim.inference.smc2 import SMC2Result, smc2
 
 __all__ = ["Beta", "Forecast", "Gamma", "HalfNormal", "InverseGamma", "LogDensity", "LogNormal",
            "Normal", "ParticleLikelihood", "Posterior", "Prior", "StatePosterior", "Uniform",
-           "ess", "pmmh", "rhat"]
+           "SMC2Result", "ess", "particle_gibbs", "pmmh", "rhat", "smc2"]

@@ -99,6 +99,32 @@ def hilbert_order(X: np.ndarray) -> np.ndarray:
     return np.argsort(_hilbert_keys(cells, bits), kind="stable")
 
 
+def _quick_tuning(pf: ParticleFilter, values: Mapping) -> dict[str, np.ndarray]:
+    """The tuning ``values`` as :meth:`~estim.Estimator.set_tuning` takes them (a scalar,
+    variances or a matrix), checked only for what the filter needs: finite, and ``R``,
+    ``P0`` (and ``Q`` for a linearised proposal) with a Cholesky factor, ``Q``
+    positive semi-definite. A ``ValueError`` or ``LinAlgError`` otherwise."""
+    m = pf.model
+    out: dict[str, np.ndarray] = {}
+    for key, value in values.items():
+        arr = np.asarray(value, dtype=float)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"{key} must be finite")
+        if key == "x0":
+            out[key] = arr.reshape(m.nx)
+            continue
+        n = m.ny if key == "R" else m.ndx
+        mat = arr * np.eye(n) if arr.ndim == 0 else np.diag(arr) if arr.ndim == 1 else \
+            arr.reshape(n, n)
+        mat = 0.5 * (mat + mat.T)
+        if key != "Q" or pf.proposal != "bootstrap":
+            np.linalg.cholesky(mat)
+        elif np.linalg.eigvalsh(mat)[0] < -1e-12 * max(1.0, float(np.abs(mat).max())):
+            raise ValueError("Q must be positive semi-definite")
+        out[key] = mat
+    return out
+
+
 class ParticleLikelihood:
     r"""The particle filter's estimate :math:`\log \hat p(y \mid \theta)` of a record, as a
     function of the named parameters (see the module).
@@ -146,6 +172,8 @@ class ParticleLikelihood:
         self._p0 = pf._p.copy()
         self._base = {"Q": pf.Q, "R": pf.R, "x0": pf.x0, "P0": pf.P0}
         self.failures: dict[str, Any] = {"tuning": 0, "no weight": 0}
+        self._applied: np.ndarray | None = None  # (the point the filter is set to)
+        self._checked = False
 
     @property
     def T(self) -> int:
@@ -159,12 +187,16 @@ class ParticleLikelihood:
         """Set the filter to ``theta`` (its parameters and tuning); False when ``tuning``
         refused it (counted)."""
         pf, theta = self.pf, np.asarray(theta, float)
+        if self._applied is not None and np.array_equal(self._applied, theta):
+            return True  # (the filter is at theta already)
+        self._applied = None
         p = self._p0.copy()
         for i, j in self._index:
             p[j] = theta[i]
         pf._p = p
         self.W[:, pf.model.nw:] = p
         if self.tuning is None:
+            self._applied = theta.copy()
             return True
         try:
             new = dict(self.tuning(self.dict(theta)))
@@ -172,7 +204,11 @@ class ParticleLikelihood:
             if bad:
                 raise ValueError(f"tuning returned {bad}; it may give {TUNING_KEYS}")
             values = {**self._base, **new}
-            pf.__dict__.update(pf._validated_tuning(**values))
+            if self._checked:  # (the first point checked by name, the next ones quickly)
+                pf.__dict__.update(_quick_tuning(pf, values))
+            else:
+                pf.__dict__.update(pf._validated_tuning(**values))
+                self._checked = True
             pf._tuning_changed()
         except (ValueError, np.linalg.LinAlgError) as exc:
             if "tuning returned" in str(exc):
@@ -180,6 +216,7 @@ class ParticleLikelihood:
             self.failures["tuning"] += 1
             self.failures.setdefault("tuning_error", f"{type(exc).__name__}: {exc}")
             return False
+        self._applied = theta.copy()
         return True
 
     def __call__(self, theta: ArrayLike, seed: int) -> float:

@@ -68,7 +68,8 @@ from estim.estimators.sampling.particle import ParticleFilter
 from estim.exceptions import EstimationWarning
 from estim.inference.likelihood import ParticleLikelihood
 from estim.inference.posterior import Posterior
-from estim.inference.priors import Prior, as_priors, check_start
+from estim.inference.priors import Prior, as_priors
+from estim.inference.proposals import Proposal, chain_starts, initial_covariance, log_prior
 
 __all__ = ["pmmh"]
 
@@ -93,59 +94,6 @@ class ExactLikelihood:
         return value
 
 
-def _log_prior(priors: Sequence[Prior], theta: np.ndarray) -> float:
-    total = 0.0
-    for prior, value in zip(priors, theta, strict=True):
-        total += prior.logpdf(value)
-        if total == -math.inf:
-            break
-    return total
-
-
-class _Proposal:
-    """The random walk's covariance and its adaptation (see the module)."""
-
-    def __init__(self, cov0: np.ndarray, adapt: str | None, start: int):
-        d = len(cov0)
-        self.d, self.adapt, self.start = d, adapt, start
-        self.sd2 = 2.38 ** 2 / d
-        self.L = np.linalg.cholesky(cov0)
-        self.eps = 1e-10 * float(np.mean(np.diag(cov0)))
-        self.t, self.mu, self.S = 0, np.zeros(d), np.zeros((d, d))
-        if adapt == "vanishing":
-            self.S = cov0.copy()
-            self.L = math.sqrt(self.sd2) * np.linalg.cholesky(cov0)
-
-    def update(self, theta: np.ndarray) -> None:
-        self.t += 1
-        t = self.t
-        if self.adapt == "haario":  # the running mean and covariance of theta_0..t-1
-            delta = theta - self.mu
-            self.mu = self.mu + delta / t
-            self.S = self.S + np.outer(delta, theta - self.mu)
-            if t > self.start:
-                C = self.sd2 * (self.S / (t - 1) + self.eps * np.eye(self.d))
-                try:
-                    self.L = np.linalg.cholesky(C)
-                except np.linalg.LinAlgError:
-                    pass
-        elif self.adapt == "vanishing":
-            g = (1.0 / t) ** 0.6
-            if t == 1:
-                self.mu = theta.copy()
-            self.mu = (1 - g) * self.mu + g * theta
-            dv = theta - self.mu
-            self.S = (1 - g) * self.S + g * np.outer(dv, dv)
-            try:
-                self.L = math.sqrt(self.sd2) * np.linalg.cholesky(self.S)
-            except np.linalg.LinAlgError:
-                self.L = 1e-3 * np.eye(self.d)
-
-    @property
-    def cov(self) -> np.ndarray:
-        return self.L @ self.L.T
-
-
 def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.ndarray,
            n_iter: int, adapt: str | None, adapt_start: int, correlation: float,
            seed: np.random.SeedSequence, show: bool) -> dict:
@@ -154,7 +102,7 @@ def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.nda
     rng = np.random.default_rng(seed)
     d = len(start)
     theta = np.asarray(start, float).copy()
-    prop = _Proposal(cov0, adapt, adapt_start)
+    prop = Proposal(cov0, adapt, adapt_start)
     draws, ll, lp = np.empty((n_iter, d)), np.empty(n_iter), np.empty(n_iter)
     acc = np.zeros(n_iter, dtype=bool)
     cpm = correlation > 0
@@ -164,12 +112,12 @@ def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.nda
         ell = target.correlated(theta, z)
     else:
         ell = target(theta, int(rng.integers(2 ** 62)))
-    lpr = _log_prior(priors, theta)
+    lpr = log_prior(priors, theta)
     draws[0], ll[0], lp[0], acc[0] = theta, ell, lpr, True
     with bar(n_iter - 1 if show else 0, "pmmh", "iteration", show=show or None) as progress:
         for i in range(1, n_iter):
             cand = theta + prop.L @ rng.standard_normal(d)
-            lpc = _log_prior(priors, cand)
+            lpc = log_prior(priors, cand)
             if lpc > -math.inf:
                 if cpm:
                     zc = correlation * z + keep * rng.standard_normal(z.shape)
@@ -189,80 +137,6 @@ def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.nda
             progress.update(1)
     return {"draws": draws, "ll": ll, "lp": lp, "acc": acc, "cov": prop.cov,
             "failures": dict(target.failures)}
-
-
-def _covariance(proposal: object, names: list[str], priors: Sequence[Prior],
-                start: np.ndarray) -> np.ndarray:
-    """The initial proposal covariance: a matrix, per-parameter standard deviations
-    (a number or ``{name: sd}``), or by default a tenth of each prior's spread (its
-    interquartile range / 1.349 from draws; ``|start|/10`` or 0.1 where it cannot be
-    drawn), checked."""
-    d = len(names)
-    if proposal is None:
-        sds = []
-        rng = np.random.default_rng(0)
-        for prior, s in zip(priors, start, strict=True):
-            try:
-                q = np.quantile(prior.sample(rng, 4000), [0.25, 0.75])
-                sds.append(0.1 * (q[1] - q[0]) / 1.349)
-            except NotImplementedError:
-                sds.append(0.1 * max(abs(s), 1.0))
-        return np.diag(np.square(sds))
-    if isinstance(proposal, Mapping):
-        unknown = [k for k in proposal if k not in names]
-        if unknown:
-            raise ValueError(f"proposal: {unknown} have no prior (parameters: {names})")
-        missing = [k for k in names if k not in proposal]
-        if missing:
-            raise ValueError(f"proposal: no standard deviation for {missing}")
-        sd = np.array([as_float(proposal[k], f"proposal[{k!r}]") for k in names])
-    else:
-        arr = np.asarray(proposal, float) if not isinstance(proposal, str) else None
-        if arr is None or arr.ndim not in (0, 2):
-            raise TypeError(f"proposal must be a standard deviation, a dict of them by "
-                            f"parameter or a ({d}, {d}) covariance matrix, got {proposal!r}")
-        if arr.ndim == 2:
-            if arr.shape != (d, d) or not np.isfinite(arr).all() or \
-                    not np.allclose(arr, arr.T) or np.linalg.eigvalsh(arr).min() <= 0:
-                raise ValueError(f"proposal: a covariance matrix must be ({d}, {d}), "
-                                 f"symmetric and positive definite (a zero scale never "
-                                 f"moves the chain)")
-            return arr.copy()
-        sd = np.full(d, float(arr))
-    if not np.all(np.isfinite(sd)) or np.any(sd <= 0):
-        raise ValueError(f"proposal: the standard deviations must be positive and finite, "
-                         f"got {dict(zip(names, sd.tolist(), strict=True))} (a zero scale "
-                         f"never moves the chain)")
-    return np.diag(sd ** 2)
-
-
-def _starts(start: object, names: list[str], priors: dict[str, Prior], n_chains: int,
-            rng: np.random.Generator) -> list[np.ndarray]:
-    """Each chain's start: given (one dict for all, or one per chain), or drawn from the
-    priors; checked inside their support."""
-    if start is None:
-        out = []
-        for _ in range(n_chains):
-            point = {}
-            for n in names:
-                try:
-                    point[n] = float(priors[n].sample(rng, 1)[0])
-                except NotImplementedError:
-                    raise ValueError(f"start: give a start for {n!r} (its prior "
-                                     f"{priors[n]!r} cannot be drawn from)") from None
-            out.append(point)
-    elif isinstance(start, Mapping):
-        out = [dict(start)] * n_chains
-    elif isinstance(start, Sequence) and len(start) == n_chains and \
-            all(isinstance(s, Mapping) for s in start):
-        out = [dict(s) for s in start]
-    else:
-        raise TypeError(f"start must be a dict of parameter values, a list of {n_chains} "
-                        f"such dicts (one per chain) or None (drawn from the priors), got "
-                        f"{type(start).__name__}")
-    for point in out:
-        check_start(priors, point)
-    return [np.array([float(p[n]) for n in names]) for p in out]
 
 
 def _spread(target: Any, theta: np.ndarray, correlation: float, seed: int) -> float:
@@ -317,7 +191,7 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
         Iterations per chain (the start included), chains, and the iterations of each
         chain left out of the summaries (default ``n_iter // 4``).
     proposal : float, dict, (d, d) array or None
-        The random walk's initial covariance (see :func:`_covariance`): standard
+        The random walk's initial covariance (see :func:`initial_covariance`): standard
         deviations (one for all, or by name) or a covariance matrix; default a tenth of
         each prior's spread.
     adapt : {"haario", "vanishing", None}
@@ -379,9 +253,10 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
         raise TypeError(f"pf must be an estim.ParticleFilter or a log-likelihood function "
                         f"theta -> float, got {type(pf).__name__}")
     ss = np.random.SeedSequence(seed)
-    starts = _starts(start, names, pri, n_chains, np.random.default_rng(ss.spawn(1)[0]))
+    starts = chain_starts(start, names, pri, n_chains,
+                          np.random.default_rng(ss.spawn(1)[0]))
     prior_list = [pri[n] for n in names]
-    cov0 = _covariance(proposal, names, prior_list, starts[0])
+    cov0 = initial_covariance(proposal, names, prior_list, starts[0])
     details: dict[str, Any] = {"n_particles": getattr(pf, "n_particles", None),
                                "adapt": adapt, "adapt_start": adapt_start,
                                "correlation": correlation, "proposal": cov0}
