@@ -390,3 +390,69 @@ def plot_solve_times(logs, path=None):
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize="small")
     return _finish(fig, path)
+
+
+def plot_posterior(posterior, path=None, *, truth=None, reference=None):
+    """The chains of :func:`~estim.inference.pmmh` or
+    :func:`~estim.inference.particle_gibbs`: per parameter, the trace of every chain
+    (the warm-up shaded) and the histogram of the draws after it.
+
+    Parameters
+    ----------
+    posterior : estim.inference.Posterior
+    path : str or Path, optional
+    truth : dict, optional
+        Values drawn as vertical lines (the parameters a record was simulated with).
+    reference : estim.inference.Posterior, optional
+        Other chains of the same posterior (an exact-likelihood run), their histogram
+        drawn as a line.
+    """
+    plt = _pyplot()
+    names = posterior.names
+    fig, axes = plt.subplots(len(names), 2, figsize=(8, 1.9 * len(names) + 0.6),
+                             constrained_layout=True, squeeze=False,
+                             gridspec_kw={"width_ratios": [2.2, 1]})
+    for i, name in enumerate(names):
+        trace, hist = axes[i]
+        for c, chain in enumerate(posterior.draws[:, :, i]):
+            trace.plot(chain, lw=0.5, color=f"C{c}", alpha=0.8)
+        trace.axvspan(0, posterior.warmup, color="0.9", zorder=-1)
+        trace.set_ylabel(name)
+        draws = posterior.samples(name).ravel()
+        hist.hist(draws, bins=50, density=True, color="C0", alpha=0.6, label="chains")
+        if reference is not None:
+            ref = reference.samples(name).ravel()
+            h, edges = np.histogram(ref, bins=50, density=True)
+            hist.step(edges[:-1], h, where="post", color="k", lw=1.0, label="reference")
+        if truth is not None and name in truth:
+            for ax in (trace, hist):
+                (ax.axhline if ax is trace else ax.axvline)(truth[name], color="C3", lw=1.2)
+        hist.set_yticks([])
+    axes[-1, 0].set_xlabel("iteration")
+    axes[-1, 1].set_xlabel("value")
+    if reference is not None:
+        axes[0, 1].legend(fontsize="small")
+    acc = posterior.acceptance
+    axes[0, 0].set_title(f"{posterior.method}: acceptance {acc.mean():.2f}", fontsize="small")
+    return _finish(fig, path)
+
+
+def plot_state_posterior(states, path=None, *, truth=None, t=None, index: int = 0):
+    """The states' posterior of :meth:`Posterior.states
+    <estim.inference.Posterior.states>`: the mean of one state and its pointwise 95 %
+    band, a few of the paths, and the ``truth`` ``(T, nx)`` if given."""
+    plt = _pyplot()
+    T = states.x.shape[0]
+    t = np.arange(T) if t is None else np.asarray(t)
+    fig, ax = plt.subplots(figsize=(7.5, 3.0), constrained_layout=True)
+    ax.fill_between(t, states.lower[:, index], states.upper[:, index], color="C0",
+                    alpha=0.25, lw=0, label="95 % band")
+    for path_ in states.paths[:5, :, index]:
+        ax.plot(t, path_, color="C0", lw=0.4, alpha=0.6)
+    ax.plot(t, states.x[:, index], color="C0", lw=1.5, label="posterior mean")
+    if truth is not None:
+        ax.plot(t, np.asarray(truth)[:, index], color="k", lw=1.0, ls="--", label="truth")
+    ax.set_ylabel(states.state_names[index])
+    ax.set_xlabel("sample" if t is None else "t")
+    ax.legend(fontsize="small")
+    return _finish(fig, path)
