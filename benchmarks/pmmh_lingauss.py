@@ -165,6 +165,15 @@ def main() -> None:
               f"{(f'{spread:.4f}' if spread is not None else '-'):>6} "
               f"{r['loglik_sd_start']:>6.2f} {r['seconds']:>6.0f}  "
               + ", ".join(f"{v:+.2f}" for v in z.values()))
+    if ref is not None:  # particles' own seconds per iteration, for the same experiment
+        per = [ref["summary"][f"pmmh-{r['nx']}"]["seconds_per_iteration"] for r in runs
+               if f"pmmh-{r['nx']}" in ref.get("summary", {})]
+        if len(per) == len(runs):
+            projected = sum(per) * args.niter
+            print(f"particles at its measured seconds per iteration: {projected / 3600:.1f} h "
+                  f"on one core for the same chains ({projected / wall:.0f} x this run's "
+                  f"wall time on {args.jobs} workers, "
+                  f"{projected / sum(r['seconds'] for r in runs):.0f} x per core)")
     out = {"niter": args.niter, "jobs": args.jobs, "wall_seconds": wall,
            "exact": {"acceptance": ex_acc, "mean": ex_mean, "mcse": ex_se,
                      "seconds": t_exact},

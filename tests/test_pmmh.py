@@ -177,14 +177,15 @@ def test_pmmh_samples_the_exact_posterior(record, exact_chains):
     post = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=4000,
                 n_chains=4, seed=3)
     assert_posterior_close(post, exact_chains)
+    assert pf.params == {"rho": 0.9} and pf.Q[0, 0] == 1.0 and pf.R[0, 0] == 0.04  # as given
     assert 0.05 < post.acceptance.mean() < exact_chains.acceptance.mean()
     assert 0.5 < post.details["loglik_sd_start"] < 3
-    # the same seed, the same chains
+    # the same seed, the same chains, in this process or on two workers
     again = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=50,
                  n_chains=2, seed=3)
     np.testing.assert_array_equal(again.draws, pmmh(
         pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=50, n_chains=2,
-        seed=3).draws)
+        seed=3, n_jobs=2).draws)
 
 
 def test_correlated_pmmh_with_few_particles_samples_the_posterior(record):

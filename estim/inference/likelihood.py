@@ -170,10 +170,20 @@ class ParticleLikelihood:
         self.Y, self.W = pf._record_inputs(Y, U)
         self.U = U
         self._p0 = pf._p.copy()
-        self._base = {"Q": pf.Q, "R": pf.R, "x0": pf.x0, "P0": pf.P0}
+        self._base = {k: None if v is None else np.array(v, dtype=float) for k, v in
+                      (("Q", pf.Q), ("R", pf.R), ("x0", pf.x0), ("P0", pf.P0))}
         self.failures: dict[str, Any] = {"tuning": 0, "no weight": 0}
         self._applied: np.ndarray | None = None  # (the point the filter is set to)
         self._checked = False
+
+    def restore(self) -> None:
+        """Give the filter back its own parameters and tuning (a sampler leaves the
+        user's filter as it found it)."""
+        pf = self.pf
+        pf._p = self._p0.copy()
+        pf.__dict__.update({k: v for k, v in self._base.items() if v is not None})
+        pf._tuning_changed()
+        self._applied = None
 
     @property
     def T(self) -> int:

@@ -261,6 +261,7 @@ def particle_gibbs(pf: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None,
               keep_paths, s) for c, s in enumerate(ss.spawn(n_chains + 1)[1:])]
     out = run_tasks(_chain, tasks, n_jobs=as_int(n_jobs, "n_jobs", minimum=1),
                     backend=backend)
+    L.restore()
     details = {"n_particles": pf.n_particles, "theta_steps": theta_steps,
                "update": "exact (user)" if update is not None else "random-walk Metropolis",
                "paths": np.stack([o["paths"] for o in out]),

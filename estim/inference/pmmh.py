@@ -96,7 +96,7 @@ class ExactLikelihood:
 
 def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.ndarray,
            n_iter: int, adapt: str | None, adapt_start: int, correlation: float,
-           seed: np.random.SeedSequence, show: bool) -> dict:
+           seed: np.random.SeedSequence, show: bool | None) -> dict:
     """One chain (a worker's task): its states, log-likelihoods, log-priors, accepted
     moves, final proposal covariance and the target's failures."""
     rng = np.random.default_rng(seed)
@@ -114,7 +114,7 @@ def _chain(target: Any, priors: Sequence[Prior], start: np.ndarray, cov0: np.nda
         ell = target(theta, int(rng.integers(2 ** 62)))
     lpr = log_prior(priors, theta)
     draws[0], ll[0], lp[0], acc[0] = theta, ell, lpr, True
-    with bar(n_iter - 1 if show else 0, "pmmh", "iteration", show=show or None) as progress:
+    with bar(n_iter - 1, "pmmh", "iteration", show=show) as progress:
         for i in range(1, n_iter):
             cand = theta + prop.L @ rng.standard_normal(d)
             lpc = log_prior(priors, cand)
@@ -206,7 +206,8 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
     n_jobs, backend :
         Workers for the chains, as :func:`~estim.compare` takes them.
     progress : bool, optional
-        A progress bar (the chains in this process only).
+        A progress bar per chain run in this process (``n_jobs=1``); default: shown on a
+        terminal or in Jupyter once a chain lasts a few seconds (:mod:`estim._progress`).
 
     Returns
     -------
@@ -267,9 +268,9 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
         if sd0 > STICKY_SD:
             warnings.warn(_sticky("the start", sd0, correlation, target.pf.n_particles),
                           EstimationWarning, stacklevel=2)
-    show = bool(progress) if progress is not None else False
+    show = progress if n_jobs == 1 else False  # (workers' bars would garble)
     tasks = [(target, prior_list, starts[c], cov0, n_iter, adapt, adapt_start, correlation,
-              s, show and n_jobs == 1) for c, s in enumerate(ss.spawn(n_chains + 1)[1:])]
+              s, show) for c, s in enumerate(ss.spawn(n_chains + 1)[1:])]
     out = run_tasks(_chain, tasks, n_jobs=n_jobs, backend=backend)
     details["final_proposal"] = [o["cov"] for o in out]
     details["failures"] = [o["failures"] for o in out]
@@ -278,6 +279,8 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
                      np.stack([o["acc"] for o in out]), warmup, method,
                      time.perf_counter() - t0, details, target if particle else None)
     _diagnose(post, target, correlation, seed)
+    if particle:
+        target.restore()
     return post
 
 

@@ -211,6 +211,7 @@ class Posterior:
             res = L.pf.smooth(L.Y, L.U, n_paths=n_paths, t=L.t,
                               seed=int(rng.integers(2 ** 62)))
             paths.append(res.paths)
+        L.restore()
         P = np.concatenate(paths)
         lo, hi = np.quantile(P, [0.025, 0.975], axis=0)
         return StatePosterior(P, draws[used], P.mean(axis=0), lo, hi, list(L.pf.model.state_names))
@@ -249,6 +250,7 @@ class Posterior:
                 path_y.append(ymean + LR @ rng.standard_normal(m.ny))
             xs.append(path_x)
             ys.append(path_y)
+        L.restore()
         Xf, Yf = np.array(xs), np.array(ys)
         lo, hi = np.quantile(Yf, [0.025, 0.975], axis=0)
         return Forecast(Xf, Yf, draws[used], Yf.mean(axis=0), lo, hi, list(m.output_names))

@@ -261,6 +261,7 @@ def smc2(pf: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None, *,
             prog.update(1)
     w = np.exp(logw - logw.max())
     w /= w.sum()
+    L.restore()
     return SMC2Result(names, theta, w, float(incs.sum()), incs, ess_hist, moves,
                       time.perf_counter() - t0,
                       {"n_theta": n_theta, "n_particles": pf.n_particles,
