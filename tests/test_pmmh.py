@@ -171,6 +171,7 @@ def test_exact_chains_agree_with_the_posterior_by_quadrature(record, exact_chain
     assert exact_chains.rhat()["rho"] < 1.01
 
 
+@pytest.mark.filterwarnings("ignore::estim.EstimationWarning")
 def test_pmmh_samples_the_exact_posterior(record, exact_chains):
     pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=150, jit=True)
@@ -180,7 +181,8 @@ def test_pmmh_samples_the_exact_posterior(record, exact_chains):
     assert pf.params == {"rho": 0.9} and pf.Q[0, 0] == 1.0 and pf.R[0, 0] == 0.04  # as given
     assert 0.05 < post.acceptance.mean() < exact_chains.acceptance.mean()
     assert 0.5 < post.details["loglik_sd_start"] < 3
-    # the same seed, the same chains, in this process or on two workers
+    # the same seed, the same chains, in this process or on two workers (short chains:
+    # their R-hat is warned about, filtered above)
     again = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=50,
                  n_chains=2, seed=3)
     np.testing.assert_array_equal(again.draws, pmmh(
@@ -206,7 +208,7 @@ def test_correlated_pmmh_with_few_particles_samples_the_posterior(record):
     L = post.likelihood
     theta = np.array(list(START.values()))
     # the spread of the log-ratio at the start, five measurements of each (heavy-tailed:
-    # 20 runs each): at most half with rho = 0.99 (measured 0.4)
+    # 20 runs each): at most half with rho = 0.99 (measured 1.9 against 4.7)
     spread = np.array([[_spread(L, theta, rho, seed) for seed in range(5)]
                        for rho in (0.0, 0.99)])
     assert spread[1].mean() < 0.5 * spread[0].mean()
@@ -214,6 +216,8 @@ def test_correlated_pmmh_with_few_particles_samples_the_posterior(record):
     assert_posterior_close(post, exact)
 
 
+@pytest.mark.filterwarnings("ignore:pmmh. (chain|the chains|the log-likelihood estimate is "
+                            "too noisy at the posterior):estim.EstimationWarning")
 def test_a_stuck_chain_is_not_judged_close(record, exact_chains):
     """The hostile case: five particles, short chains. The sampler warns, and the
     assertion refuses to pass (it cannot trust the chains' standard errors)."""
@@ -232,8 +236,10 @@ def test_the_results(record):
     pytest.importorskip("arviz")
     pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=200, jit=True)
-    post = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=1200,
-                n_chains=2, seed=6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", estim.EstimationWarning)  # (short chains)
+        post = pmmh(pf, record, priors=PRIORS, tuning=tuning, start=START, n_iter=1200,
+                    n_chains=2, seed=6)
     assert post.draws.shape == (2, 1200, 3) and post.warmup == 300
     idata = post.to_arviz()
     np.testing.assert_array_equal(idata.posterior["rho"].values, post.samples("rho"))
@@ -246,12 +252,14 @@ def test_the_results(record):
         post.samples("sigma")
 
 
+@pytest.mark.filterwarnings("ignore:pmmh. the chains disagree:estim.EstimationWarning")
 def test_forecasts_and_states_match_the_kalman_mixture(record):
     """At the posterior draws the forecasts use, the exact predictive mean of each is
     rho^h (Kalman mean at the last sample); the forecasts' mean must be within 3.5
     standard errors of their average at every horizon (Bonferroni over 4 horizons:
     a false failure in about 1 in 500 runs). The same for the smoothed states against
-    the RTS smoother's means at the same draws, at 5 samples."""
+    the RTS smoother's means at the same draws, at 5 samples (the references are taken
+    at the draws used, so short chains do: their R-hat warning is filtered)."""
     from filterpy.kalman import KalmanFilter, rts_smoother
 
     # (the linearised proposal, optimal for this linear output: at sample 25 a bootstrap

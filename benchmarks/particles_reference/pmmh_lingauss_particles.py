@@ -66,9 +66,8 @@ for _v in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
     os.environ.setdefault(_v, "1")
 
 import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-
 import particles  # noqa: E402
+import scipy  # noqa: E402
 from particles import distributions as dists  # noqa: E402
 from particles import kalman, mcmc, smc_samplers  # noqa: E402
 

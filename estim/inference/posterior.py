@@ -167,7 +167,8 @@ class Posterior:
 
     def to_arviz(self) -> Any:
         """The chains as ``arviz.InferenceData`` (posterior after the warm-up, the warm-up
-        in ``warmup_posterior``, log-likelihood and acceptance in ``sample_stats``);
+        in ``warmup_posterior``; ``lp``, the log-likelihood ``loglik`` and ``accepted`` in
+        ``sample_stats``);
         needs arviz."""
         try:
             import arviz as az
@@ -177,7 +178,7 @@ class Posterior:
         post = {n: self.draws[:, w:, i] for i, n in enumerate(self.names)}
         warm = {n: self.draws[:, :w, i] for i, n in enumerate(self.names)}
         stats = {"lp": (self.log_likelihood + self.log_prior)[:, w:],
-                 "log_likelihood": self.log_likelihood[:, w:],
+                 "loglik": self.log_likelihood[:, w:],
                  "accepted": self.accepted[:, w:]}
         return az.from_dict(posterior=post, sample_stats=stats,
                             warmup_posterior=warm if w else None,
