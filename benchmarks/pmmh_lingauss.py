@@ -40,52 +40,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import estim
-from estim.inference import InverseGamma, Uniform, pmmh
+from estim.inference import pmmh
 
 HERE = Path(__file__).parent
-PRIORS = {"rho": Uniform(-1, 1), "varX": InverseGamma(2, 2), "varY": InverseGamma(2, 2)}
+sys.path.insert(0, str(HERE))
+from lingauss import PRIORS, data, kalman_loglik, model, tuning  # noqa: E402
+
 PROPOSAL = 0.15 ** 2 * np.eye(3)
 GRID = list(range(100, 1600, 100))
-
-
-def data() -> np.ndarray:
-    return np.loadtxt(HERE / "particles_reference" / "lingauss_data.txt")[:, None]
-
-
-def model() -> estim.Model:
-    return estim.Model(states=["x"], outputs=["y"], params={"rho": 0.9},
-                       dynamics=lambda x, u, p: p["rho"] * x, output=lambda x, u, p: x,
-                       name="lingauss")
-
-
-def tuning(th: dict) -> dict:
-    """Noise and prior of ReparamLinGauss: X_0 ~ N(0, varX)."""
-    return {"Q": [[th["varX"]]], "R": [[th["varY"]]], "P0": [[th["varX"]]]}
-
-
-def kalman_loglik(Y: np.ndarray):
-    y = Y[:, 0].tolist()
-
-    def loglik(th: dict) -> float:
-        rho, q, r = th["rho"], th["varX"], th["varY"]
-        m, P, total = 0.0, q, 0.0
-        for k, yk in enumerate(y):
-            if k:
-                m, P = rho * m, rho * rho * P + q
-            S = P + r
-            e = yk - m
-            total -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
-            K = P / S
-            m, P = m + K * e, (1 - K) * P
-        return total
-
-    return loglik
 
 
 def chain(nx: int, niter: int, seed: int) -> dict:

@@ -22,9 +22,10 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import math
+import sys
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -32,34 +33,16 @@ import estim
 from estim.inference import Uniform, pmmh
 from estim.inference.posterior import agreement
 
-HERE = __import__("pathlib").Path(__file__).parent
-
-
-def loglik_of(Y):
-    y = Y[:, 0].tolist()
-
-    def loglik(th):
-        rho, q, r = th["rho"], 1.0, 0.04
-        m, P, total = 0.0, q, 0.0
-        for k, yk in enumerate(y):
-            if k:
-                m, P = rho * m, rho * rho * P + q
-            S = P + r
-            e = yk - m
-            total -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
-            K = P / S
-            m, P = m + K * e, (1 - K) * P
-        return total
-
-    return loglik
+sys.path.insert(0, str(Path(__file__).parent))
+from lingauss import data, kalman_loglik, model  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--reps", type=int, default=200)
     args = ap.parse_args()
-    Y = np.loadtxt(HERE / "particles_reference" / "lingauss_data.txt")[:, None]
-    ll = loglik_of(Y)
+    Y = data()
+    ll = kalman_loglik(Y, varX=1.0, varY=0.04)
     grid = np.linspace(-0.9995, 0.9995, 4001)
     lp = np.array([ll({"rho": r}) for r in grid])
     w = np.exp(lp - lp.max())
@@ -71,13 +54,11 @@ def main() -> None:
     print(f"exact chains judged against the exact mean {exact['rho']:.5f}: {fails} of "
           f"{args.reps} fail ({fails / args.reps:.3f}; at most 0.01 expected) "
           f"[{time.perf_counter() - t0:.0f} s]")
-    shifted = loglik_of(Y + 0.3)
+    shifted = kalman_loglik(Y + 0.3, varX=1.0, varY=0.04)
     fails = sum(not agreement(pmmh(shifted, seed=s, **kw), exact)[0]
                 for s in range(args.reps // 4))
     print(f"a shifted record's chains: {fails} of {args.reps // 4} fail (the power)")
-    model = estim.Model(states=["x"], outputs=["y"], params={"rho": 0.9},
-                        dynamics=lambda x, u, p: p["rho"] * x, output=lambda x, u, p: x)
-    pf = estim.ParticleFilter(model, Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]], n_particles=3,
+    pf = estim.ParticleFilter(model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]], n_particles=3,
                               jit=True)
     passed, unjudged = 0, 0
     with warnings.catch_warnings():

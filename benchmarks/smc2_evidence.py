@@ -6,81 +6,47 @@ T = 100), priors :math:`\\rho \\sim U(-1, 1)`, :math:`\\sigma_X^2, \\sigma_Y^2 \
 The exact :math:`\\log p(y)` integrates the Kalman filter's likelihood times the prior by
 the midpoint rule over :math:`\\rho` and the logarithms of the variances (the grid refined
 until the value moves by less than 1e-4). :func:`estim.inference.smc2` with
-:math:`N_x` = 100 particles per parameter particle and :math:`N_\\theta` = 500, 1000, 2000
+:math:`N_x` = 100 particles per parameter particle and :math:`N_\\theta` = 1000, 2000, 4000
 parameter particles, ``--seeds`` seeds each: the mean, standard deviation and RMSE of
 the estimates about the exact value, the share within 0.1, seconds per run (median
 [range]), and the posterior means against the exact chain's.
 
 Writes ``results/smc2_evidence.json``. Run from the repository root::
 
-    python benchmarks/smc2_evidence.py [--seeds 20]
+    python benchmarks/smc2_evidence.py [--seeds 10]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 import estim
-from estim.inference import InverseGamma, Uniform, smc2
+from estim.inference import smc2
 
 HERE = Path(__file__).parent
-PRIORS = {"rho": Uniform(-1, 1), "varX": InverseGamma(2, 2), "varY": InverseGamma(2, 2)}
-
-
-def kalman(Y, rho, q, r):
-    m, P, total = np.zeros_like(rho), np.array(q, float), np.zeros_like(rho)
-    for k, yk in enumerate(Y[:, 0]):
-        if k:
-            m, P = rho * m, rho * rho * P + q
-        S = P + r
-        e = yk - m
-        total = total - 0.5 * (np.log(2 * np.pi * S) + e * e / S)
-        K = P / S
-        m, P = m + K * e, (1 - K) * P
-    return total
-
-
-def evidence(Y, n) -> tuple[float, dict]:
-    """log p(y) and the posterior means by the midpoint rule on an n-grid."""
-    rho = np.linspace(-1, 1, n[0] + 1)[:-1] + 1 / n[0]
-    lq, lr = np.linspace(-5, 4, n[1]), np.linspace(-7, 3, n[2])
-    R, LQ, LR = np.meshgrid(rho, lq, lr, indexing="ij")
-    q, r = np.exp(LQ), np.exp(LR)
-    a = kalman(Y, R, q, r) + math.log(0.5) + stats.invgamma.logpdf(q, 2, scale=2) + \
-        stats.invgamma.logpdf(r, 2, scale=2) + LQ + LR
-    top = a.max()
-    w = np.exp(a - top)
-    vol = (2 / n[0]) * (lq[1] - lq[0]) * (lr[1] - lr[0])
-    means = {"rho": float((w * R).sum() / w.sum()), "varX": float((w * q).sum() / w.sum()),
-             "varY": float((w * r).sum() / w.sum())}
-    return float(top + np.log(w.sum() * vol)), means
+sys.path.insert(0, str(HERE))
+from lingauss import PRIORS, data, evidence, model, tuning  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--seeds", type=int, default=20)
-    ap.add_argument("--thetas", type=int, nargs="*", default=[500, 1000, 2000])
+    ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--thetas", type=int, nargs="*", default=[1000, 2000, 4000])
     ap.add_argument("--out", default=str(HERE / "results" / "smc2_evidence.json"))
     args = ap.parse_args()
-    Y = np.loadtxt(HERE / "particles_reference" / "lingauss_data.txt")[:, None]
+    Y = data()
     coarse, _ = evidence(Y, (100, 90, 90))
     exact, means = evidence(Y, (200, 180, 180))
     print(f"exact log-evidence {exact:.5f} (coarser grid: {coarse:.5f}); posterior means "
           + ", ".join(f"{k} {v:.4f}" for k, v in means.items()))
-    model = estim.Model(states=["x"], outputs=["y"], params={"rho": 0.9},
-                        dynamics=lambda x, u, p: p["rho"] * x, output=lambda x, u, p: x)
-    pf = estim.ParticleFilter(model, Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]], n_particles=100,
+    pf = estim.ParticleFilter(model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]], n_particles=100,
                               jit=True)
-
-    def tuning(th):
-        return {"Q": [[th["varX"]]], "R": [[th["varY"]]], "P0": [[th["varX"]]]}
 
     out = {"exact": exact, "exact_coarse": coarse, "exact_means": means, "runs": {}}
     print(f"{'N_theta':>8} {'mean - exact':>12} {'sd':>6} {'RMSE':>6} {'within 0.1':>10} "

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ar1 import ar1_model, evidence, kalman
 from scipy import stats
 
 import estim
@@ -21,34 +22,14 @@ START = {"rho": 0.8, "varX": 1.0, "varY": 0.1}
 DATA = Path(__file__).parents[1] / "benchmarks" / "particles_reference" / "lingauss_data.txt"
 
 
-def book_model() -> estim.Model:
-    return estim.Model(states=["x"], outputs=["y"], params={"rho": 0.9},
-                       dynamics=lambda x, u, p: p["rho"] * x, output=lambda x, u, p: x)
-
-
 def tuning(th: dict) -> dict:
     """ReparamLinGauss: X_0 ~ N(0, varX)."""
     return {"Q": [[th["varX"]]], "R": [[th["varY"]]], "P0": [[th["varX"]]]}
 
 
-def kalman(Y: np.ndarray, rho, q, r):
-    """The exact log-likelihood, elementwise over arrays of parameters."""
-    m, P, total = np.zeros_like(rho), np.array(q, float), np.zeros_like(rho)
-    for k, yk in enumerate(Y[:, 0]):
-        if k:
-            m, P = rho * m, rho * rho * P + q
-        S = P + r
-        e = yk - m
-        total = total - 0.5 * (np.log(2 * np.pi * S) + e * e / S)
-        K = P / S
-        m, P = m + K * e, (1 - K) * P
-    return total
-
-
 def exact_chains(Y, seed):
     def loglik(th):
-        return float(kalman(Y, np.array(th["rho"]), np.array(th["varX"]),
-                            np.array(th["varY"])))
+        return float(kalman(Y, th["rho"], th["varX"], th["varY"], th["varX"]))
     return pmmh(loglik, priors=PRIORS, start=START, n_iter=6000, n_chains=4, seed=seed)
 
 
@@ -80,7 +61,7 @@ def conjugate(Y):
 
 
 def test_particle_gibbs_with_conjugate_updates_samples_the_posterior(Y50):
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=10)
     Y = Y50[:30]
     post = particle_gibbs(pf, Y, priors=PRIORS, tuning=tuning, update=conjugate(Y),
@@ -91,7 +72,7 @@ def test_particle_gibbs_with_conjugate_updates_samples_the_posterior(Y50):
 
 def test_particle_gibbs_with_metropolis_updates_samples_the_posterior(Y50):
     Y = Y50[:30]
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=10)
     post = particle_gibbs(pf, Y, priors=PRIORS, tuning=tuning, start=START, n_iter=1200,
                           n_chains=4, seed=3, theta_steps=3)
@@ -101,28 +82,18 @@ def test_particle_gibbs_with_metropolis_updates_samples_the_posterior(Y50):
 
 def test_particle_gibbs_refuses_what_it_cannot_do(Y50):
     kw = dict(priors=PRIORS, tuning=tuning, start=START, n_iter=10)
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=10, proposal="ekf")
     with pytest.raises(ValueError, match="needs a bootstrap ParticleFilter"):
         particle_gibbs(pf, Y50, **kw)
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=10)
     with pytest.raises(TypeError, match="update must be a function"):
         particle_gibbs(pf, Y50, update=3, **kw)
 
 
 def evidence_by_quadrature(Y, n=(100, 90, 90)) -> float:
-    """log p(y) by the midpoint rule over rho and the logarithms of the variances
-    (the integrand is negligible beyond the ranges)."""
-    rho = np.linspace(-1, 1, n[0] + 1)[:-1] + 1 / n[0]
-    lq, lr = np.linspace(-5, 4, n[1]), np.linspace(-7, 3, n[2])
-    R, LQ, LR = np.meshgrid(rho, lq, lr, indexing="ij")
-    q, r = np.exp(LQ), np.exp(LR)
-    a = kalman(Y, R, q, r) + math.log(0.5) + stats.invgamma.logpdf(q, 2, scale=2) + \
-        stats.invgamma.logpdf(r, 2, scale=2) + LQ + LR
-    top = a.max()
-    vol = (2 / n[0]) * (lq[1] - lq[0]) * (lr[1] - lr[0])
-    return float(top + np.log(np.exp(a - top).sum() * vol))
+    return evidence(Y, n)[0]
 
 
 def test_the_quadrature_has_converged(Y50):
@@ -139,7 +110,7 @@ def test_smc2_evidence_and_posterior(Y50):
     (benchmarks/smc2_evidence.py)."""
     Y = Y50[:30]
     exact = evidence_by_quadrature(Y)
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=100, jit=True)
     runs = [smc2(pf, Y, priors=PRIORS, tuning=tuning, n_theta=600, seed=s)
             for s in range(4)]
@@ -154,7 +125,7 @@ def test_smc2_evidence_and_posterior(Y50):
 
 
 def test_smc2_refuses_an_interpreted_filter(Y50):
-    pf = estim.ParticleFilter(book_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
+    pf = estim.ParticleFilter(ar1_model(), Q=1.0, R=0.04, x0=[0.0], P0=[[1.0]],
                               n_particles=10)
     with pytest.raises(ValueError, match="jit=True"):
         smc2(pf, Y50, priors=PRIORS, tuning=tuning)

@@ -13,6 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
+from ar1 import ar1_model, kalman
 
 import estim
 from estim.inference import InverseGamma, Uniform, pmmh
@@ -25,11 +26,6 @@ T = 100
 TRUE = {"rho": 0.9, "varX": 1.0, "varY": 0.04}
 PRIORS = {"rho": Uniform(-1, 1), "varX": InverseGamma(2, 2), "varY": InverseGamma(2, 2)}
 START = {"rho": 0.8, "varX": 1.0, "varY": 0.1}
-
-
-def ar1_model() -> estim.Model:
-    return estim.Model(states=["x"], outputs=["y"], params={"rho": 0.9},
-                       dynamics=lambda x, u, p: p["rho"] * x, output=lambda x, u, p: x)
 
 
 def ar1_record(seed: int = 1) -> np.ndarray:
@@ -48,21 +44,11 @@ def tuning(th: dict) -> dict:
 
 
 def kalman_loglik(Y: np.ndarray):
-    """The exact log-likelihood of the scalar model, a plain Kalman filter."""
-    y = Y[:, 0].tolist()
+    """The exact log-likelihood of the scalar model (stationary start), a Kalman filter."""
 
     def loglik(th: dict) -> float:
-        rho, q, r = th["rho"], th["varX"], th["varY"]
-        m, P, total = 0.0, q / (1 - rho * rho), 0.0
-        for k, yk in enumerate(y):
-            if k:
-                m, P = rho * m, rho * rho * P + q
-            S = P + r
-            e = yk - m
-            total -= 0.5 * (math.log(2 * math.pi * S) + e * e / S)
-            K = P / S
-            m, P = m + K * e, (1 - K) * P
-        return total
+        rho, q = th["rho"], th["varX"]
+        return float(kalman(Y, rho, q, th["varY"], q / (1 - rho * rho)))
 
     return loglik
 

@@ -50,7 +50,13 @@ from estim.estimators.sampling.particle import ParticleFilter
 from estim.inference.likelihood import ParticleLikelihood
 from estim.inference.posterior import Posterior
 from estim.inference.priors import Prior, as_priors
-from estim.inference.proposals import Proposal, chain_starts, initial_covariance, log_prior
+from estim.inference.proposals import (
+    Proposal,
+    chain_settings,
+    chain_starts,
+    initial_covariance,
+    log_prior,
+)
 
 __all__ = ["complete_log_density", "conditional_smc", "particle_gibbs"]
 
@@ -235,15 +241,10 @@ def particle_gibbs(pf: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None,
     t0 = time.perf_counter()
     pri = as_priors(priors)
     names = list(pri)
-    n_iter = as_int(n_iter, "n_iter", minimum=2)
-    n_chains = as_int(n_chains, "n_chains", minimum=1)
-    warmup = n_iter // 4 if warmup is None else as_int(warmup, "warmup", minimum=0)
-    if warmup >= n_iter - 1:
-        raise ValueError(f"warmup must leave draws: {warmup} of n_iter {n_iter}")
+    n_iter, n_chains, warmup, adapt_start = chain_settings(n_iter, n_chains, warmup,
+                                                           adapt_start, len(names))
     theta_steps = as_int(theta_steps, "theta_steps", minimum=1)
     keep_paths = as_int(keep_paths, "keep_paths", minimum=1)
-    adapt_start = max(100, 10 * len(names)) if adapt_start is None else \
-        as_int(adapt_start, "adapt_start", minimum=2)
     if update is not None and not callable(update):
         raise TypeError(f"update must be a function (x, theta, rng) -> dict or None, got "
                         f"{type(update).__name__}")

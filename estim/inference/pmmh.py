@@ -69,7 +69,13 @@ from estim.exceptions import EstimationWarning
 from estim.inference.likelihood import ParticleLikelihood
 from estim.inference.posterior import Posterior
 from estim.inference.priors import Prior, as_priors
-from estim.inference.proposals import Proposal, chain_starts, initial_covariance, log_prior
+from estim.inference.proposals import (
+    Proposal,
+    chain_settings,
+    chain_starts,
+    initial_covariance,
+    log_prior,
+)
 
 __all__ = ["pmmh"]
 
@@ -226,15 +232,9 @@ def pmmh(pf: ParticleFilter | Callable[[dict], float], Y: ArrayLike | None = Non
     t0 = time.perf_counter()
     pri = as_priors(priors)
     names = list(pri)
-    n_iter = as_int(n_iter, "n_iter", minimum=2)
-    n_chains = as_int(n_chains, "n_chains", minimum=1)
-    warmup = n_iter // 4 if warmup is None else as_int(warmup, "warmup", minimum=0)
-    if warmup >= n_iter - 1:
-        raise ValueError(f"warmup must leave draws: {warmup} of n_iter {n_iter}")
+    n_iter, n_chains, warmup, adapt_start = chain_settings(n_iter, n_chains, warmup,
+                                                           adapt_start, len(names))
     adapt = None if adapt is None else as_choice(adapt, ("haario", "vanishing"), "adapt")
-    d = len(names)
-    adapt_start = max(100, 10 * d) if adapt_start is None else \
-        as_int(adapt_start, "adapt_start", minimum=2)
     correlation = as_float(correlation, "correlation", minimum=0.0, maximum=1.0)
     if correlation >= 1.0:
         raise ValueError("correlation must be below 1 (1 never renews the random numbers)")

@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
-from estim._validate import as_float
+from estim._validate import as_float, as_int
 from estim.inference.priors import Prior, check_start
 
-__all__ = ["Proposal", "chain_starts", "initial_covariance", "log_prior"]
+__all__ = ["ChainSettings", "Proposal", "chain_settings", "chain_starts",
+           "initial_covariance", "log_prior"]
 
 
 def log_prior(priors: Sequence[Prior], theta: np.ndarray) -> float:
@@ -140,3 +142,26 @@ def chain_starts(start: object, names: list[str], priors: dict[str, Prior], n_ch
     for point in out:
         check_start(priors, point)
     return [np.array([float(p[n]) for n in names]) for p in out]
+
+
+class ChainSettings(NamedTuple):
+    """The checked lengths of a run of chains."""
+
+    n_iter: int
+    n_chains: int
+    warmup: int
+    adapt_start: int
+
+
+def chain_settings(n_iter: object, n_chains: object, warmup: object, adapt_start: object,
+                   d: int) -> ChainSettings:
+    """``n_iter`` (at least 2), ``n_chains``, ``warmup`` (default ``n_iter // 4``, leaving
+    draws) and ``adapt_start`` (default ``max(100, 10 d)``), checked by name."""
+    n = as_int(n_iter, "n_iter", minimum=2)
+    chains = as_int(n_chains, "n_chains", minimum=1)
+    warm = n // 4 if warmup is None else as_int(warmup, "warmup", minimum=0)
+    if warm >= n - 1:
+        raise ValueError(f"warmup must leave draws: {warm} of n_iter {n}")
+    start = max(100, 10 * d) if adapt_start is None else \
+        as_int(adapt_start, "adapt_start", minimum=2)
+    return ChainSettings(n, chains, warm, start)
