@@ -1,0 +1,160 @@
+r"""Checks that grade a student's estimator against estim's and say what to fix.
+
+A course exercise asks for an algorithm written by hand (a Kalman filter, a particle
+filter, ...); its graded parts call these checks on the student's function, put in estim's
+loop by :func:`estim.adapters.from_function`. Each raises an ``AssertionError`` whose
+message teaches: where the student's numbers first leave the reference, which quantity,
+and the equation to look at; a passing check returns its verdict as text.
+
+* :func:`check_filter`: deterministic algorithms, sample by sample against the reference
+  on one record (estimates and covariances, to ``atol + rtol |reference|``). The first
+  sample where either differs is named; when the covariance differs there (or earlier)
+  the covariance's equation is the one to look at, since a wrong covariance makes a wrong
+  gain and the estimate follows; an estimate that leaves the reference with the
+  covariance still right points at the estimate's update. An exception in the student's
+  step is reported with the sample it happened at.
+* :func:`check_over_seeds`: randomised algorithms (particle filters), paired over seeds
+  against the reference with :func:`estim.testing.assert_equivalent` (two one-sided
+  Wilcoxon tests: a correct filter fails with probability at most ``1 - confidence``).
+* :func:`check_consistent`: the covariance the student reports, by the NEES verdict of
+  :func:`estim.testing.assert_consistent` (``1 - level`` false alarms): a mean can be
+  right with a covariance that is not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from estim import testing
+from estim.compare import compare
+from estim.estimators.base import Estimator
+from estim.experiment import Record
+from estim.scenarios import Scenario
+from estim.simulate import replay
+
+__all__ = ["check_consistent", "check_filter", "check_over_seeds"]
+
+#: the quantities :func:`check_filter` compares, as a message names them
+QUANTITIES = {"x": "the estimate x̂", "P": "the covariance P"}
+
+
+def _record(record: Record | tuple) -> tuple[Any, Any]:
+    if isinstance(record, Record):
+        return record.y, record.u
+    if isinstance(record, tuple) and len(record) == 2:
+        return record
+    raise TypeError(f"record must be an estim.Record or a pair (Y, U), got "
+                    f"{type(record).__name__}")
+
+
+def _entry(a: np.ndarray, b: np.ndarray, atol: float, rtol: float
+           ) -> tuple[int, ...] | None:
+    """The first entry where ``a`` and ``b`` differ beyond the tolerance (None: none)."""
+    bad = ~np.isclose(a, b, atol=atol, rtol=rtol, equal_nan=True)
+    return tuple(int(i) for i in np.argwhere(bad)[0]) if bad.any() else None
+
+
+def check_filter(student: Estimator, reference: Estimator, record: Record | tuple, *,
+                 equations: Mapping[str, str] | None = None, atol: float = 1e-8,
+                 rtol: float = 1e-6, name: str = "your filter") -> str:
+    """Compare ``student`` with ``reference`` sample by sample on ``record`` (a
+    :class:`~estim.Record` or ``(Y, U)``); see the module. ``equations``: for ``"x"`` and
+    ``"P"``, the equation the message sends the student to (e.g. ``{"P": "the prediction
+    P = F P Fᵀ + Q, eq. (2)"}``). Returns the verdict; raises ``AssertionError`` with the
+    first differing sample, the quantity, both values and the equation."""
+    for label, est in (("student", student), ("reference", reference)):
+        if not isinstance(est, Estimator):
+            raise TypeError(f"{label} must be an estim estimator (wrap a step function "
+                            f"with estim.adapters.from_function), got {type(est).__name__}")
+    hints = dict(equations or {})
+    Y, U = _record(record)
+    ref = replay(reference, Y, U, warn=False)
+    try:
+        mine = replay(student, Y, U, warn=False)
+    except Exception as exc:  # noqa: BLE001 - the student's code: reported, not raised
+        k = len(getattr(exc, "log", []) or [])
+        raise AssertionError(f"{name} raised {type(exc).__name__} at sample {k}: {exc}"
+                             ) from exc
+    xs, xr = np.asarray(mine.x_hat), np.asarray(ref.x_hat)
+    if xs.shape != xr.shape:
+        raise AssertionError(f"{name} returns estimates of shape {xs.shape[1:]}, the "
+                             f"model's state has shape {xr.shape[1:]}")
+    firsts: dict[str, tuple[int, ...]] = {}
+    e = _entry(xs, xr, atol, rtol)
+    if e is not None:
+        firsts["x"] = e
+    Ps, Pr = np.asarray(mine.P), np.asarray(ref.P)
+    covariance = not np.isnan(Ps).all()
+    if covariance:
+        e = _entry(Ps, Pr, atol, rtol)
+        if e is not None:
+            firsts["P"] = e
+    T = len(xr)
+    if not firsts:
+        return (f"{name} equals the reference on all {T} samples (estimates"
+                f"{' and covariances' if covariance else ''}, to {atol:g} + {rtol:g} |ref|)")
+    # the covariance's error first where it comes no later than the estimate's
+    key = "P" if "P" in firsts and firsts["P"][0] <= firsts.get("x", (T,))[0] else "x"
+    where = firsts[key]
+    k, idx = where[0], where[1:]
+    yours, theirs = (Ps, Pr) if key == "P" else (xs, xr)
+    at = (k, *idx)
+    other = "x" if key == "P" else "P"
+    still = (f"; {QUANTITIES[other]} is still right there" if other not in firsts or
+             firsts[other][0] > k else "")
+    if key == "x" and covariance and "P" not in firsts:
+        still = f"; {QUANTITIES['P']} is right at every sample"
+    hint = hints.get(key, "its equation")
+    t = f" (t = {ref.t[k]:g})" if hasattr(ref, "t") else ""
+    raise AssertionError(
+        f"{name}: {QUANTITIES[key]} differs first at sample {k}{t}, entry {idx}: yours "
+        f"{yours[at]:.6g}, the reference {theirs[at]:.6g}{still}. Look at "
+        f"{hint}. ({int((~np.isclose(yours, theirs, atol=atol, rtol=rtol)).sum())} "
+        f"entries differ in all, to {atol:g} + {rtol:g} |ref|)")
+
+
+def check_over_seeds(student: Estimator | Callable, reference: Estimator | Callable,
+                     scenario: Scenario, *, seeds: Sequence[int] = range(20),
+                     metric: str = "rmse", tolerance: float = 0.1,
+                     confidence: float = 0.95, name: str = "your filter") -> str:
+    """Paired over ``seeds`` of ``scenario``: ``student``'s ``metric`` shown within
+    ``tolerance`` × the reference's median of the reference's
+    (:func:`estim.testing.assert_equivalent`; a correct filter fails with probability at
+    most ``1 - confidence``). The estimators as :func:`~estim.compare` takes them (an
+    estimator, or a factory ``(model, tuning) -> estimator``). Returns the verdict;
+    raises ``AssertionError`` with the seeds where the two differ most."""
+    res = compare(scenario, {name: student, "reference": reference}, seeds=list(seeds),
+                  progress=False)
+    try:
+        testing.assert_equivalent(res, name, "reference", metric=metric,
+                                  tolerance=tolerance, confidence=confidence)
+    except AssertionError as exc:
+        raise AssertionError(f"{name} is not shown as accurate as the reference over "
+                             f"{len(list(seeds))} seeds: {exc}") from None
+    return (f"{name} is as accurate as the reference in {metric} within {tolerance:.0%} "
+            f"over {len(list(seeds))} seeds (at confidence {confidence})")
+
+
+def check_consistent(student: Estimator, scenario: Scenario, *,
+                     seeds: Sequence[int] = range(20), level: float = 0.99,
+                     name: str = "your filter") -> str:
+    """The NEES of ``student``'s estimates and covariances over ``seeds`` of
+    ``scenario`` follows its chi-square law (:func:`estim.testing.assert_consistent`:
+    ``1 - level`` false alarms). Raises ``AssertionError`` saying whether the covariance
+    is too small (overconfident) or too large."""
+    res = compare(scenario, {name: student}, seeds=list(seeds), progress=False)
+    try:
+        testing.assert_consistent(res, level=level)
+    except AssertionError as exc:
+        text = str(exc)
+        why = ("its covariance is too small for its errors (overconfident): check that the "
+               "prediction adds Q and that the update shrinks P by the gain only"
+               if "overconfident" in text else
+               "its covariance is too large for its errors (pessimistic): check that the "
+               "update shrinks P" if "pessimistic" in text else "")
+        raise AssertionError(f"{name}'s covariance does not match its errors: "
+                             f"{why + '. ' if why else ''}{text}") from None
+    return f"{name}'s covariance matches its errors (NEES verdict at level {level})"
