@@ -44,7 +44,7 @@ from estim.estimators.sampling.ensembles import square_root
 from estim.estimators.sampling.particle import ParticleFilter, _update
 from estim.estimators.sampling.particle_graphs import prior_tuning
 
-__all__ = ["ParticleLikelihood", "hilbert_order"]
+__all__ = ["ParticleLikelihood", "hilbert_order", "run_log_likelihood"]
 
 #: the keys a ``tuning(theta)`` may give
 TUNING_KEYS = ("Q", "R", "x0", "P0")
@@ -123,6 +123,21 @@ def _quick_tuning(pf: ParticleFilter, values: Mapping) -> dict[str, np.ndarray]:
             raise ValueError("Q must be positive semi-definite")
         out[key] = mat
     return out
+
+
+def run_log_likelihood(pf: ParticleFilter, rows: dict, start: int, stop: int,
+                       prior: tuple[np.ndarray, np.ndarray] | None = None
+                       ) -> tuple[float, Any]:
+    """The compiled filter over the kernel rows ``start:stop`` (from the prior, its
+    ``(x0, tun0)`` given or the filter's, when ``start`` is 0; else from the kernel's
+    particles): the log-likelihood of those samples (``-inf`` where no weight is left or
+    it is not finite) and the kernel record."""
+    rec = pf._kernel_run(rows, start, start == 0, stop, prior)
+    if rec.done < stop - start:
+        return -np.inf, rec
+    value = float(rec.inc.sum()) + (float(rows["const"][start:stop].sum())
+                                    if pf.loglik is None else 0.0)
+    return (value if np.isfinite(value) else -np.inf), rec
 
 
 class ParticleLikelihood:
@@ -243,13 +258,10 @@ class ParticleLikelihood:
             return res.log_likelihood
         pf._kernel.seed(seed)
         rows = pf._kernel_rows(self.Y, self.W)
-        rec = pf._kernel_run(rows, 0, True)
-        if rec.done < self.T:
+        value = run_log_likelihood(pf, rows, 0, self.T)[0]
+        if value == -np.inf:
             self.failures["no weight"] += 1
-            return -np.inf
-        value = float(rec.inc.sum()) + (float(rows["const"].sum()) if pf.loglik is None
-                                         else 0.0)
-        return value if np.isfinite(value) else -np.inf
+        return value
 
     # ------------------------------------------------- correlated pseudo-marginal
     def auxiliary_size(self) -> tuple[int, int, int]:

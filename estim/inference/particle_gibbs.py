@@ -183,21 +183,23 @@ def _chain(L: ParticleLikelihood, priors: Sequence[Prior], start: np.ndarray,
                 new = update(x.copy(), L.dict(theta), rng)
                 theta = np.array([float(new[n]) for n in L.names])
                 acc[i] = True
+                ell = complete_log_density(L, theta, x)
             else:
-                cur = complete_log_density(L, theta, x) + log_prior(priors, theta)
+                lpr = log_prior(priors, theta)
+                ell = complete_log_density(L, theta, x)
                 for _ in range(theta_steps):
                     cand = theta + prop.L @ rng.standard_normal(d)
                     lpc = log_prior(priors, cand)
                     if lpc == -math.inf:
                         continue
-                    value = complete_log_density(L, cand, x) + lpc
-                    if math.log(rng.uniform()) < value - cur:
-                        theta, cur, acc[i] = cand, value, True
+                    ellc = complete_log_density(L, cand, x)
+                    if math.log(rng.uniform()) < ellc + lpc - ell - lpr:
+                        theta, ell, lpr, acc[i] = cand, ellc, lpc, True
                 prop.update(theta)
         else:
             acc[i] = True
-        draws[i], lp[i] = theta, log_prior(priors, theta)
-        ll[i] = complete_log_density(L, theta, x)
+            ell = complete_log_density(L, theta, x)
+        draws[i], lp[i], ll[i] = theta, log_prior(priors, theta), ell
         if i % every == 0:
             paths.append(x)
     return {"draws": draws, "ll": ll, "lp": lp, "acc": acc, "paths": np.array(paths),

@@ -40,7 +40,7 @@ from numpy.typing import ArrayLike
 from estim._progress import bar
 from estim._validate import as_float, as_int, as_seed
 from estim.estimators.sampling.particle import ParticleFilter
-from estim.inference.likelihood import ParticleLikelihood
+from estim.inference.likelihood import ParticleLikelihood, run_log_likelihood
 from estim.inference.priors import Prior, as_priors
 from estim.inference.proposals import log_prior
 from estim.solvers.sampling.resampling import effective_sample_size, resample
@@ -129,23 +129,16 @@ class _Filters:
         """Samples ``start:stop`` from particles ``X``, weights ``W`` (None: equal; the
         prior when ``start`` is 0): the log-likelihood of those samples and the particles
         after (``-inf`` and None when no weight is left)."""
-        k, pf, rows = self.k, self.pf, data["rows"]
+        k = self.k
         assert k is not None
         if start:
             assert X is not None
             k.set_particles(X, W)
-        sl = slice(start, stop)
-        rec = k.run(first=start == 0, x0=data["x0"], tun0=data["tun0"], w=rows["w"][sl],
-                    tun=rows["tun"][sl], y0=rows["y0"][sl], WR=rows["WR"][sl],
-                    miss=rows["miss"][sl], measured=rows["measured"][sl],
-                    scheme=pf.resampling, threshold=pf.ess_threshold)
-        if rec.done < stop - start:
-            return -math.inf, None, None
-        inc = float(rec.inc.sum()) + (float(rows["const"][sl].sum()) if pf.loglik is None
-                                      else 0.0)
-        if not math.isfinite(inc):
-            return -math.inf, None, None
-        return inc, k.X.copy(), None if k.equal else k.W.copy()
+        value, _ = run_log_likelihood(self.pf, data["rows"], start, stop,
+                                      (data["x0"], data["tun0"]))
+        if value == -math.inf:
+            return value, None, None
+        return value, k.X.copy(), None if k.equal else k.W.copy()
 
 
 def smc2(pf: ParticleFilter, Y: ArrayLike, U: ArrayLike | None = None, *,

@@ -183,17 +183,22 @@ class CompiledParticles(Estimator):
         rows["measured"] = observed.any(axis=1).astype(np.int64)
         return rows
 
-    def _kernel_run(self, rows: dict[str, Any], start: int, first: bool) -> KernelRecord:
-        """The kernel over the steps from ``start`` on (the particles and weights of each
-        onto the smoother's trace when it is kept)."""
+    def _kernel_run(self, rows: dict[str, Any], start: int, first: bool,
+                    stop: int | None = None,
+                    prior: tuple[np.ndarray, np.ndarray] | None = None) -> KernelRecord:
+        """The kernel over the steps ``start:stop`` (default: to the end; the particles and
+        weights of each onto the smoother's trace when it is kept); ``prior``: the first
+        step's ``(x0, tun0)`` instead of the filter's own (a parameter particle's)."""
         k = self._kernel
         assert k is not None
-        sl = slice(start, None)
-        T, N = len(rows["measured"]) - start, self.n_particles
+        stop = len(rows["measured"]) if stop is None else stop
+        sl = slice(start, stop)
+        T, N = stop - start, self.n_particles
         trace = (np.empty((T, self.model.nx, N)), np.empty((T, N))) \
             if self._trace is not None else None
-        rec = k.run(first=first, x0=self.x0,
-                    tun0=self._first_tuning(rows["tun"][start]) if first else k._zero,
+        x0, tun0 = prior if prior is not None else \
+            (self.x0, self._first_tuning(rows["tun"][start]) if first else k._zero)
+        rec = k.run(first=first, x0=x0, tun0=tun0 if first else k._zero,
                     w=rows["w"][sl], tun=rows["tun"][sl], y0=rows["y0"][sl],
                     WR=rows["WR"][sl], miss=rows["miss"][sl], measured=rows["measured"][sl],
                     scheme=self.resampling, threshold=self.ess_threshold, trace=trace)
