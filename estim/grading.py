@@ -19,6 +19,12 @@ and the equation to look at; a passing check returns its verdict as text.
 * :func:`check_consistent`: the covariance the student reports, by the NEES verdict of
   :func:`estim.testing.assert_consistent` (``1 - level`` false alarms): a mean can be
   right with a covariance that is not.
+* :func:`check_arrays`: any other result of a deterministic part (sigma points, a
+  smoother's means, Lie derivatives, a window's residuals) against the reference's, with
+  the same kind of message.
+
+:func:`from_steps` turns a student's ``predict`` and ``update`` functions into an estimator
+(the textbook's loop: the prior, then predict and update at every later sample).
 """
 
 from __future__ import annotations
@@ -29,13 +35,17 @@ from typing import Any
 import numpy as np
 
 from estim import testing
+from estim.adapters import from_function
 from estim.compare import compare
 from estim.estimators.base import Estimator
 from estim.experiment import Record
+from estim.log import Log
+from estim.model import Model
 from estim.scenarios import Scenario
 from estim.simulate import replay
 
-__all__ = ["check_consistent", "check_filter", "check_over_seeds"]
+__all__ = ["as_log", "check_arrays", "check_consistent", "check_filter", "check_over_seeds",
+           "from_steps"]
 
 #: the quantities :func:`check_filter` compares, as a message names them
 QUANTITIES = {"x": "the estimate x̂", "P": "the covariance P"}
@@ -55,6 +65,139 @@ def _entry(a: np.ndarray, b: np.ndarray, atol: float, rtol: float
     """The first entry where ``a`` and ``b`` differ beyond the tolerance (None: none)."""
     bad = ~np.isclose(a, b, atol=atol, rtol=rtol, equal_nan=True)
     return tuple(int(i) for i in np.argwhere(bad)[0]) if bad.any() else None
+
+
+def from_steps(model: Model, predict: Callable, update: Callable, x0: Any, P0: Any, *,
+               name: str = "your filter") -> Estimator:
+    r"""The estimator of a Gaussian filter written as two functions, for estim's loop.
+
+    At the first sample the estimate is the prior ``(x0, P0)`` updated by ``y_0``; at
+    every later sample it is ``predict`` then ``update``:
+
+    .. math::
+        (\bar x_k, \bar P_k) = \mathrm{predict}(\hat x_{k-1}, P_{k-1}), \qquad
+        (\hat x_k, P_k) = \mathrm{update}(\bar x_k, \bar P_k, y_k),
+
+    the update skipped where ``y_k`` has a NaN (a missing sample). With a NaN first
+    sample the prior is one step before the first measurement, as in Särkkä & Svensson's
+    *Bayesian Filtering and Smoothing* (2023).
+
+    Parameters
+    ----------
+    model : Model
+        The system (dimensions and names in the log).
+    predict : callable
+        ``predict(x, P) -> (x, P)``: ``x`` (nx,), ``P`` (nx, nx).
+    update : callable
+        ``update(x, P, y) -> (x, P)``: ``y`` (ny,).
+    x0, P0 : array_like
+        The prior mean (nx,) and covariance (nx, nx).
+    name : str
+        The label in logs and in the checks' messages.
+    """
+    if not callable(predict):
+        raise TypeError(f"predict must be callable, got {type(predict).__name__}")
+    if not callable(update):
+        raise TypeError(f"update must be callable, got {type(update).__name__}")
+    m0 = np.asarray(x0, dtype=float).reshape(-1)
+    S0 = np.asarray(P0, dtype=float)
+    if m0.shape != (model.nx,):
+        raise ValueError(f"x0 must have {model.nx} entries, got shape {m0.shape}")
+    if S0.shape != (model.nx, model.nx):
+        raise ValueError(f"P0 must be {model.nx} x {model.nx}, got shape {S0.shape}")
+    held: dict[str, Any] = {}
+
+    def pair(out: Any, what: str) -> tuple[Any, Any]:
+        if not (isinstance(out, tuple | list) and len(out) == 2):
+            got = ("nothing (not answered yet?)" if out is None or out is ... else
+                   type(out).__name__)
+            raise TypeError(f"{what} must return the pair (x, P), got {got}")
+        return out[0], out[1]
+
+    def reset() -> None:
+        held.update(x=m0.copy(), P=S0.copy(), k=0)
+
+    def step(y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, P = held["x"], held["P"]
+        if held["k"]:
+            x, P = pair(predict(x, P), "predict")
+        if np.isfinite(y).all():
+            x, P = pair(update(x, P, y), "update")
+        x = np.asarray(x, dtype=float).reshape(-1)
+        P = np.asarray(P, dtype=float)
+        held.update(x=x, P=P, k=held["k"] + 1)
+        return x, P
+
+    reset()
+    return from_function(step, model, name=name, reset=reset, x0=m0)
+
+
+def as_log(estimates: Any, covariances: Any = None, *, truth: Any = None, t: Any = None,
+           model: Model | None = None, name: str = "your filter") -> Log:
+    """A :class:`~estim.Log` of a student's arrays, for :mod:`estim.plotting` (e.g.
+    ``plot_errors(as_log(m, P, truth=X))``: the errors and their ±2σ bands).
+
+    Parameters
+    ----------
+    estimates : (T, nx) array
+    covariances : (T, nx, nx) array, optional
+    truth : (T, nx) array, optional
+    t : (T,) array, optional
+        Sample times (default ``0, dt, 2 dt, ...`` with the model's ``dt``, else 0, 1, ...).
+    model : Model, optional
+        State names and sample time.
+    name : str
+        The label in the figures.
+    """
+    x_hat = np.asarray(estimates, dtype=float)
+    if x_hat.ndim != 2:
+        raise ValueError(f"estimates must be (T, nx), got shape {x_hat.shape}")
+    T, nx = x_hat.shape
+    log = Log(state_names=model.state_names if model is not None else None,
+              dt=getattr(model, "dt", None), estimator=name,
+              model_name=model.name if model is not None else "")
+    dt = getattr(model, "dt", None) or 1.0
+    log.set("t", np.arange(T) * dt if t is None else np.asarray(t, dtype=float)[:T])
+    log.set("x_hat", x_hat)
+    log.set("P", np.full((T, nx, nx), np.nan) if covariances is None else
+            np.asarray(covariances, dtype=float).reshape(T, nx, nx))
+    if truth is not None:
+        X = np.asarray(truth, dtype=float)
+        if X.shape != x_hat.shape:
+            raise ValueError(f"truth must have the estimates' shape {x_hat.shape}, got "
+                             f"{X.shape}")
+        log.set("x", X)
+    return log
+
+
+def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "its equation",
+                 atol: float = 1e-8, rtol: float = 1e-6, index: str = "sample") -> str:
+    """``yours`` equal to ``reference`` to ``atol + rtol |reference|``, entry by entry.
+
+    Raises ``AssertionError`` naming ``quantity``, the first differing entry (its first
+    index called ``index``: a sample, a sigma point, an order), both values and
+    ``equation``; a wrong shape or a non-numeric answer is told as such (``None`` or
+    ``...``: not answered yet). Returns the verdict.
+    """
+    if yours is None or yours is Ellipsis:
+        raise AssertionError(f"{quantity}: not answered yet (got {yours!r})")
+    try:
+        a = np.asarray(yours, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise AssertionError(f"{quantity}: expected numbers, got {type(yours).__name__} "
+                             f"({exc})") from None
+    b = np.asarray(reference, dtype=float)
+    if a.shape != b.shape:
+        raise AssertionError(f"{quantity} has shape {a.shape}, expected {b.shape}")
+    e = _entry(a, b, atol, rtol)
+    if e is None:
+        return f"{quantity} equals the reference (to {atol:g} + {rtol:g} |ref|)"
+    where = f"{index} {e[0]}, entry {e[1:]}" if len(e) > 1 else f"{index} {e[0]}" \
+        if e else "the value"
+    n = int((~np.isclose(a, b, atol=atol, rtol=rtol, equal_nan=True)).sum())
+    raise AssertionError(f"{quantity} differs first at {where}: yours {a[e]:.6g}, the "
+                         f"reference {b[e]:.6g}. Look at {equation}. ({n} of {a.size} "
+                         f"entries differ, to {atol:g} + {rtol:g} |ref|)")
 
 
 def check_filter(student: Estimator, reference: Estimator, record: Record | tuple, *,
