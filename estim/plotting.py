@@ -456,3 +456,63 @@ def plot_state_posterior(states, path=None, *, truth=None, t=None, index: int = 
     ax.set_xlabel("sample" if t is None else "t")
     ax.legend(fontsize="small")
     return _finish(fig, path)
+
+
+def plot_particles(particles, path=None, *, t=None, weights=None, truth=None,
+                   state: int = 0, name: str | None = None, max_particles: int = 200,
+                   seed: int = 0):
+    """The particle cloud of one state over time: each sample's particles as dots
+    (their size by weight when ``weights`` are given), the weighted mean and, if given,
+    the truth.
+
+    Parameters
+    ----------
+    particles : (T, N, nx) array
+        The particles after each sample's update (before or after resampling).
+    path : str or Path, optional
+        Write the figure there.
+    t : (T,) array, optional
+        Sample times (default 0, 1, ...).
+    weights : (T, N) array, optional
+        Normalised weights (default equal: resampled particles).
+    truth : (T, nx) array, optional
+    state : int
+        The state drawn.
+    name : str, optional
+        The y label (default ``x{state + 1}``).
+    max_particles : int
+        At most this many particles per sample are drawn (a random subset, by
+        ``seed``: clouds of thousands stay readable); the mean is over all.
+    seed : int
+    """
+    X = np.asarray(particles, dtype=float)
+    if X.ndim == 2:
+        X = X[..., None]
+    if X.ndim != 3:
+        raise ValueError(f"particles must be (T, N, nx), got shape {X.shape}")
+    T, N, nx = X.shape
+    if not 0 <= state < nx:
+        raise ValueError(f"state must be in 0..{nx - 1}, got {state}")
+    W = np.full((T, N), 1.0 / N) if weights is None else np.asarray(weights, dtype=float)
+    if W.shape != (T, N):
+        raise ValueError(f"weights must be (T, N) = {(T, N)}, got shape {W.shape}")
+    tt = np.arange(T) if t is None else np.asarray(t, dtype=float)
+    if tt.shape != (T,):
+        raise ValueError(f"t must have {T} entries, got shape {tt.shape}")
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.5, 3.2), constrained_layout=True)
+    pick = np.random.default_rng(seed).permutation(N)[:min(N, max_particles)]
+    size = 4.0 * W[:, pick] * N if weights is not None else np.full((T, pick.size), 2.0)
+    ax.scatter(np.repeat(tt, pick.size), X[:, pick, state].ravel(),
+               s=np.clip(size.ravel(), 0.2, 20.0), color="C0", alpha=0.15, lw=0,
+               label=f"particles ({pick.size} of {N} drawn)")
+    ax.plot(tt, np.sum(W * X[..., state], axis=1), color="C1", lw=1.5,
+            label="weighted mean")
+    if truth is not None:
+        ax.plot(tt, np.asarray(truth, dtype=float)[:, state], color="k", lw=1.0, ls="--",
+                label="truth")
+    ax.set_ylabel(name or f"x{state + 1}")
+    ax.set_xlabel("t" if t is not None else "sample")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", loc="upper right")
+    return _finish(fig, path)

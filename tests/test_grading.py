@@ -8,7 +8,14 @@ import pytest
 
 import estim
 from estim.adapters import from_function
-from estim.grading import check_consistent, check_filter, check_over_seeds
+from estim.grading import (
+    as_log,
+    check_arrays,
+    check_consistent,
+    check_filter,
+    check_over_seeds,
+    from_steps,
+)
 
 F = np.array([[1.0, 0.1], [0.0, 1.0]])
 H = np.array([[1.0, 0.0]])
@@ -98,3 +105,80 @@ def test_over_seeds_and_consistency():
     assert "matches its errors" in check_consistent(student(), sc, seeds=range(20))
     with pytest.raises(AssertionError, match="too small for its errors"):
         check_consistent(student("half P"), sc, seeds=range(20))
+
+
+def test_from_steps_is_the_textbook_loop(record):
+    """Two functions (predict, update) in estim's loop equal the Kalman filter, with the
+    prior one step before the first measurement (a NaN first row) and a missing sample."""
+    Y = np.vstack([[np.nan], record[0]])
+    Y[7] = np.nan
+    mine = from_steps(model(), lambda x, P: (F @ x, F @ P @ F.T + Q),
+                      lambda x, P, y: _update(x, P, y), X0, P0)
+    ref = reference().filter(Y)
+    log = estim.replay(mine, Y)
+    np.testing.assert_allclose(log.x_hat, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(log.P, ref.P, rtol=0, atol=1e-12)
+    assert "equals the reference on all 61 samples" in check_filter(
+        mine, reference(), (Y, None))
+    # a predict that returns nothing yet is told as such, with its sample
+    blank = from_steps(model(), lambda x, P: None, _update, X0, P0)
+    with pytest.raises(AssertionError, match="at sample 1: predict must return the pair "
+                                             r"\(x, P\), got nothing \(not answered yet"):
+        check_filter(blank, reference(), (Y, None))
+    with pytest.raises(TypeError, match="predict must be callable"):
+        from_steps(model(), None, _update, X0, P0)
+    with pytest.raises(ValueError, match="P0 must be 2 x 2"):
+        from_steps(model(), _update, _update, X0, np.eye(3))
+
+
+def _update(x, P, y):
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    return x + K @ (y - H @ x), P - K @ S @ K.T
+
+
+def test_check_arrays_names_the_first_entry_and_the_equation():
+    ref = np.arange(12.0).reshape(3, 2, 2)
+    assert "equals the reference" in check_arrays(ref + 1e-10, ref, quantity="the gains")
+    wrong = ref.copy()
+    wrong[1, 0, 1] += 0.5
+    wrong[2, 1, 1] -= 1.0
+    with pytest.raises(AssertionError) as info:
+        check_arrays(wrong, ref, quantity="the gains", equation="eq. (7)")
+    assert str(info.value).startswith("the gains differs first at sample 1, entry (0, 1): "
+                                      "yours 5.5, the reference 5. Look at eq. (7). (2 of "
+                                      "12 entries differ")
+    with pytest.raises(AssertionError, match=r"has shape \(3, 4\), expected \(3, 2, 2\)"):
+        check_arrays(ref.reshape(3, 4), ref, quantity="the gains")
+    for blank in (None, ...):
+        with pytest.raises(AssertionError, match="not answered yet"):
+            check_arrays(blank, ref, quantity="the gains")
+    with pytest.raises(AssertionError, match="expected numbers, got str"):
+        check_arrays("gains", ref, quantity="the gains")
+
+
+def test_as_log_draws_a_students_arrays(tmp_path):
+    """A student's means and covariances as a log: estim's metrics and figures take it."""
+    pytest.importorskip("matplotlib")
+    from estim.plotting import plot_errors, plot_particles
+
+    sc = scenario()
+    truth = estim.simulate(sc, reference(), seed=1)
+    log = as_log(truth.x_hat, truth.P, truth=truth.x, model=model())
+    np.testing.assert_allclose(estim.nees(log), estim.nees(truth), rtol=1e-12)
+    np.testing.assert_allclose(log.t, truth.t)
+    plot_errors(log, tmp_path / "errors.png")
+    assert (tmp_path / "errors.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="truth must have the estimates' shape"):
+        as_log(truth.x_hat, truth.P, truth=truth.x[:-1])
+    # a particle cloud: (T, N, nx), its weights and the truth
+    rng = np.random.default_rng(0)
+    cloud = truth.x[:, None, :] + rng.normal(size=(60, 300, 2))
+    w = rng.random((60, 300))
+    fig = plot_particles(cloud, tmp_path / "cloud.png", weights=w / w.sum(1, keepdims=True),
+                         truth=truth.x, t=truth.t, state=1, name="v")
+    assert fig.axes[0].get_ylabel() == "v" and (tmp_path / "cloud.png").stat().st_size > 0
+    with pytest.raises(ValueError, match=r"weights must be \(T, N\)"):
+        plot_particles(cloud, weights=w[:, :10])
+    with pytest.raises(ValueError, match="state must be in 0..1"):
+        plot_particles(cloud, state=2)

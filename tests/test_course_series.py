@@ -1,0 +1,56 @@
+"""The course series (examples/course/exercises): every exercise's student notebook and
+autograder are generated from its solution by Otter Assign; the solution is graded to
+full marks, the unfilled student version to zero on every graded part, each failed test
+with a message; the paired notebooks match their .py sources."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("otter")
+jupytext = pytest.importorskip("jupytext")
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("estim_course", ROOT / "examples" / "course" /
+                                              "course.py")
+course = importlib.util.module_from_spec(spec)
+sys.modules["estim_course"] = course  # its dataclasses look their module up
+spec.loader.exec_module(course)
+EXERCISES = course.exercises()
+
+
+def test_the_series_has_its_exercises():
+    assert len(EXERCISES) >= 9, EXERCISES
+    assert EXERCISES[0] == "01_kalman_filter"
+
+
+@pytest.mark.parametrize("name", EXERCISES)
+def test_the_notebook_is_paired_with_its_source(name):
+    """The committed .ipynb holds the .py's cells (``python course.py sync`` writes it)."""
+    source = jupytext.read(course.EXERCISES / f"{name}.py")
+    paired = jupytext.read(course.EXERCISES / f"{name}.ipynb")
+    assert [(c.cell_type, c.source) for c in paired.cells] == \
+        [(c.cell_type, c.source) for c in source.cells]
+
+
+@pytest.mark.parametrize("name", EXERCISES)
+def test_round_trip(name, tmp_path):
+    dist = course.build(name, tmp_path)
+    student = dist / "student" / f"{name}.ipynb"
+    text = student.read_text()
+    assert "BEGIN SOLUTION" not in text and "hidden: true" not in text
+    assert "check_filter" not in text or "check_filter" in (
+        course.EXERCISES / f"{name}.py").read_text().split("# BEGIN QUESTION")[0]
+    solution = course.grade(dist, dist / "autograder" / f"{name}.ipynb")
+    assert solution, "no graded part"
+    for part in solution.values():
+        assert part.score == part.possible > 0, (part.name, part.failures)
+    blank = course.grade(dist, student)
+    assert blank.keys() == solution.keys()
+    for part in blank.values():
+        assert part.score == 0, (part.name, part.score)
+        assert part.failures and all(m.strip() for m in part.failures.values()), part
