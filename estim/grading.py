@@ -171,13 +171,14 @@ def as_log(estimates: Any, covariances: Any = None, *, truth: Any = None, t: Any
 
 
 def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "its equation",
-                 atol: float = 1e-8, rtol: float = 1e-6, index: str = "sample") -> str:
+                 atol: float = 1e-8, rtol: float = 1e-6, index: str | None = None) -> str:
     """``yours`` equal to ``reference`` to ``atol + rtol |reference|``, entry by entry.
 
-    Raises ``AssertionError`` naming ``quantity``, the first differing entry (its first
-    index called ``index``: a sample, a sigma point, an order), both values and
-    ``equation``; a wrong shape or a non-numeric answer is told as such (``None`` or
-    ``...``: not answered yet). Returns the verdict.
+    Raises ``AssertionError`` naming ``quantity``, the first differing entry (with
+    ``index``, e.g. ``"sample"`` or ``"sigma point"``, its first index is named so and
+    the rest is the entry), both values and ``equation``; a wrong shape or a
+    non-numeric answer is told as such (``None`` or ``...``: not answered yet). Returns
+    the verdict.
     """
     if yours is None or yours is Ellipsis:
         raise AssertionError(f"{quantity}: not answered yet (got {yours!r})")
@@ -192,8 +193,12 @@ def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "
     e = _entry(a, b, atol, rtol)
     if e is None:
         return f"{quantity} equals the reference (to {atol:g} + {rtol:g} |ref|)"
-    where = f"{index} {e[0]}, entry {e[1:]}" if len(e) > 1 else f"{index} {e[0]}" \
-        if e else "the value"
+    if not e:
+        where = "the value"
+    elif index is None:
+        where = f"entry {e}" if len(e) > 1 else f"entry {e[0]}"
+    else:
+        where = f"{index} {e[0]}, entry {e[1:]}" if len(e) > 1 else f"{index} {e[0]}"
     n = int((~np.isclose(a, b, atol=atol, rtol=rtol, equal_nan=True)).sum())
     raise AssertionError(f"{quantity} differs first at {where}: yours {a[e]:.6g}, the "
                          f"reference {b[e]:.6g}. Look at {equation}. ({n} of {a.size} "

@@ -144,10 +144,12 @@ def test_check_arrays_names_the_first_entry_and_the_equation():
     wrong[1, 0, 1] += 0.5
     wrong[2, 1, 1] -= 1.0
     with pytest.raises(AssertionError) as info:
-        check_arrays(wrong, ref, quantity="the gains", equation="eq. (7)")
+        check_arrays(wrong, ref, quantity="the gains", equation="eq. (7)", index="sample")
     assert str(info.value).startswith("the gains differs first at sample 1, entry (0, 1): "
                                       "yours 5.5, the reference 5. Look at eq. (7). (2 of "
                                       "12 entries differ")
+    with pytest.raises(AssertionError, match=r"differs first at entry \(1, 0, 1\): yours 5.5"):
+        check_arrays(wrong, ref, quantity="the gains")
     with pytest.raises(AssertionError, match=r"has shape \(3, 4\), expected \(3, 2, 2\)"):
         check_arrays(ref.reshape(3, 4), ref, quantity="the gains")
     for blank in (None, ...):

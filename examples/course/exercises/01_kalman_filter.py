@@ -104,10 +104,9 @@ rng_ = np.random.default_rng(7)
 M_ = rng_.normal(size=(4, 4))
 mm_, PP_ = rng_.normal(size=4), M_ @ M_.T + np.eye(4)
 got_ = kf_predict(mm_, PP_, A, Q)
-_ = check_arrays(got_[0], A @ mm_, quantity="the predicted mean", equation="eq. (1)",
-             index="entry")
+_ = check_arrays(got_[0], A @ mm_, quantity="the predicted mean", equation="eq. (1)")
 _ = check_arrays(got_[1], A @ PP_ @ A.T + Q, quantity="the predicted covariance",
-                 equation="eq. (2): A P Aᵀ + Q", index="row")
+                 equation="eq. (2): A P Aᵀ + Q")
 
 # %% [raw]
 # # END TESTS
@@ -162,9 +161,9 @@ ekf_ = estim.EKF(model, Q=Q, R=R, x0=m0, P0=P0)  # estim's update of the prior b
 ref_ = ekf_.filter(Y[:1])
 got_ = kf_update(m0, P0, Y[0], H, R)
 _ = check_arrays(got_[0], ref_.x[0], quantity="the updated mean",
-                 equation="eq. (4): m + K (y - H m) with K = P Hᵀ S⁻¹", index="entry")
+                 equation="eq. (4): m + K (y - H m) with K = P Hᵀ S⁻¹")
 _ = check_arrays(got_[1], ref_.P[0], quantity="the updated covariance",
-                 equation="eq. (5): P - K S Kᵀ (and S = H P Hᵀ + R, eq. 3)", index="row")
+                 equation="eq. (5): P - K S Kᵀ (and S = H P Hᵀ + R, eq. 3)")
 
 # %% [raw]
 # # END TESTS
@@ -232,9 +231,9 @@ reference_ = estim.EKF(model, Q=Q, R=R, x0=m0, P0=P0)
 record_ = (np.vstack([[np.nan, np.nan], Y]), None)  # the prior one step before Y[0]
 _ = check_filter(mine_, reference_, record_, equations=equations_)
 ref_ = reference_.filter(record_[0])
-_ = check_arrays(means, ref_.x[1:], quantity="kalman_filter's means",
+_ = check_arrays(means, ref_.x[1:], quantity="kalman_filter's means", index="sample",
                  equation="the loop: predict, then update, at every sample")
-_ = check_arrays(covs, ref_.P[1:], quantity="kalman_filter's covariances",
+_ = check_arrays(covs, ref_.P[1:], quantity="kalman_filter's covariances", index="sample",
                  equation="the loop: predict, then update, at every sample")
 
 # %% [raw]
@@ -289,7 +288,8 @@ failure_message: nees does not match estim.nees
 from estim.grading import as_log, check_arrays
 
 _ = check_arrays(nees(X, means, covs), estim.nees(as_log(means, covs, truth=X)),
-                 quantity="the NEES", equation="(x - m)ᵀ P⁻¹ (x - m) at each sample")
+                 quantity="the NEES", equation="(x - m)ᵀ P⁻¹ (x - m) at each sample",
+                 index="sample")
 
 # %%
 """ # BEGIN TEST CONFIG

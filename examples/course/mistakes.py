@@ -1,0 +1,76 @@
+"""One submission per exercise that is wrong on purpose, and the feedback it gets.
+
+Each mistake is a change to the solution's code (``old`` replaced by ``new`` in the
+submitted notebook), made the way a student would make it. ``python mistakes.py``
+builds every exercise, grades its mistaken submission and prints the points per part and
+the messages; ``tests/test_course_series.py`` (``-m slow``) checks that each message
+names what ``expect`` says.
+
+    python mistakes.py [NAME ...] [--out dist]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import course
+
+
+@dataclass(frozen=True)
+class Mistake:
+    """A change to exercise ``name``'s solution code, what it is, and the words the
+    feedback must contain."""
+    name: str
+    what: str
+    old: str
+    new: str
+    expect: tuple[str, ...]
+
+
+MISTAKES = [
+    Mistake("01_kalman_filter", "the prediction forgets Q",
+            "P_pred = A @ P @ A.T + Q", "P_pred = A @ P @ A.T",
+            ("the covariance P differs first at sample 1", "A P Aᵀ + Q", "overconfident")),
+]
+
+
+def submission(mistake: Mistake, dist: Path, folder: Path) -> Path:
+    """The solution notebook of ``dist`` with ``mistake`` made, written to ``folder``."""
+    import nbformat
+
+    nb = nbformat.read(dist / "autograder" / f"{mistake.name}.ipynb", as_version=4)
+    hits = [c for c in nb.cells if c.cell_type == "code" and mistake.old in c.source]
+    if len(hits) != 1:
+        raise ValueError(f"{mistake.name}: the code {mistake.old!r} is in {len(hits)} "
+                         f"cells of the solution, expected 1")
+    hits[0].source = hits[0].source.replace(mistake.old, mistake.new)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{mistake.name}.ipynb"
+    nbformat.write(nb, path)
+    return path
+
+
+def grade_mistake(mistake: Mistake, out: Path) -> dict[str, course.Part]:
+    """Build ``mistake``'s exercise in ``out`` and grade the mistaken submission."""
+    dist = course.build(mistake.name, out)
+    return course.grade(dist, submission(mistake, dist, out / "mistakes"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("names", nargs="*")
+    parser.add_argument("--out", default="dist")
+    args = parser.parse_args(argv)
+    for m in MISTAKES:
+        if args.names and m.name not in args.names:
+            continue
+        parts = grade_mistake(m, Path(args.out))
+        print(f"{m.name}, {m.what}: {course._report(parts)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
