@@ -176,9 +176,9 @@ def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "
 
     Raises ``AssertionError`` naming ``quantity``, the first differing entry (with
     ``index``, e.g. ``"sample"`` or ``"sigma point"``, its first index is named so and
-    the rest is the entry), both values and ``equation``; a wrong shape or a
-    non-numeric answer is told as such (``None`` or ``...``: not answered yet). Returns
-    the verdict.
+    the rest is the entry; ``"row"`` of a matrix names its row and column), both values
+    and ``equation``; a wrong shape or a non-numeric answer is told as such (``None`` or
+    ``...``: not answered yet). Returns the verdict.
     """
     if yours is None or yours is Ellipsis:
         raise AssertionError(f"{quantity}: not answered yet (got {yours!r})")
@@ -195,8 +195,10 @@ def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "
         return f"{quantity} equals the reference (to {atol:g} + {rtol:g} |ref|)"
     if not e:
         where = "the value"
-    elif index is None:
+    elif index in (None, "entry"):
         where = f"entry {e}" if len(e) > 1 else f"entry {e[0]}"
+    elif index == "row" and len(e) == 2:
+        where = f"row {e[0]}, column {e[1]}"
     else:
         where = f"{index} {e[0]}, entry {e[1:]}" if len(e) > 1 else f"{index} {e[0]}"
     n = int((~np.isclose(a, b, atol=atol, rtol=rtol, equal_nan=True)).sum())

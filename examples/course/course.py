@@ -6,7 +6,7 @@ The source of every exercise is its solution, ``exercises/NN_name.py``: a jupyte
 
     python course.py build [NAME ...] [--out dist]   # student notebooks + autograders
     python course.py grade dist/NAME SUBMISSION.ipynb [...]  # points and messages
-    python course.py sync                            # the .ipynb pairs from the .py
+    python course.py sync [NAME ...]                 # the .ipynb pairs from the .py
 
 ``build`` writes, per exercise, ``dist/NAME/student/NAME.ipynb`` (solutions replaced by
 ``...``, hidden tests removed: what students get, with the data files it reads) and
@@ -126,12 +126,15 @@ def grade(dist: Path | str, submission: Path | str) -> dict[str, Part]:
     return parts
 
 
-def sync() -> list[Path]:
-    """Write every exercise's paired notebook from its .py (outputs are not kept)."""
+def sync(names: list[str] | None = None) -> list[Path]:
+    """Write the paired notebooks of ``names`` (default: every exercise) from their .py
+    (outputs are not kept)."""
     import jupytext
 
     paths = []
-    for name in exercises():
+    for name in names or exercises():
+        if name not in exercises():
+            raise ValueError(f"name must be one of {exercises()}, got {name!r}")
         nb = jupytext.read(EXERCISES / f"{name}.py")
         nb.metadata.setdefault("jupytext", {})["formats"] = "ipynb,py:percent"
         path = EXERCISES / f"{name}.ipynb"
@@ -162,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     g = sub.add_parser("grade", help="grade submitted notebooks")
     g.add_argument("dist", help="an exercise's folder written by build (dist/NAME)")
     g.add_argument("submissions", nargs="+")
-    sub.add_parser("sync", help="write the .ipynb pairs from the .py sources")
+    y = sub.add_parser("sync", help="write the .ipynb pairs from the .py sources")
+    y.add_argument("names", nargs="*", help="exercises (default: all)")
     args = parser.parse_args(argv)
     if args.command == "build":
         for name in args.names or exercises():
@@ -171,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
         for path in args.submissions:
             print(f"{path}: {_report(grade(args.dist, path))}")
     else:
-        for path in sync():
+        for path in sync(args.names):
             print(path)
     return 0
 

@@ -34,6 +34,9 @@ MISTAKES = [
     Mistake("01_kalman_filter", "the prediction forgets Q",
             "P_pred = A @ P @ A.T + Q", "P_pred = A @ P @ A.T",
             ("the covariance P differs first at sample 1", "A P Aᵀ + Q", "overconfident")),
+    Mistake("10_information_filter", "the prediction forgets Q",
+            "A @ P @ A.T + Q)", "A @ P @ A.T)",
+            ("the covariance P differs first at sample 1", "(A Y⁻¹ Aᵀ + Q)⁻¹")),
 ]
 
 
