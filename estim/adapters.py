@@ -22,7 +22,6 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter
 
 from estim._validate import as_vector
 from estim.estimators.base import Estimator, StepInfo
@@ -30,8 +29,15 @@ from estim.model import Model
 
 __all__ = ["FilterpyEstimator", "FunctionEstimator", "from_filterpy", "from_function"]
 
-#: The filterpy classes :func:`from_filterpy` runs.
-FILTERPY = (KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter)
+
+
+def _filterpy() -> tuple[type, type, type]:
+    """The filterpy classes :func:`from_filterpy` runs: ``KalmanFilter``,
+    ``ExtendedKalmanFilter``, ``UnscentedKalmanFilter`` (imported on first use: filterpy
+    brings scipy.stats, half a second that a step function's adapter does not need)."""
+    from filterpy.kalman import ExtendedKalmanFilter, KalmanFilter, UnscentedKalmanFilter
+
+    return KalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
 
 
 class _Wrapped(Estimator):
@@ -109,7 +115,8 @@ class FilterpyEstimator(_Wrapped):
 
     def __init__(self, filt: Any, model: Model, name: str | None = None,
                  hx: Callable | None = None, HJacobian: Callable | None = None):
-        if not isinstance(filt, FILTERPY):
+        kinds = _filterpy()
+        if not isinstance(filt, kinds):
             raise TypeError(f"filt must be a filterpy KalmanFilter, ExtendedKalmanFilter or "
                             f"UnscentedKalmanFilter, got {type(filt).__name__}")
         if not isinstance(model, Model):
@@ -121,7 +128,7 @@ class FilterpyEstimator(_Wrapped):
         if getattr(filt, "dim_z", model.ny) != model.ny:
             raise ValueError(f"filt measures {filt.dim_z} outputs (dim_z) but {model.name} "
                              f"has {model.ny} ({model.output_names})")
-        if isinstance(filt, ExtendedKalmanFilter) and np.ndim(filt.x) != 2:
+        if isinstance(filt, kinds[1]) and np.ndim(filt.x) != 2:
             raise ValueError(f"filt.x must be an ({model.nx}, 1) column for filterpy's "
                              f"ExtendedKalmanFilter (its update turns a 1-D x of shape "
                              f"({model.nx},) into ({model.nx}, {model.nx})); note that it "
@@ -156,6 +163,7 @@ class FilterpyEstimator(_Wrapped):
 
     def _step(self, y, u, first):
         f = self.filter
+        _, ExtendedKalmanFilter, UnscentedKalmanFilter = _filterpy()
         missing = np.isnan(y)
         if missing.any() and not missing.all():
             raise ValueError(f"{self.name}: filterpy's filters update with every output; "

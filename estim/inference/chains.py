@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
 __all__ = ["ess", "rhat"]
 
@@ -55,6 +54,8 @@ def _chains(draws: ArrayLike) -> np.ndarray:
 
 def _scores(x: np.ndarray) -> np.ndarray:
     """The normal scores of the draws' ranks (ties averaged)."""
+    from scipy import stats  # ~0.4 s to import: on first use, not with estim.testing
+
     r = stats.rankdata(x, method="average").reshape(x.shape)
     return stats.norm.ppf((r - 0.375) / (x.size + 0.25))
 
