@@ -278,14 +278,21 @@ def check_over_seeds(student: Estimator | Callable, reference: Estimator | Calla
     raises ``AssertionError`` with the seeds where the two differ most."""
     res = compare(scenario, {name: student, "reference": reference}, seeds=list(seeds),
                   progress=False)
+    n = len(list(seeds))
     try:
         testing.assert_equivalent(res, name, "reference", metric=metric,
                                   tolerance=tolerance, confidence=confidence)
     except AssertionError as exc:
         raise AssertionError(f"{name} is not shown as accurate as the reference over "
-                             f"{len(list(seeds))} seeds: {exc}") from None
-    return (f"{name} is as accurate as the reference in {metric} within {tolerance:.0%} "
-            f"over {len(list(seeds))} seeds (at confidence {confidence})")
+                             f"{n} seeds: {exc}") from None
+    except ValueError as exc:  # too few seeds where both ran: the student's failed
+        bad = int((~np.isfinite(np.asarray(res.rmse[name], dtype=float))).sum())
+        notes = " ".join(line for line in res.notes() if name in line)
+        raise AssertionError(
+            f"{name} has no finite estimates on {bad} of {n} seeds, too many to compare "
+            f"({notes or exc})") from None
+    return (f"{name} is as accurate as the reference in {metric} within {tolerance:g} × "
+            f"the reference's median over {n} seeds (at confidence {confidence})")
 
 
 def check_consistent(student: Estimator, scenario: Scenario, *,

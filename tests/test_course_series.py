@@ -71,3 +71,17 @@ def test_a_mistake_gets_partial_credit_and_is_told_what(mistake, tmp_path):
 
 def test_every_exercise_has_a_mistake():
     assert {m.name for m in mistakes.MISTAKES} == set(EXERCISES)
+
+
+def test_the_course_tuning_is_the_batch_reactor_scenarios():
+    """Exercise 09 (KU Leuven session 5) grades against estim's filters with the course's
+    constants; the scenario holds the same: the guess (1, 0, 4), sigma_w = 0.002,
+    sigma_v = 0.25 and the guess's spread 0.5."""
+    import numpy as np
+
+    import estim
+
+    tuning = estim.scenarios.batch_reactor().tuning
+    assert np.allclose(tuning["x0"], [1.0, 0.0, 4.0])
+    assert (tuning["Q"], tuning["R"], tuning["P0"]) == pytest.approx(
+        (0.002**2, 0.25**2, 0.5**2))

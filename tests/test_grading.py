@@ -184,3 +184,16 @@ def test_as_log_draws_a_students_arrays(tmp_path):
         plot_particles(cloud, weights=w[:, :10])
     with pytest.raises(ValueError, match="state must be in 0..1"):
         plot_particles(cloud, state=2)
+
+
+def test_a_filter_that_fails_on_most_seeds_is_told_so():
+    """A filter whose estimates are NaN (a transposed Jacobian blows up) is not a
+    ValueError of the paired test but an answer that says so."""
+    def broken(model, tuning):
+        return from_function(lambda y, u: np.full(2, np.nan), model, name="your filter")
+
+    with pytest.raises(AssertionError, match="has no finite estimates on 10 of 10 seeds"):
+        check_over_seeds(broken, reference(), scenario(), seeds=range(10))
+    text = check_over_seeds(student(), reference(), scenario(), seeds=range(10),
+                            tolerance=1e-6)
+    assert "within 1e-06 × the reference's median over 10 seeds" in text

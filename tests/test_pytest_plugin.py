@@ -135,12 +135,11 @@ def test_scenario_fixture_runs_every_scenario(pytester):
 
 
 def test_the_example_test_modules_pass(pytester):
-    """examples/test_estimators.py (the assertions, the fixtures, a filterpy filter) and
-    the course's grading file pass as users run them."""
+    """examples/test_estimators.py (the assertions, the fixtures, a filterpy filter)
+    passes as users run it."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    for path, n in ((root / "examples" / "test_estimators.py", 6),
-                    (root / "examples" / "course" / "test_grade.py", 3)):
+    for path, n in ((root / "examples" / "test_estimators.py", 6),):
         result = pytester.runpytest(str(path), "-q", "-p", "no:cacheprovider")
         result.assert_outcomes(passed=n)
