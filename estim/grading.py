@@ -257,6 +257,8 @@ def check_filter(student: Estimator, reference: Estimator, record: Record | tupl
              firsts[other][0] > k else "")
     if key == "x" and covariance and "P" not in firsts:
         still = f"; {QUANTITIES['P']} is right at every sample"
+    if not covariance:  # nothing to say of a covariance the student does not report
+        still = ""
     hint = hints.get(key, "its equation")
     t = f" (t = {ref.t[k]:g})" if hasattr(ref, "t") else ""
     raise AssertionError(

@@ -93,6 +93,16 @@ def test_a_wrong_filter_is_told_where_and_what(record, mistake, quantity, sample
         assert "the covariance P is right at every sample" in text
 
 
+def test_a_filter_without_covariance_is_told_of_its_estimate_only(record):
+    est = student("sign")
+    mine = from_function(lambda y, u: np.asarray(est.step(y, u))[:2], model(),
+                         name="your filter", reset=est.reset)
+    with pytest.raises(AssertionError) as info:
+        check_filter(mine, reference(), record, equations=EQUATIONS)
+    text = str(info.value)
+    assert "the estimate x̂ differs first at sample 0" in text and "covariance" not in text
+
+
 def test_an_exception_is_reported_with_its_sample(record):
     with pytest.raises(AssertionError, match="raised ValueError at sample 3: matrices"):
         check_filter(student("raises"), reference(), record)

@@ -43,6 +43,15 @@ MISTAKES = [
             "Wc[0] = lam / (n + lam) + (1 - alpha**2 + beta)", "Wc[0] = lam / (n + lam)",
             ("the vector of covariance weights W(c) (n = 2, alpha = 0.5, beta = 2.0",
              "(1 - alpha² + beta)")),
+    Mistake("06_mhe_least_squares", "the arrival mean one sample off: the previous "
+            "window's first state instead of its second",
+            "self.xbar = self.Xw[1].copy()", "self.xbar = self.Xw[0].copy()",
+            ("differs first at sample 20", "eq. (6)")),
+    Mistake("07_observability_lie", "every Lie derivative taken of h, not of the previous "
+            "one",
+            "lies.append(lie_derivative(lies[-1], f, x))",
+            "lies.append(lie_derivative(h, f, x))",
+            ("L_f^2 h of the sine_pendulum model differs first", "eq. (2)")),
     Mistake("08_noise_tuning", "the likelihood without log det S",
             "value = 0.5 * float(np.sum(np.linalg.slogdet(S)[1] + nis(E, S) + "
             "2 * np.log(2 * np.pi)))",
