@@ -159,3 +159,46 @@ def test_quadrotor_navigation_yaw_is_unobservable():
     yaw = np.concatenate([[-r[1], r[0], 0], [-v[1], v[0], 0],
                           0.5 * np.array([-q[3], -q[2], q[1], q[0]]), np.zeros(3)])
     assert _in_null_space(rep, yaw) < 1e-8
+
+
+def test_the_matrix_and_its_conditioning_against_closed_forms(tmp_path):
+    """The observability matrix at given states. The pendulum seen through sin(theta):
+    grad h = (cos th, 0) and grad L_f h = (-w sin th, cos th) in closed form, grad L_f^2 h
+    by central differences of the closed-form L_f^2 h. The constant-velocity target
+    (discrete): H, H A, H A^2. The conditioning map finds the pendulum's two singular
+    points, theta = +-pi/2 with omega = 0."""
+    from estim.observability import conditioning, matrix
+
+    m = estim.models.sine_pendulum(g=9.81, dt=0.01, integrator="euler")
+    X = np.random.default_rng(3).uniform(-3, 3, size=(7, 2))
+    obs = matrix(m, X, 1)
+    th, om = X[:, 0], X[:, 1]
+    exact = np.stack([np.stack([np.cos(th), 0 * th], 1),
+                      np.stack([-om * np.sin(th), np.cos(th)], 1)], 1)
+    np.testing.assert_allclose(obs, exact, rtol=0, atol=1e-12)
+
+    def lf2(x):  # L_f^2 h = d/dt (w cos th) = -w^2 sin th - g sin th cos th
+        return -x[1] ** 2 * np.sin(x[0]) - 9.81 * np.sin(x[0]) * np.cos(x[0])
+    eps = 1e-6
+    for x, row in zip(X, matrix(m, X, 2)[:, 2], strict=True):
+        fd = [(lf2(x + eps * e) - lf2(x - eps * e)) / (2 * eps) for e in np.eye(2)]
+        np.testing.assert_allclose(row, fd, rtol=1e-6, atol=1e-6)
+    cv = estim.models.constant_velocity(dt=0.1)
+    A = np.block([[np.eye(2), 0.1 * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
+    H = np.eye(2, 4)
+    np.testing.assert_allclose(matrix(cv, np.ones(4), 2), np.vstack([H, H @ A, H @ A @ A]),
+                               rtol=0, atol=1e-14)
+    c = conditioning(m, {"theta": np.linspace(-np.pi, np.pi, 61),
+                         "omega": np.linspace(-4, 4, 41)}, 2)
+    B, A_ = np.nonzero(c.rank < 2)
+    np.testing.assert_allclose(np.sort(c.grid[0][A_]), [-np.pi / 2, np.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(c.grid[1][B], 0.0, atol=1e-12)
+    assert c.values.shape == (41, 61) and c.values[B, A_].max() == 0.0
+    assert np.all((c.values >= 0) & (c.values <= 1))
+    pytest.importorskip("matplotlib")
+    c.plot(tmp_path / "map.png")
+    assert (tmp_path / "map.png").stat().st_size > 0
+    with pytest.raises(ValueError, match="'phi' is not a state"):
+        conditioning(m, {"theta": [0, 1], "phi": [0, 1]}, 2)
+    with pytest.raises(ValueError, match=r"x must have shape \(2,\) or \(m, 2\)"):
+        matrix(m, np.zeros(3), 1)

@@ -24,7 +24,7 @@ from mkdocs.exceptions import PluginError
 from mkdocs.structure.files import File
 
 PAGES = ("plotting.md", "particle.md", "attitude.md", "gaussian_filters.md",
-         "continuous_noise.md", "bayesian.md")
+         "continuous_noise.md", "bayesian.md", "observability.md")
 FOLDER = "figures"
 
 _FENCE = re.compile(

@@ -35,8 +35,10 @@ although ``(x1, x2) -> (-x1, -x2)`` leaves the output unchanged).
 The package: :mod:`~estim.observability.lie` builds the observability matrix and
 takes its numeric rank, :mod:`~estim.observability.symmetries` reads the symmetries
 and classifies the states, :mod:`~estim.observability.symbolic` is the exact path,
-and :mod:`~estim.observability.sensitivity` the identifiability of an initial state
-from one window of data (:func:`window`).
+:mod:`~estim.observability.sensitivity` the identifiability of an initial state
+from one window of data (:func:`window`), and
+:mod:`~estim.observability.conditioning` the matrix at given states (:func:`matrix`)
+and how well conditioned it is over a plane of two states (:func:`conditioning`).
 
 References
 ----------
@@ -66,11 +68,13 @@ from estim._validate import (
 )
 from estim.model import Model
 from estim.observability import lie, symmetries
+from estim.observability.conditioning import Conditioning, conditioning, matrix
 from estim.observability.lie import ARRANGEMENTS
 from estim.observability.sensitivity import WindowReport, window
 from estim.observability.symbolic import symbolic_rank
 
-__all__ = ["ARRANGEMENTS", "ObservabilityReport", "WindowReport", "analyze", "window"]
+__all__ = ["ARRANGEMENTS", "Conditioning", "ObservabilityReport", "WindowReport", "analyze",
+           "conditioning", "matrix", "window"]
 
 
 @dataclass

@@ -65,11 +65,11 @@
 # models with CasADi.
 
 # %%
-import matplotlib.pyplot as plt
 import numpy as np
 import sympy as sp
 
 import estim
+import estim.observability
 
 model = estim.models.sine_pendulum()  # theta' = omega, omega' = -(g/l) sin(theta), y = sin(theta)
 theta, omega = sp.symbols("theta omega")
@@ -300,25 +300,15 @@ assert rank_special == special_, (f"rank_special is {rank_special}; estim.observ
 
 # %% [markdown]
 # Where is the pendulum hard to observe? The ratio $s_2 / s_1$ of the singular values of
-# $\mathcal O$ (the inverse of its condition number) over the $(\theta, \omega)$ plane:
-# it vanishes at $\theta = \pm\pi/2$, $\omega = 0$, the point of `rank_special`, and is
-# small around it (as $\omega^2$ along $\theta = \pm\pi/2$), where $\sin\theta$ is flat
-# and the swing almost stopped. The rank test says only *whether* the state is
-# determined at a point; how well, the conditioning says. (estim's plotting has no
-# observability figure; this one is plain matplotlib.)
+# $\mathcal O$ (rows normalised: the inverse of its condition number) over the
+# $(\theta, \omega)$ plane, drawn by `estim.observability.conditioning`: it vanishes at
+# $\theta = \pm\pi/2$, $\omega = 0$, the point of `rank_special`, and is small around
+# it, where $\sin\theta$ is flat and the swing almost stopped. The rank test says only
+# *whether* the state is determined at a point; how well, the conditioning says.
 
 # %%
-th_grid, om_grid = np.meshgrid(np.linspace(-np.pi, np.pi, 181), np.linspace(-4, 4, 161))
-O_grid = np.array([[O_at(a, b) for a, b in zip(ra, rb, strict=True)]
-                   for ra, rb in zip(th_grid, om_grid, strict=True)], dtype=float)
-s_grid = np.linalg.svd(O_grid, compute_uv=False)
-fig, ax = plt.subplots(figsize=(7, 3.5), constrained_layout=True)
-im = ax.pcolormesh(th_grid, om_grid, np.log10(s_grid[..., -1] / s_grid[..., 0] + 1e-17),
-                   shading="auto", cmap="viridis", vmin=-4, vmax=0)
-fig.colorbar(im, ax=ax, label="log10 of s2 / s1 (clipped at -4)")
-ax.set_xlabel("θ (rad)")
-ax.set_ylabel("ω (rad/s)")
-ax.set_title("the sine pendulum's observability matrix (K = 2)");
+grid = {"theta": np.linspace(-np.pi, np.pi, 121), "omega": np.linspace(-4, 4, 81)}
+estim.observability.conditioning(estim.models.sine_pendulum(), grid, order=2).plot();
 
 # %% [raw]
 # # BEGIN QUESTION
