@@ -204,6 +204,9 @@ def test_a_filter_that_fails_on_most_seeds_is_told_so():
 
     with pytest.raises(AssertionError, match="has no finite estimates on 10 of 10 seeds"):
         check_over_seeds(broken, reference(), scenario(), seeds=range(10))
+    with pytest.raises(AssertionError, match=r"median RMSE \S+ against the reference's "
+                                             r"\S+: \d+% worse\)"):
+        check_over_seeds(student("sign"), reference(), scenario(), seeds=range(10))
     text = check_over_seeds(student(), reference(), scenario(), seeds=range(10),
                             tolerance=1e-6)
     assert "within 1e-06 × the reference's median over 10 seeds" in text
