@@ -106,6 +106,7 @@ class _Series:
             if isinstance(estimate, Estimates):
                 x_hat, self.P = estimate.x, getattr(estimate, "P", None)
                 self.t, self.manifold = estimate.t, estimate.manifold
+                self.nis = getattr(estimate, "nis", None)  # a filter's result has it
                 names = list(estimate.state_names) or names
                 if self.manifold is not None:
                     names = self.manifold.tangent_names
@@ -114,9 +115,9 @@ class _Series:
             else:
                 raise TypeError(f"estimate must be {ACCEPTED}, got {type(estimate).__name__}")
             self.x_hat = _as_states(x_hat, "estimate")
-            if "nis" in needs:
-                raise ValueError("nis needs a Log: the innovations are recorded by "
-                                 "simulate/replay")
+            if "nis" in needs and self.nis is None:
+                raise ValueError(f"nis needs a Log or a filter's result (FilterResult): "
+                                 f"a {type(estimate).__name__} has no innovations")
             if "P" in needs and self.P is None:
                 raise ValueError("nees needs covariances: a Log with 'P', or a result with "
                                  "'P' (an array carries none, nor a fit that failed)")
@@ -339,13 +340,14 @@ def _solved(e: np.ndarray, C: np.ndarray) -> np.ndarray:
     return np.einsum("ki,ki->k", e, sol)
 
 
-def nis(log: Log, burn_in: int = 0) -> np.ndarray:
+def nis(log: Log | Estimates, burn_in: int = 0) -> np.ndarray:
     r"""Normalised innovation squared per sample, :math:`e_k^\top S_k^{-1} e_k`, (T',).
 
     Parameters
     ----------
-    log : Log
-        Needs ``nis`` (recorded by :func:`estim.simulate` from ``info.nis``).
+    log : Log or FilterResult
+        Needs ``nis``: recorded by :func:`estim.simulate` from ``info.nis``, or the
+        ``nis`` of a filter's whole-record result (``EKF.filter``, ``UKF.filter``).
     burn_in : int
         Samples to skip at the start.
     """

@@ -103,6 +103,12 @@ def test_nis_of_a_correct_linear_filter_is_chi2(linear):
     log = estim.simulate(sys.model, est, x0=sys.x0, n_steps=T, Q=sys.Q, R=sys.R, seed=5)
     lo, hi = estim.chi2_bounds(2, T, 0.999)
     assert lo < np.mean(estim.nis(log)) < hi
+    # the whole-record result holds the same NIS
+    res = estim.EKF(sys.model, Q=sys.Q, R=sys.R, x0=sys.x0, P0=sys.P0).filter(log.y, log.u)
+    np.testing.assert_allclose(estim.nis(res, burn_in=10), estim.nis(log, burn_in=10),
+                               rtol=1e-9)
+    with pytest.raises(ValueError, match="nis needs a Log or a filter's result"):
+        estim.nis(log.x_hat)
 
 
 def test_convergence_time():
