@@ -58,9 +58,26 @@ def _label(path: Path) -> str:
     return str(path.relative_to(ROOT))
 
 
+def _figure_pages() -> set[str]:
+    """The pages whose code the site build runs too (``PAGES`` of docs/hooks/figures.py,
+    read without importing mkdocs)."""
+    tree = ast.parse((ROOT / "docs" / "hooks" / "figures.py").read_text(encoding="utf-8"))
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "PAGES"
+                                                for t in node.targets):
+            return set(ast.literal_eval(node.value))
+    raise AssertionError("docs/hooks/figures.py has no PAGES")
+
+
 def _python_pages():
-    return [pytest.param(p, id=_label(p)) for p in PAGES
-            if any(b["lang"] == "python" for b in _blocks(p))]
+    # the figure pages' blocks run in the strict site build of tests/test_docs.py (the
+    # same namespace, directory and backend; a failing block stops the build): in the
+    # default run they run there, and here with -m slow
+    figures = _figure_pages()
+    return [pytest.param(p, id=_label(p),
+                         marks=[pytest.mark.slow] if p.name in figures and
+                         p.parent.name == "docs" else [])
+            for p in PAGES if any(b["lang"] == "python" for b in _blocks(p))]
 
 
 @pytest.mark.parametrize("page", _python_pages())
