@@ -31,7 +31,7 @@ __all__ = ["FilterpyEstimator", "FunctionEstimator", "from_filterpy", "from_func
 
 
 
-def _filterpy() -> tuple[type, type, type]:
+def _filterpy() -> tuple[Any, Any, Any]:
     """The filterpy classes :func:`from_filterpy` runs: ``KalmanFilter``,
     ``ExtendedKalmanFilter``, ``UnscentedKalmanFilter`` (imported on first use: filterpy
     brings scipy.stats, half a second that a step function's adapter does not need)."""
