@@ -125,7 +125,7 @@ def _front_end():
     the text bar (on stderr)."""
     if _in_jupyter():
         try:
-            import ipywidgets  # type: ignore[import-not-found]  # noqa: F401 - the widget needs it
+            import ipywidgets  # noqa: F401 - the widget needs it
             from tqdm.notebook import tqdm
             return tqdm
         except ImportError:
