@@ -60,7 +60,7 @@ MISTAKES = [
             "one",
             "lies.append(lie_derivative(lies[-1], f, x))",
             "lies.append(lie_derivative(h, f, x))",
-            ("L_f^2 h of the sine_pendulum model differs first", "eq. (2)")),
+            ("L_f^2 h of the sine_pendulum model differs first", "applied k times (eq. 2)")),
     Mistake("08_noise_tuning", "the likelihood without log det S",
             "value = 0.5 * float(np.sum(np.linalg.slogdet(S)[1] + nis(E, S) + "
             "2 * np.log(2 * np.pi)))",
