@@ -13,7 +13,8 @@ summaries are plain picklable values, as the workers send them back.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -71,6 +72,28 @@ def build(spec: Spec, scenario: Scenario) -> Estimator | str:
         return _error(exc)
 
 
+def run_stream(base: int, s: int) -> int:
+    """The seed of a randomised estimator's run on the scenario's seed ``s``: its own
+    ``base`` and ``s`` mixed by ``numpy.random.SeedSequence``, so that the runs over seeds
+    draw independent streams (the same ones at every call)."""
+    return int(np.random.SeedSequence([int(base), int(s)]).generate_state(1)[0])
+
+
+@contextmanager
+def _own_stream(est: Estimator, s: int) -> Iterator[None]:
+    """A randomised estimator (particle filter, EnKF) seeded for the run on seed ``s``,
+    its constructor's seed back afterwards; any other estimator as it is."""
+    if not getattr(est, "_randomised", False):
+        yield
+        return
+    before = est.seed  # type: ignore[attr-defined]
+    est.seed = run_stream(before, s)  # type: ignore[attr-defined]
+    try:
+        yield
+    finally:
+        est.seed = before  # type: ignore[attr-defined]
+
+
 def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
              keep_logs: bool) -> Run:
     """One run's summary (and log) of ``est`` on seed ``s``, or ``est`` itself when it
@@ -78,7 +101,8 @@ def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
     if isinstance(est, str):
         return {"seed": s, "error": est, "log": None}
     try:
-        log = simulate(scenario, est, seed=s, warn=False)
+        with _own_stream(est, s):
+            log = simulate(scenario, est, seed=s, warn=False)
         r = rmse(log, burn_in=burn_in)
         has_p = bool(np.isfinite(log.P).any())
         scores = seed_scores(nees(log, burn_in=burn_in), log.P.shape[1]) if has_p else \

@@ -148,6 +148,9 @@ class Estimator:
     #: Whether the estimator handles the model's quaternions and angles (its errors and
     #: covariances in the tangent space, ``model.ndx``); others refuse such a model.
     _manifold_aware = False
+    #: Whether the estimator draws random numbers from its ``seed`` (particles,
+    #: ensembles): :func:`~estim.compare` then gives each seed's run its own stream.
+    _randomised = False
 
     def __init_subclass__(cls, **kwargs):
         """Every estimator's constructor checks its keyword names before it runs: an

@@ -199,7 +199,8 @@ class EnKF(Estimator):
     seed : int
         Seed of the filter's random numbers (``numpy.random.default_rng``); every
         :meth:`reset` starts the same stream again, so a run is reproducible
-        bit for bit.
+        bit for bit. Over the seeds of :func:`~estim.compare` each run draws its own
+        stream, from this seed and the run's.
 
     Notes
     -----
@@ -212,6 +213,7 @@ class EnKF(Estimator):
 
     name = "enkf"
     _manifold_aware = True
+    _randomised = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_ensemble: int = 50, variant: str = "stochastic",

@@ -328,7 +328,9 @@ class ParticleFilter(CompiledParticles):
     seed : int
         Seed of the filter's random numbers (``numpy.random.default_rng``; with
         ``jit=True`` the compiled path's own streams); every :meth:`reset` starts the
-        same stream again, so a run is reproducible bit for bit.
+        same stream again, so a run is reproducible bit for bit. Over the seeds of
+        :func:`~estim.compare` each run draws its own stream, from this seed and the
+        run's (independent runs, the same at every call).
     jit : bool
         Run the steps compiled (:mod:`estim.solvers.sampling.particle_kernel`): :meth:`filter`
         in one call of machine code for the whole record, :meth:`step` in one call
@@ -352,6 +354,7 @@ class ParticleFilter(CompiledParticles):
 
     name = "pf"
     _manifold_aware = True
+    _randomised = True
 
     def __init__(self, model: Model, *, Q: ArrayLike, R: ArrayLike, x0: ArrayLike,
                  P0: ArrayLike, n_particles: int = 1000, resampling: str = "systematic",
