@@ -3,11 +3,11 @@ r"""Seeded Monte Carlo comparison of several estimators on one scenario.
 Every estimator sees the same noise for a given seed, so differences in the
 table are the estimators', not the draws'. An estimator that draws random numbers
 (a particle filter, an EnKF) draws its own stream on every seed, from its ``seed`` and
-the run's (:func:`estim._runs.run_stream`): the runs are independent in their Monte
+the run's (``estim._runs.run_stream``): the runs are independent in their Monte
 Carlo error too, as the verdicts over seeds assume, and the same at every call.
 
-Runs go through joblib: with ``n_jobs=1`` they run in this process; with ``n_jobs>1`` in worker
-processes (``backend="loky"``), and any joblib backend works, e.g. a dask
+Runs go through joblib: with ``n_jobs=1`` they run in this process; with ``n_jobs>1``
+in worker processes (``backend="loky"``), and any joblib backend works, e.g. a dask
 cluster::
 
     from dask.distributed import Client
