@@ -85,3 +85,17 @@ def test_the_course_tuning_is_the_batch_reactor_scenarios():
     assert np.allclose(tuning["x0"], [1.0, 0.0, 4.0])
     assert (tuning["Q"], tuning["R"], tuning["P0"]) == pytest.approx(
         (0.002**2, 0.25**2, 0.5**2))
+
+
+def test_the_course_extra_installs_what_grading_runs():
+    """``pip install "estim[course]"`` alone grades: otter, jupytext, and ipykernel (a
+    graded notebook runs on a ``python3`` kernel; without it otter stops on
+    ``NoSuchKernel``), and what the exercises import."""
+    import re
+
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11
+    root = Path(__file__).resolve().parents[1]
+    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"]
+    names = {re.split(r"[<>=\[ ]", r)[0] for r in extras["course"]}
+    assert {"otter-grader", "jupytext", "ipykernel", "matplotlib", "sympy"} <= names
