@@ -13,13 +13,12 @@ summaries are plain picklable values, as the workers send them back.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from estim.estimators.base import Estimator
+from estim.estimators.base import Estimator, seeded
 from estim.log import Log
 from estim.metrics import nees, peak_location, rmse, startup_samples
 from estim.model import Model
@@ -79,21 +78,6 @@ def run_stream(base: int, s: int) -> int:
     return int(np.random.SeedSequence([int(base), int(s)]).generate_state(1)[0])
 
 
-@contextmanager
-def _own_stream(est: Estimator, s: int) -> Iterator[None]:
-    """A randomised estimator (particle filter, EnKF) seeded for the run on seed ``s``,
-    its constructor's seed back afterwards; any other estimator as it is."""
-    if not getattr(est, "_randomised", False):
-        yield
-        return
-    before = est.seed  # type: ignore[attr-defined]
-    est.seed = run_stream(before, s)  # type: ignore[attr-defined]
-    try:
-        yield
-    finally:
-        est.seed = before  # type: ignore[attr-defined]
-
-
 def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
              keep_logs: bool) -> Run:
     """One run's summary (and log) of ``est`` on seed ``s``, or ``est`` itself when it
@@ -101,8 +85,14 @@ def run_seed(scenario: Scenario, est: Estimator | str, s: int, burn_in: int,
     if isinstance(est, str):
         return {"seed": s, "error": est, "log": None}
     try:
-        with _own_stream(est, s):
-            log = simulate(scenario, est, seed=s, warn=False)
+        def run() -> Log:
+            return simulate(scenario, est, seed=s, warn=False)
+
+        if est._randomised:  # a particle filter, an EnKF: its own stream on this seed
+            base = est.seed  # type: ignore[attr-defined]
+            log = seeded(est, run_stream(base, s), run)
+        else:
+            log = run()
         r = rmse(log, burn_in=burn_in)
         has_p = bool(np.isfinite(log.P).any())
         scores = seed_scores(nees(log, burn_in=burn_in), log.P.shape[1]) if has_p else \

@@ -48,14 +48,23 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from estim._manifold import unit_quaternions
 from estim._smoothness import advice, nonsmooth_operations
-from estim._validate import as_bounds, as_covariance, as_float, as_vector, check_keywords
+from estim._validate import (
+    as_bounds,
+    as_covariance,
+    as_float,
+    as_seed,
+    as_vector,
+    check_keywords,
+)
 from estim.consistency import consistency_status
 from estim.exceptions import EstimationWarning
 from estim.model import Model
@@ -412,3 +421,16 @@ class Estimator:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.model.name}, nx={self.model.nx})"
+
+
+def seeded(est: Estimator, seed: object, run: Callable[[], Any]) -> Any:
+    """``run()`` with a randomised estimator's random numbers from ``seed`` (checked: an
+    int >= 0 or None), its constructor's seed back afterwards (the next reset starts
+    that stream again)."""
+    seed = as_seed(seed)
+    before = est.seed  # type: ignore[attr-defined]
+    est.seed = 0 if seed is None else seed  # type: ignore[attr-defined]
+    try:
+        return run()
+    finally:
+        est.seed = before  # type: ignore[attr-defined]

@@ -10,8 +10,9 @@ value to the largest,
     c(x) = \frac{\sigma_{\min}(\bar{\mathcal O}_k(x))}{\sigma_{\max}(\bar{\mathcal O}_k(x))}
     \in [0, 1],
 
-is the inverse of the condition number (rows below :math:`10^{-12}` of the largest
-row on the grid count as zero): 0 where the rank drops, small where some
+is the inverse of the condition number (the rank test's rows and threshold,
+:func:`estim.observability.lie.numeric_rank`, with the grid's largest row as the scale
+of a zero row): 0 where the rank drops, small where some
 direction of the state moves the outputs and their derivatives very little. A map of
 :math:`\log_{10} c` over two states shows where an estimator will struggle (for the
 pendulum seen through :math:`\sin\theta`: at :math:`\theta = \pm\pi/2`,
@@ -173,17 +174,11 @@ def conditioning(model: Model, grid: Mapping[str, ArrayLike], order: int, *,
     X = np.tile(base, (A.size, 1))
     X[:, i], X[:, j] = A.ravel(), B.ravel()
     obs = matrix(model, X, order, u)
-    # rows normalised as the rank test takes them; a row below 1e-12 of the largest row
-    # anywhere on the grid is a zero row (where every row vanishes, the rank is 0, not
-    # that of rounding errors blown up to unit length)
-    norms = np.linalg.norm(obs, axis=2, keepdims=True)
-    keep = norms > 1e-12 * max(float(norms.max()), 1e-300)
-    Onorm = np.where(keep, obs / np.where(keep, norms, 1.0), 0.0)
-    s = np.linalg.svd(Onorm, compute_uv=False)
-    pad = max(0, model.nx - s.shape[1])
-    s = np.concatenate([s, np.zeros((len(s), pad))], axis=1)
-    c = s[:, model.nx - 1] / np.maximum(s[:, 0], 1e-300)
-    rank = (s > rtol * np.maximum(s[:, :1], 1e-300)).sum(axis=1)
+    scale = float(np.linalg.norm(obs, axis=2).max())
+    ranks, c = np.zeros(len(obs), dtype=int), np.zeros(len(obs))
+    for k, O_k in enumerate(obs):
+        ranks[k], s, _, _ = lie.numeric_rank(O_k, rtol, scale)
+        c[k] = s[model.nx - 1] / max(float(s[0]), 1e-300)
     return Conditioning(states=(names[0], names[1]), grid=(values[0], values[1]),
-                        values=c.reshape(A.shape), rank=rank.reshape(A.shape),
+                        values=c.reshape(A.shape), rank=ranks.reshape(A.shape),
                         order=order, at=base, model=model.name)

@@ -208,16 +208,22 @@ def extend(pt: list[np.ndarray], variables: list[ca.SX], rng: np.random.Generato
     return out
 
 
-def numeric_rank(obs: np.ndarray, rtol: float
+def numeric_rank(obs: np.ndarray, rtol: float, scale: float | None = None
                  ) -> tuple[int, np.ndarray, float, np.ndarray]:
     """Rank of the row-normalised matrix from its singular values, and the gap.
+
+    Rows below ``1e-12 * scale`` count as zero and are dropped (``scale``: the largest
+    row's norm, of this matrix by default; over a grid of points, the grid's, so that
+    where every row vanishes the rank is 0 rather than that of rounding errors scaled
+    to unit length).
 
     Returns ``(rank, s, gap, A)``: the singular values ``s`` (padded with zeros to the
     number of columns), ``gap = s[rank-1] / s[rank]`` (inf at full rank) and the
     row-normalised matrix ``A`` (rows of zero norm dropped).
     """
     norms = np.linalg.norm(obs, axis=1)
-    keep = norms > 1e-12 * max(float(norms.max()), 1e-300) if len(norms) else norms > 0
+    top = (float(norms.max()) if len(norms) else 0.0) if scale is None else float(scale)
+    keep = norms > 1e-12 * max(top, 1e-300) if len(norms) else norms > 0
     A = obs[keep] / norms[keep, None] if keep.any() else np.zeros((1, obs.shape[1]))
     s = np.linalg.svd(A, compute_uv=False)
     s = np.concatenate([s, np.zeros(obs.shape[1] - len(s))])

@@ -47,7 +47,7 @@ from numpy.typing import ArrayLike
 
 from estim._manifold import NP
 from estim._validate import as_bool, as_choice, as_float, as_int, as_seed
-from estim.estimators.base import StepInfo
+from estim.estimators.base import StepInfo, seeded
 from estim.estimators.filtering import Estimates, stamped
 from estim.estimators.sampling.ensembles import (
     deviations,
@@ -551,15 +551,3 @@ class ParticleFilter(CompiledParticles):
     set_params = _set_params
     params = property(_params)
     _stage_input = _stage_input
-
-
-def seeded(pf: ParticleFilter, seed: object, run: Callable[[], Any]) -> Any:
-    """``run()`` with the particle filter's random numbers from ``seed`` (checked), the
-    constructor's seed back afterwards (the next reset starts its stream again)."""
-    seed = as_seed(seed)
-    before = pf.seed
-    pf.seed = 0 if seed is None else seed
-    try:
-        return run()
-    finally:
-        pf.seed = before
