@@ -213,12 +213,21 @@ def check_arrays(yours: Any, reference: Any, *, quantity: str, equation: str = "
 
 def check_filter(student: Estimator, reference: Estimator, record: Record | tuple, *,
                  equations: Mapping[str, str] | None = None, atol: float = 1e-8,
-                 rtol: float = 1e-6, name: str = "your filter") -> str:
+                 rtol: float = 1e-6, name: str = "your filter",
+                 loop: tuple[Any, Any] | None = None, loop_name: str = "your loop",
+                 loop_equation: str = "the loop: predict, then update, at every sample"
+                 ) -> str:
     """Compare ``student`` with ``reference`` sample by sample on ``record`` (a
     :class:`~estim.Record` or ``(Y, U)``); see the module. ``equations``: for ``"x"`` and
     ``"P"``, the equation the message sends the student to (e.g. ``{"P": "the prediction
     P = F P Fᵀ + Q, eq. (2)"}``). Returns the verdict; raises ``AssertionError`` with the
-    first differing sample, the quantity, both values and the equation."""
+    first differing sample, the quantity, both values and the equation.
+
+    ``loop``: the means ``(T', nx)`` and covariances ``(T', nx, nx)`` that the student's
+    own whole-record function returned, checked (once the steps are right) against the
+    reference's last ``T'`` samples of the same run (a record whose first row is the
+    prior's: all but that row), with :func:`check_arrays`, as ``loop_name``'s means and
+    covariances and ``loop_equation``."""
     for label, est in (("student", student), ("reference", reference)):
         if not isinstance(est, Estimator):
             raise TypeError(f"{label} must be an estim estimator (wrap a step function "
@@ -248,8 +257,11 @@ def check_filter(student: Estimator, reference: Estimator, record: Record | tupl
             firsts["P"] = e
     T = len(xr)
     if not firsts:
+        if loop is not None:
+            _check_loop(loop, xr, Pr, loop_name, loop_equation, atol, rtol)
         return (f"{name} equals the reference on all {T} samples (estimates"
-                f"{' and covariances' if covariance else ''}, to {atol:g} + {rtol:g} |ref|)")
+                f"{' and covariances' if covariance else ''}, to {atol:g} + {rtol:g} |ref|)"
+                f"{f'; so does {loop_name}' if loop is not None else ''}")
     # the covariance's error first where it comes no later than the estimate's
     key = "P" if "P" in firsts and firsts["P"][0] <= firsts.get("x", (T,))[0] else "x"
     where = firsts[key]
@@ -270,6 +282,21 @@ def check_filter(student: Estimator, reference: Estimator, record: Record | tupl
         f"{yours[at]:.6g}, the reference {theirs[at]:.6g}{still}. Look at "
         f"{hint}. ({int((~np.isclose(yours, theirs, atol=atol, rtol=rtol)).sum())} "
         f"entries differ in all, to {atol:g} + {rtol:g} |ref|)")
+
+
+def _check_loop(loop: tuple[Any, Any], xr: np.ndarray, Pr: np.ndarray, name: str,
+                equation: str, atol: float, rtol: float) -> None:
+    """The student's whole-record means and covariances against the reference's last
+    samples (see :func:`check_filter`)."""
+    if not (isinstance(loop, tuple | list) and len(loop) == 2):
+        raise TypeError(f"loop must be the pair (means, covariances), got "
+                        f"{type(loop).__name__}")
+    means, covs = loop
+    start = max(len(xr) - (np.shape(means)[0] if np.ndim(means) else 0), 0)
+    check_arrays(means, xr[start:], quantity=f"{name}'s means", equation=equation,
+                 atol=atol, rtol=rtol, index="sample")
+    check_arrays(covs, Pr[start:], quantity=f"{name}'s covariances", equation=equation,
+                 atol=atol, rtol=rtol, index="sample")
 
 
 def check_over_seeds(student: Estimator | Callable, reference: Estimator | Callable,

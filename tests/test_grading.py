@@ -210,3 +210,19 @@ def test_a_filter_that_fails_on_most_seeds_is_told_so():
     text = check_over_seeds(student(), reference(), scenario(), seeds=range(10),
                             tolerance=1e-6)
     assert "within 1e-06 × the reference's median over 10 seeds" in text
+
+
+def test_the_students_own_loop_is_checked_against_the_same_run(record):
+    """``loop=``: the arrays of the student's whole-record function, checked once the
+    steps are right, against the reference's samples after the prior's row."""
+    Y = np.vstack([[np.nan], record[0]])
+    ref = reference().filter(Y)
+    mine = from_steps(model(), lambda x, P: (F @ x, F @ P @ F.T + Q), _update, X0, P0)
+    assert "so does your loop" in check_filter(mine, reference(), (Y, None),
+                                               loop=(ref.x[1:], ref.P[1:]))
+    late = ref.x[1:].copy()
+    late[5:] = ref.x[5:-1]  # a loop that keeps the estimate of the sample before
+    with pytest.raises(AssertionError, match="your loop's means differs first at sample 5"):
+        check_filter(mine, reference(), (Y, None), loop=(late, ref.P[1:]))
+    with pytest.raises(AssertionError, match="your loop's means: not answered yet"):
+        check_filter(mine, reference(), (Y, None), loop=(None, None))

@@ -221,7 +221,7 @@ hidden: true
 points: 2
 failure_message: your filter leaves estim's Kalman filter
 """ # END TEST CONFIG
-from estim.grading import check_arrays, check_filter, from_steps
+from estim.grading import check_filter, from_steps
 
 equations_ = {"x": "the update m + K (y - H m), eq. (4), and the prediction A m, eq. (1)",
               "P": "the prediction A P Aᵀ + Q (eq. 2) and the update P - K S Kᵀ (eq. 5)"}
@@ -229,12 +229,8 @@ mine_ = from_steps(model, lambda m, P: kf_predict(m, P, A, Q),
                    lambda m, P, y: kf_update(m, P, y, H, R), m0, P0)
 reference_ = estim.EKF(model, Q=Q, R=R, x0=m0, P0=P0)
 record_ = (np.vstack([[np.nan, np.nan], Y]), None)  # the prior one step before Y[0]
-_ = check_filter(mine_, reference_, record_, equations=equations_)
-ref_ = reference_.filter(record_[0])
-_ = check_arrays(means, ref_.x[1:], quantity="kalman_filter's means", index="sample",
-                 equation="the loop: predict, then update, at every sample")
-_ = check_arrays(covs, ref_.P[1:], quantity="kalman_filter's covariances", index="sample",
-                 equation="the loop: predict, then update, at every sample")
+_ = check_filter(mine_, reference_, record_, equations=equations_, loop=(means, covs),
+                 loop_name="kalman_filter")
 
 # %% [raw]
 # # END TESTS

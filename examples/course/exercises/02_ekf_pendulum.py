@@ -312,7 +312,7 @@ hidden: true
 points: 2
 failure_message: your filter leaves estim's extended Kalman filter
 """ # END TEST CONFIG
-from estim.grading import check_arrays, check_filter, from_steps
+from estim.grading import check_filter, from_steps
 
 equations_ = {"x": "the update m + K (y - h(m)), eq. (6), and the prediction f(m), eq. (4)",
               "P": "the prediction F_x P F_xᵀ + Q (eq. 4), the gain (eq. 5) and the update "
@@ -320,12 +320,8 @@ equations_ = {"x": "the update m + K (y - h(m)), eq. (6), and the prediction f(m
 mine_ = from_steps(model, ekf_predict, ekf_update, m0, P0)
 reference_ = estim.EKF(model, Q=Q, R=R, x0=m0, P0=P0)
 record_ = (np.vstack([[np.nan], Y]), None)  # the prior one step before Y[0]
-_ = check_filter(mine_, reference_, record_, equations=equations_)
-ref_ = reference_.filter(record_[0])
-_ = check_arrays(means, ref_.x[1:], quantity="ekf's means",
-                 equation="the loop: predict, then update, at every sample")
-_ = check_arrays(covs, ref_.P[1:], quantity="ekf's covariances",
-                 equation="the loop: predict, then update, at every sample")
+_ = check_filter(mine_, reference_, record_, equations=equations_, loop=(means, covs),
+                 loop_name="ekf")
 
 # %% [raw]
 # # END TESTS

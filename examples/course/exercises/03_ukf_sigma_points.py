@@ -439,7 +439,7 @@ hidden: true
 points: 2
 failure_message: your filter leaves estim's unscented Kalman filter
 """ # END TEST CONFIG
-from estim.grading import check_arrays, check_filter, from_steps
+from estim.grading import check_filter, from_steps
 
 equations_ = {"x": "the update m + K (y - mu), eq. (7), and the predicted mean, eq. (5)",
               "P": "the predicted covariance S_f + Q (eq. 5), the gain K = C S⁻¹ (eq. 6) "
@@ -447,12 +447,8 @@ equations_ = {"x": "the update m + K (y - mu), eq. (7), and the predicted mean, 
 mine_ = from_steps(model, ukf_predict, ukf_update, m0, P0)
 reference_ = estim.UKF(model, Q=Q, R=R, x0=m0, P0=P0, alpha=ALPHA, beta=BETA, kappa=KAPPA)
 record_ = (np.vstack([[np.nan], Y]), None)  # the prior one step before Y[0]
-_ = check_filter(mine_, reference_, record_, equations=equations_)
-ref_ = reference_.filter(record_[0])
-_ = check_arrays(means, ref_.x[1:], quantity="ukf's means",
-                 equation="the loop: predict, then update, at every sample")
-_ = check_arrays(covs, ref_.P[1:], quantity="ukf's covariances",
-                 equation="the loop: predict, then update, at every sample")
+_ = check_filter(mine_, reference_, record_, equations=equations_, loop=(means, covs),
+                 loop_name="ukf")
 
 # %% [raw]
 # # END TESTS
